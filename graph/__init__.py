@@ -1,0 +1,1 @@
+"""retrotouch.graph: the cached node-graph dataflow engine."""

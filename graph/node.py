@@ -1,0 +1,100 @@
+"""Node declaration: a plain function plus a pydantic ``Params`` model.
+
+A node type is declared with :func:`node`::
+
+    class Params(NodeParams):
+        target_edge_mm: float = Field(1.5, gt=0, description="remesh edge length (mm)")
+
+    @node("mesh.remesh", params=Params, inputs=("mesh",), outputs=("mesh",))
+    def remesh(params: Params, mesh: Mesh) -> Mesh:
+        ...
+
+Conventions (the engine relies on them):
+
+* The function is called as ``func(params, **inputs)``; ``inputs`` are keyword arguments named as
+  declared. A fan-in input (``node[*]`` in YAML) receives a ``list`` in branch order.
+* One declared output: the function returns that value. Several outputs: it returns a ``dict``
+  keyed by the declared output names.
+* Values passed between nodes are plain data that :mod:`retrotouch.graph.artifacts` can store
+  without pickle: ``None``/bool/int/float/str, lists/tuples/dicts of those, numpy arrays
+  (non-object dtype), numpy scalars, frozen dataclasses defined in ``retrotouch.*`` modules whose
+  fields are such values, and :class:`Files` (what sink nodes return).
+* Sink nodes (``sink=True``) return :class:`Files`; the engine writes them into the run's output
+  folder atomically and lists them in ``manifest.json``.
+* The code version is the sha256 of the AST-normalised source (docstrings and comments dropped) of
+  the node's module and of every ``retrotouch`` module it imports, transitively; pass
+  ``version="..."`` to pin it by hand instead.
+* Units: millimetres for lengths after ingest; angles are degrees in ``Params`` (YAML) and
+  radians inside the functions.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+from pydantic import BaseModel, ConfigDict
+
+
+class NodeParams(BaseModel):
+    """Base of every node's ``Params``: unknown keys are rejected, instances are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Files:
+    """Files produced by a sink node: relative POSIX path inside the output folder -> content."""
+
+    contents: dict[str, bytes]
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeSpec:
+    """A registered node type."""
+
+    name: str
+    func: Callable[..., Any]
+    params: type[NodeParams]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    version: str | None
+    sink: bool
+    doc: str
+
+
+REGISTRY: dict[str, NodeSpec] = {}
+
+
+class _NoParams(NodeParams):
+    """No parameters."""
+
+
+def node(
+    name: str,
+    *,
+    params: type[NodeParams] | None = None,
+    inputs: tuple[str, ...] = (),
+    outputs: tuple[str, ...] = ("out",),
+    version: str | None = None,
+    sink: bool = False,
+) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Register ``func`` as node type ``name`` (dotted, e.g. ``"mesh.load"``); returns it unchanged."""
+
+    def register(func: Callable[..., Any]) -> Callable[..., Any]:
+        if name in REGISTRY and REGISTRY[name].func.__qualname__ != func.__qualname__:
+            raise ValueError(f"node type {name!r} is declared twice")
+        if sink and outputs != ("files",):
+            raise ValueError(f"sink node {name!r} must declare outputs=('files',)")
+        REGISTRY[name] = NodeSpec(
+            name=name,
+            func=func,
+            params=params or _NoParams,
+            inputs=tuple(inputs),
+            outputs=tuple(outputs),
+            version=version,
+            sink=sink,
+            doc=(func.__doc__ or "").strip(),
+        )
+        return func
+
+    return register

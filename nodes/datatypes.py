@@ -1,0 +1,121 @@
+"""The plain data passed between retrotouch nodes.
+
+Conventions stated once for the whole project:
+
+* Lengths in millimetres (after ingest), angles in radians (degrees only in YAML params).
+* ``vertices`` (n, 3) float64; ``faces`` (m, 3) int64, counter-clockwise seen from outside, so
+  ``cross(P1 - P0, P2 - P0)`` points outward.
+* Barycentric coordinates ``bary[k] = (l0, l1, l2)`` refer to the corners ``faces[f]`` in order and
+  sum to 1; a point is ``bary @ vertices[faces[f]]``.
+* Curve sets are stored flat: curve ``c`` owns rows ``offsets[c]:offsets[c + 1]``. Segment ``k``
+  (row ``k`` to row ``k + 1`` of the same curve) lies inside face ``faces[k]``; row ``k``'s
+  barycentrics are with respect to ``faces[k]``. A curve's last row repeats the face of its last
+  segment. Points where a curve crosses an edge are stored once, in the face the curve enters.
+  Curves are oriented from their start (Tx: the far singularity; Rx: the base boundary) to their
+  end.
+"""
+from __future__ import annotations
+
+import dataclasses
+from enum import IntEnum
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Mesh:
+    """A closed triangle mesh in millimetres (see the module conventions)."""
+
+    vertices: np.ndarray  # (n, 3) float64, mm
+    faces: np.ndarray  # (m, 3) int64, CCW from outside
+    source: str  # where it came from (file name or "builtin:bunny"), for reports only
+
+
+class CurveEnd(IntEnum):
+    """Why tracing stopped, per curve."""
+
+    BASE = 0  # reached the non-sensing base boundary (the wanted case)
+    SINGULARITY = 1  # came within the stop radius of a singularity
+    SINK_EDGE = 2  # both faces of an edge point at it
+    LOOP = 3  # loop guard (revisited a face in the same direction)
+    MAX_STEPS = 4  # step budget exhausted
+
+
+@dataclasses.dataclass(frozen=True)
+class CurveSet:
+    """One layer's family of traced curves (module conventions: flat storage, per-segment faces)."""
+
+    layer: str  # "tx" or "rx"
+    points: np.ndarray  # (P, 3) float64, mm
+    faces: np.ndarray  # (P,) int64
+    bary: np.ndarray  # (P, 3) float64
+    offsets: np.ndarray  # (C + 1,) int64
+    lengths_mm: np.ndarray  # (C,) float64, polyline length in mm
+    end_reason: np.ndarray  # (C,) int8, CurveEnd codes
+    angle: float  # Rx initial angular offset in radians; 0.0 for Tx
+
+    @property
+    def count(self) -> int:
+        return len(self.offsets) - 1
+
+    def curve(self, c: int) -> slice:
+        """Row slice of curve ``c``."""
+        return slice(int(self.offsets[c]), int(self.offsets[c + 1]))
+
+
+@dataclasses.dataclass(frozen=True)
+class Crossings:
+    """Crossings between curves of layer ``layer_a`` and layer ``layer_b`` (possibly the same layer).
+
+    Row ``k`` is one crossing of curve ``curve_a[k]`` with curve ``curve_b[k]`` at ``points[k]``
+    inside face ``faces[k]`` (barycentrics ``bary[k]``); ``arc_a``/``arc_b`` are the arc lengths (mm)
+    from each curve's start to the crossing, ``seg_a``/``seg_b`` the segment indices (row offsets
+    within the curve). For a same-layer set each unordered pair appears once with ``curve_a < curve_b``.
+    """
+
+    layer_a: str
+    layer_b: str
+    curve_a: np.ndarray  # (K,) int64
+    curve_b: np.ndarray  # (K,) int64
+    seg_a: np.ndarray  # (K,) int64
+    seg_b: np.ndarray  # (K,) int64
+    arc_a: np.ndarray  # (K,) float64, mm
+    arc_b: np.ndarray  # (K,) float64, mm
+    points: np.ndarray  # (K, 3) float64, mm
+    faces: np.ndarray  # (K,) int64
+    bary: np.ndarray  # (K, 3) float64
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """The optimised sensor layout on one mesh.
+
+    ``tx``/``rx`` hold only the selected curves, in channel order (Tx00 is ``tx`` curve 0).
+    ``cells`` are their Tx x Rx crossings with ``curve_a`` = Tx channel and ``curve_b`` = Rx channel,
+    at most one row per channel pair; ``pad[k]`` says whether an electrode pad is placed at row k.
+    ``tx_source``/``rx_source`` map channels back to curve ids in the candidate families.
+    """
+
+    tx: CurveSet
+    rx: CurveSet
+    cells: Crossings
+    pad: np.ndarray  # (K,) bool
+    tx_source: np.ndarray  # (Ntx,) int64
+    rx_source: np.ndarray  # (Nrx,) int64
+
+
+SENSING_MAP_FORMAT = "retrotouch.sensing_map/1"
+"""``sensing_map.json``, the file the runtime reads (written next to ``mesh.ply`` in a run's output)::
+
+    {"format": "retrotouch.sensing_map/1",
+     "units": "mm",
+     "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
+     "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
+     "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
+                  "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},
+     "cells": [{"tx": 0, "rx": 3, "point": [x, y, z], "face": 123, "bary": [l0, l1, l2],
+                "normal": [nx, ny, nz], "pad": true}, ...]}
+
+Cells list only channel pairs whose curves cross; the Muca frame index of a cell is
+``tx * 12 + rx`` on a 21 x 12 board (TX-major).
+"""
