@@ -24,6 +24,8 @@ Conventions (the engine relies on them):
 * The code version is the sha256 of the AST-normalised source (docstrings and comments dropped) of
   the node's module and of every ``retrotouch`` module it imports, transitively; pass
   ``version="..."`` to pin it by hand instead.
+* A node that reads files names them in ``Params.input_files()``; their content is part of the
+  cache key.
 * Units: millimetres for lengths after ingest; angles are degrees in ``Params`` (YAML) and
   radians inside the functions.
 """
@@ -39,6 +41,14 @@ class NodeParams(BaseModel):
     """Base of every node's ``Params``: unknown keys are rejected, instances are immutable."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def input_files(self) -> list[str]:
+        """Paths of files this node reads, resolved as the node will resolve them.
+
+        The engine hashes their *content* into the cache key, so editing a mesh file on disk
+        reruns the node even though its params did not change. Override in nodes that read files.
+        """
+        return []
 
 
 @dataclasses.dataclass(frozen=True)
