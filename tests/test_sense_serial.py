@@ -1,0 +1,207 @@
+"""Muca serial parsing: formats, orientation, garbage tolerance (fuzzed), record/replay, reconnect."""
+from __future__ import annotations
+
+import os
+import pty
+import threading
+import time
+
+import numpy as np
+import pytest
+import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.muca_serial import (
+    AsciiFrameParser,
+    BinaryFrameParser,
+    FrameOptions,
+    MucaReader,
+    Recorder,
+    encode_ascii_frame,
+    encode_binary_frame,
+    parse_stream,
+    replay_frames,
+)
+
+
+def grid(seed: int, low: int = 9000, high: int = 10500) -> np.ndarray:
+    return np.random.default_rng(seed).integers(low, high, size=(21, 12))
+
+
+def test_ascii_frame_round_trip_with_crlf_and_status_lines():
+    frames = [grid(1), grid(2)]
+    stream = (b"[Muca] Initialized\r\nCalibration performed 3/20\r\n" + encode_ascii_frame(frames[0])
+              + b"[Muca] Gain set to 5\r\n" + encode_ascii_frame(frames[1]))
+    parser = AsciiFrameParser()
+    out = parser.feed(stream)
+    assert len(out) == 2
+    assert all(np.array_equal(a, b) for a, b in zip(out, frames))
+    assert out[0].shape == (21, 12) and out[0].dtype == np.int32
+    assert parser.stats.status_lines == 3 and parser.stats.frames == 2
+
+
+def test_empty_fields_read_zero():
+    values = grid(3)
+    values[0, :5] = 0
+    line = ",".join("" if v == 0 else str(v) for v in values.ravel()).encode() + b"\r\n"
+    (frame,) = AsciiFrameParser().feed(line)
+    assert np.array_equal(frame, values)
+
+
+def test_flips_and_skipped_channels():
+    values = grid(4)
+    options = FrameOptions(flip_tx=True, flip_rx=True, skip_tx=(2,), skip_rx=(11,))
+    (frame,) = AsciiFrameParser(options).feed(encode_ascii_frame(values))
+    expected = values[::-1, ::-1].copy()
+    expected[2, :] = -1
+    expected[:, 11] = -1
+    assert np.array_equal(frame, expected)
+
+
+def test_skip_first_lines_drops_exactly_that_many():
+    frames = [grid(i) for i in range(3)]
+    out = AsciiFrameParser(skip_first_lines=1).feed(b"".join(encode_ascii_frame(f) for f in frames))
+    assert len(out) == 2 and np.array_equal(out[0], frames[1])
+
+
+def test_status_text_glued_without_newline_is_salvaged():
+    values = grid(5)
+    parser = AsciiFrameParser()
+    (frame,) = parser.feed(b"i2c write failed" + encode_ascii_frame(values))
+    assert np.array_equal(frame, values)
+    assert parser.stats.salvaged_lines == 1
+
+
+def test_frames_glued_to_partial_numbers_are_rejected_not_corrupted():
+    values = grid(6)
+    partial = encode_ascii_frame(grid(7))[:40]  # ends mid-number, no newline
+    out = AsciiFrameParser().feed(partial + encode_ascii_frame(values) + encode_ascii_frame(values))
+    assert len(out) == 1 and np.array_equal(out[0], values)
+
+
+def test_out_of_range_values_rejected():
+    values = grid(8)
+    line = encode_ascii_frame(values).replace(b",", b",70000,", 1)
+    line = b",".join(line.split(b",")[:252]) + b"\r\n"
+    assert AsciiFrameParser().feed(line) == []
+
+
+@st.composite
+def noisy_stream(draw):
+    """Valid frames interleaved with garbage lines, status lines and truncated frames, chunked at random."""
+    items = []
+    valid = []
+    for k in range(draw(st.integers(1, 6))):
+        kind = draw(st.sampled_from(["frame", "garbage", "status", "truncated"]))
+        if kind == "frame":
+            values = grid(draw(st.integers(0, 10_000)), 0, 65536)
+            valid.append(values)
+            items.append(encode_ascii_frame(values))
+        elif kind == "garbage":
+            items.append(draw(st.binary(max_size=300)) + b"\n")
+        elif kind == "status":
+            items.append(draw(st.sampled_from([b"[Muca] Initialized\r\n", b"Calibration performed 7/20\r\n"])))
+        else:
+            line = encode_ascii_frame(grid(draw(st.integers(0, 10_000))))
+            cut = draw(st.integers(0, line.rstrip().rfind(b",")))  # always loses at least one field
+            items.append(line[:cut] + b"\r\n")
+    stream = b"".join(items)
+    cuts = sorted(draw(st.lists(st.integers(0, len(stream)), max_size=8)))
+    chunks = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)])]
+    return chunks, valid
+
+
+@settings(max_examples=150, deadline=None)
+@given(noisy_stream())
+def test_fuzz_ascii_never_crashes_and_keeps_every_valid_frame(case):
+    chunks, valid = case
+    out = parse_stream(chunks, AsciiFrameParser())
+    assert len(out) == len(valid)
+    assert all(np.array_equal(a, b) for a, b in zip(out, valid))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.binary(max_size=2000), max_size=6))
+def test_fuzz_random_bytes_never_crash_either_parser(chunks):
+    ascii_parser, binary_parser = AsciiFrameParser(), BinaryFrameParser()
+    for chunk in chunks:
+        for frame in ascii_parser.feed(chunk) + binary_parser.feed(chunk):
+            assert frame.shape == (21, 12) and frame.max() <= 65535
+
+
+def test_binary_round_trip_and_resync():
+    frames = [grid(9, 9500, 9700), grid(10, 9500, 9700)]
+    parser = BinaryFrameParser()
+    data = b"[Muca] Initialized\r\n" + b"".join(encode_binary_frame(f) for f in frames)
+    out = parse_stream([data[:100], data[100:]], parser)
+    assert len(out) == 2 and all(np.array_equal(a, b) for a, b in zip(out, frames))
+    parser.feed(b"\x01\x02\x03")  # a partial frame, then a pause
+    parser.resync()
+    (again,) = parser.feed(encode_binary_frame(frames[0]))
+    assert np.array_equal(again, frames[0])
+
+
+def test_record_and_replay_round_trip(tmp_path):
+    frames = [grid(i) for i in range(5)]
+    path = tmp_path / "session.jsonl"
+    recorder = Recorder(path, {"frame_format": "ascii", "port": "test"})
+    for k, values in enumerate(frames):
+        data = encode_ascii_frame(values)
+        recorder.bytes(data[:50], t=0.1 * k)
+        recorder.bytes(data[50:], t=0.1 * k + 0.01)
+    recorder.label({"location": 3}, t=0.45)
+    recorder.close()
+    labels = []
+    out = list(replay_frames(path, on_label=lambda t, label: labels.append((t, label))))
+    assert [f.seq for f in out] == list(range(5))
+    assert all(np.array_equal(f.values, v) for f, v in zip(out, frames))
+    assert out[2].t == pytest.approx(0.21)
+    assert labels == [(0.45, {"location": 3})]
+
+
+def test_replay_of_missing_file_is_user_error(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        list(replay_frames(tmp_path / "nope.jsonl"))
+
+
+def test_missing_port_is_user_error():
+    with pytest.raises(UserError, match="cannot open serial port /dev/nonexistent-muca"):
+        MucaReader("/dev/nonexistent-muca")
+
+
+def test_reader_reconnects_after_unplug():
+    """Two pseudo-terminals stand for the board before and after an unplug."""
+    ptys = [pty.openpty() for _ in range(2)]
+    opened = iter(ptys)
+
+    def open_port():
+        master, slave = next(opened)
+        return serial.Serial(os.ttyname(slave), timeout=0.05)
+
+    reader = MucaReader("pty", open_port=open_port, reconnect_interval_s=0.01)
+    frames = [grid(20), grid(21)]
+
+    def board():
+        os.write(ptys[0][0], encode_ascii_frame(frames[0]))
+        time.sleep(0.2)
+        os.close(ptys[0][0])  # unplug: the reader's fd now errors
+        time.sleep(0.1)
+        os.write(ptys[1][0], b"[Muca] Initialized\r\n" + encode_ascii_frame(frames[1]))
+
+    thread = threading.Thread(target=board)
+    thread.start()
+    got = []
+    for frame in reader.frames():
+        got.append(frame.values)
+        if len(got) == 2:
+            break
+    reader.close()
+    thread.join()
+    for master, slave in ptys[1:]:
+        os.close(master)
+    for _, slave in ptys:
+        os.close(slave)
+    assert reader.reconnects == 1
+    assert all(np.array_equal(a, b) for a, b in zip(got, frames))
