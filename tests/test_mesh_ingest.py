@@ -1,0 +1,224 @@
+"""mesh.load / mesh.scale / mesh.repair / mesh.remesh / mesh.check_topology, called directly."""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.datatypes import Mesh
+from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
+from retrotouch.nodes.mesh_repair import (
+    RemeshParams,
+    RepairParams,
+    remesh,
+    repair_mesh,
+    signed_volume,
+)
+from retrotouch.nodes.topology import CheckTopologyParams, check_topology
+
+SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+
+
+def as_mesh(tm: trimesh.Trimesh, name: str = "test") -> Mesh:
+    return Mesh(
+        vertices=np.asarray(tm.vertices, dtype=np.float64),
+        faces=np.asarray(tm.faces, dtype=np.int64),
+        source=name,
+    )
+
+
+@pytest.fixture(scope="module")
+def bunny() -> Mesh:
+    return load_mesh(LoadParams())
+
+
+def test_builtin_bunny_loads_with_content_hash(bunny: Mesh) -> None:
+    path = resolve_mesh_path("builtin:bunny")
+    assert bunny.vertices.shape == (28088, 3) and bunny.faces.shape == (56172, 3)
+    assert bunny.vertices.dtype == np.float64 and bunny.faces.dtype == np.int64
+    assert bunny.source == f"builtin:bunny sha256:{hashlib.sha256(path.read_bytes()).hexdigest()}"
+    assert LoadParams().input_files() == [str(path)]
+
+
+def test_units_convert_to_mm(tmp_path: Path) -> None:
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    path = tmp_path / "box.stl"
+    box.export(path)
+    mesh = load_mesh(LoadParams(path=str(path), units="in"))
+    np.testing.assert_allclose(mesh.vertices.max(0) - mesh.vertices.min(0), [25.4, 50.8, 76.2])
+    assert len(mesh.vertices) == 8  # STL triangle soup merged into a closed box
+
+
+def test_glb_scene_is_flattened(tmp_path: Path) -> None:
+    scene = trimesh.Scene(
+        [trimesh.creation.box(extents=(1, 1, 1)), trimesh.creation.icosphere(radius=0.5).apply_translation((3, 0, 0))]
+    )
+    path = tmp_path / "scene.glb"
+    scene.export(path)
+    mesh = load_mesh(LoadParams(path=str(path), units="cm"))
+    assert len(mesh.faces) == 12 + 1280
+    np.testing.assert_allclose(mesh.vertices[:, 0].max(), 35.0, rtol=1e-6)
+
+
+def test_content_change_changes_source_hash(tmp_path: Path) -> None:
+    path = tmp_path / "shape.ply"
+    trimesh.creation.box().export(path)
+    first = load_mesh(LoadParams(path=str(path))).source
+    trimesh.creation.icosphere().export(path)
+    assert load_mesh(LoadParams(path=str(path))).source != first
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("empty.ply", b"", "is empty"),
+        ("notamesh.obj", b"hello\nthis is a shopping list\n", "contains no triangles"),
+        ("notamesh.stl", b"solid? no, just some words\n", "contains no triangles"),
+        ("points.xyz", b"1 2 3\n", "unsupported extension"),
+    ],
+)
+def test_unreadable_files_give_one_line_errors(tmp_path: Path, name: str, content: bytes, message: str) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(UserError, match=message) as info:
+        load_mesh(LoadParams(path=str(path)))
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_truncated_ply(tmp_path: Path) -> None:
+    data = trimesh.creation.icosphere().export(file_type="ply")
+    path = tmp_path / "cut.ply"
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError, match=r"cannot read mesh file .*cut\.ply.*export it again"):
+        load_mesh(LoadParams(path=str(path)))
+
+
+def test_missing_file_and_unknown_builtin(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="does not exist"):
+        load_mesh(LoadParams(path=str(tmp_path / "nope.obj")))
+    with pytest.raises(UserError, match="unknown built-in mesh"):
+        load_mesh(LoadParams(path="builtin:teapot"))
+
+
+def test_scale_to_diagonal_is_exact(bunny: Mesh) -> None:
+    scaled = scale_mesh(ScaleParams(diagonal_mm=170.0), bunny)
+    diagonal = np.linalg.norm(scaled.vertices.max(0) - scaled.vertices.min(0))
+    assert abs(diagonal - 170.0) / 170.0 < 1e-9
+    factor = 170.0 / np.linalg.norm(bunny.vertices.max(0) - bunny.vertices.min(0))
+    np.testing.assert_allclose(scaled.vertices, bunny.vertices * factor, rtol=1e-12)  # about the origin
+
+
+def test_scale_longest_extent_about_bbox_centre(bunny: Mesh) -> None:
+    scaled = scale_mesh(ScaleParams(longest_extent_mm=120.0, about="bbox_center"), bunny)
+    extents = scaled.vertices.max(0) - scaled.vertices.min(0)
+    assert abs(extents.max() - 120.0) < 1e-9
+    centre = lambda v: 0.5 * (v.max(0) + v.min(0))  # noqa: E731
+    np.testing.assert_allclose(centre(scaled.vertices), centre(bunny.vertices), atol=1e-12)
+
+
+def test_scale_by_units_and_param_validation(bunny: Mesh) -> None:
+    np.testing.assert_allclose(scale_mesh(ScaleParams(units="m"), bunny).vertices, bunny.vertices * 1000.0)
+    with pytest.raises(ValueError, match="exactly one"):
+        ScaleParams(units="m", diagonal_mm=100.0)
+    with pytest.raises(ValueError, match="exactly one"):
+        ScaleParams()
+
+
+def test_repair_merges_duplicates_and_orients_outward() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    soup_vertices = sphere.vertices[sphere.faces].reshape(-1, 3)  # every face its own 3 vertices
+    soup_faces = np.arange(len(soup_vertices)).reshape(-1, 3)[:, ::-1]  # and inward
+    broken = Mesh(vertices=soup_vertices, faces=soup_faces, source="soup")
+    repaired = repair_mesh(RepairParams(), broken)
+    assert len(repaired.vertices) == len(sphere.vertices)
+    assert signed_volume(repaired.vertices, repaired.faces) > 0
+    check_topology(CheckTopologyParams(), repaired)
+
+
+def test_repair_closes_holes_and_keeps_largest() -> None:
+    big = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    small = trimesh.creation.icosphere(subdivisions=1, radius=2.0).apply_translation((50, 0, 0))
+    both = trimesh.util.concatenate([big, small])
+    holed = Mesh(np.asarray(both.vertices), np.asarray(both.faces[3:], dtype=np.int64), "holed")
+    repaired = repair_mesh(RepairParams(keep_largest=True), holed)
+    report = check_topology(CheckTopologyParams(), repaired)["report"]
+    assert report["components"] == 1 and report["boundary_edges"] == 0
+    assert report["vertices"] == len(big.vertices)
+
+
+def test_remesh_to_vertex_count_lands_within_15_percent() -> None:
+    sphere = as_mesh(trimesh.creation.icosphere(subdivisions=4, radius=40.0))
+    out = remesh(RemeshParams(target_vertices=1000), sphere)
+    assert abs(len(out.vertices) - 1000) / 1000 < 0.15
+    assert out.vertices.flags.c_contiguous and out.faces.dtype == np.int64
+    assert signed_volume(out.vertices, out.faces) > 0
+    assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
+
+
+def test_remesh_to_edge_length() -> None:
+    sphere = as_mesh(trimesh.creation.icosphere(subdivisions=3, radius=40.0))
+    out = remesh(RemeshParams(target_edge_mm=6.0), sphere)
+    edges = out.vertices[out.faces] - out.vertices[np.roll(out.faces, -1, axis=1)]
+    assert abs(np.median(np.linalg.norm(edges, axis=2)) - 6.0) < 1.0
+
+
+def test_remesh_params_need_one_target() -> None:
+    with pytest.raises(ValueError, match="exactly one"):
+        RemeshParams()
+
+
+def test_check_topology_passes_good_mesh(bunny: Mesh) -> None:
+    out = check_topology(CheckTopologyParams(), bunny)
+    assert out["mesh"] is bunny
+    report = out["report"]
+    assert (report["genus"], report["euler_characteristic"], report["components"]) == (0, 2, 1)
+    assert report["boundary_edges"] == report["non_manifold_edges"] == 0
+
+
+def test_open_box_reports_boundary() -> None:
+    box = trimesh.creation.box(extents=(10, 10, 10))
+    mesh = Mesh(np.asarray(box.vertices), np.asarray(box.faces[2:], dtype=np.int64), "box.ply sha256:00")
+    with pytest.raises(UserError, match=r"^box\.ply: 4 boundary edges \(1 hole\(s\)\): run mesh.repair"):
+        check_topology(CheckTopologyParams(), mesh)
+
+
+def test_torus_reports_genus_one() -> None:
+    with pytest.raises(UserError, match="genus 1: the layout method needs a genus-0 surface"):
+        check_topology(CheckTopologyParams(), as_mesh(trimesh.creation.torus(30.0, 10.0), "torus"))
+    assert check_topology(CheckTopologyParams(expected_genus=1), as_mesh(trimesh.creation.torus(30.0, 10.0)))
+
+
+def test_two_spheres_report_components() -> None:
+    a = trimesh.creation.icosphere(radius=10.0)
+    b = trimesh.creation.icosphere(radius=10.0).apply_translation((50, 0, 0))
+    with pytest.raises(UserError, match="2 components: keep the largest with mesh.repair keep_largest: true"):
+        check_topology(CheckTopologyParams(), as_mesh(trimesh.util.concatenate([a, b])))
+
+
+def test_inward_faces_and_non_manifold_edge() -> None:
+    sphere = trimesh.creation.icosphere(radius=10.0)
+    inward = Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces[:, ::-1], dtype=np.int64), "in")
+    with pytest.raises(UserError, match="faces point inward"):
+        check_topology(CheckTopologyParams(), inward)
+    fin = np.vstack([sphere.vertices, [[0.0, 0.0, 30.0]]])
+    a, b = sphere.faces[0, :2]
+    faces = np.vstack([sphere.faces, [[a, b, len(fin) - 1]]])
+    with pytest.raises(UserError, match="1 non-manifold edges"):
+        check_topology(CheckTopologyParams(), Mesh(fin, faces.astype(np.int64), "fin"))
+
+
+@pytest.mark.parametrize("name", [
+    "blub_fish.ply", "duck_gao.ply", "pear_gao.ply", "penguin_oded.ply",
+    "spoon_pfc.ply", "spot_crane.ply", "teddy1_gao.ply",
+])
+def test_shared_meshes_load_as_genus_zero(name: str) -> None:
+    path = SHARED_MESHES / name
+    if not path.is_file():
+        pytest.skip(f"{path} absent (shared test meshes are not checked out next to the repo)")
+    mesh = scale_mesh(ScaleParams(diagonal_mm=150.0), load_mesh(LoadParams(path=str(path))))
+    report = check_topology(CheckTopologyParams(), mesh)["report"]
+    assert report["genus"] == 0 and report["components"] == 1 and report["boundary_edges"] == 0
