@@ -1,0 +1,285 @@
+"""The ``retrotouch`` command line: run/plan pipelines, list node types, manage the cache.
+
+Every operator error ends as one line on stderr and a non-zero exit (2 for problems the operator
+can fix, 1 for unexpected failures, whose traceback goes to a log file). Imports are lazy so that a
+fully cached run stays fast: nothing heavy is imported before it is needed.
+
+Runtime commands written elsewhere (``retrotouch sense``, ``retrotouch project``) live in the
+modules listed in :data:`EXTENSIONS`; each exposes ``register(app)`` adding its commands to the
+typer app. A module that does not exist (yet) is skipped.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+import time
+import uuid
+from typing import Any, Optional
+
+import click
+import typer
+
+from retrotouch.graph.errors import NodeFailed, UserError
+
+EXTENSIONS = ("retrotouch.nodes.sense_cli", "retrotouch.nodes.project_cli")
+CORE_COMMANDS = ("run", "plan", "nodes", "cache")
+
+SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
+                         help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
+                              "or -S nodes.remesh.params.target_edge_mm=2 (short: -S remesh.target_edge_mm=2).")
+CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: $RETROTOUCH_CACHE_DIR or ./cache).")
+
+
+def _store(cache_dir: Optional[str]):
+    from retrotouch.graph.store import Store, default_cache_dir
+
+    return Store(cache_dir or default_cache_dir())
+
+
+def _plan(pipeline: str, overrides: list[str] | None, cache_dir: Optional[str]):
+    from retrotouch.graph.pipeline import load_pipeline
+    from retrotouch.graph.plan import expand
+
+    return expand(load_pipeline(pipeline, overrides or []), _store(cache_dir))
+
+
+def _check_scheduler(scheduler: str) -> None:
+    from retrotouch.graph.execute import SCHEDULERS
+
+    if scheduler not in SCHEDULERS and not scheduler.startswith("tcp://"):
+        raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+
+
+def run(
+    pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
+    overrides: Optional[list[str]] = SetOption,
+    out: Optional[str] = typer.Option(None, "--out", help="Output folder (default: out/<pipeline name>)."),
+    scheduler: str = typer.Option("auto", "--scheduler",
+                                  help="auto | sync | threads | processes | tcp://HOST:PORT (a dask.distributed scheduler)."),
+    explain: bool = typer.Option(False, "--explain", help="Say why each node that runs is not a cache hit."),
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Run a pipeline: cached nodes are reused, the rest run on the scheduler; sinks write into --out."""
+    from retrotouch.graph import plan as planning
+    from retrotouch.graph.execute import execute
+    from retrotouch.graph.outputs import write_outputs
+
+    _check_scheduler(scheduler)
+    plan = _plan(pipeline, overrides, cache_dir)
+    out_dir = out or os.path.join("out", os.path.splitext(os.path.basename(pipeline))[0])
+    if explain:
+        planning.explain(plan)
+        _print_explain(plan)
+    by_task = {f"{i.id}-{i.key[:16]}": i for i in plan.to_run}
+    status: dict[int, dict[str, Any]] = {}
+    run_id = uuid.uuid4().hex
+    start = time.perf_counter()
+    try:
+        with _progress(len(by_task)) as advance:
+            def on_done(name: str, result: Any) -> None:
+                inst = by_task[name]
+                status[id(inst)] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds}
+                advance(inst.id)
+
+            results = execute(plan, scheduler, run_id, on_done)
+        refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
+        refs.update({id(by_task[name]): result.ref for name, result in results.items()})
+        write_outputs(plan, refs, out_dir, {"status": status, "scheduler": scheduler})
+    finally:
+        plan.store.drop_scratch(run_id)
+    planning.record_run(plan)
+    for inst in plan.instances:
+        if inst.cached is not None:
+            plan.store.touch(inst.cached)
+    _print_table(plan, status)
+    ran = sum(1 for s in status.values() if s["status"] == "ran")
+    print(f"{ran} ran, {len(plan.instances) - ran} cached, {time.perf_counter() - start:.2f} s; "
+          f"outputs in {os.path.abspath(out_dir)}")
+
+
+def plan_command(
+    pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
+    overrides: Optional[list[str]] = SetOption,
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Show what a run would do: every node instance, its cache key, hit or miss, and why it would run."""
+    from retrotouch.graph import plan as planning
+
+    plan = _plan(pipeline, overrides, cache_dir)
+    planning.explain(plan)
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table("node", "branch", "type", "key", "status", "why")
+    for inst in plan.instances:
+        table.add_row(inst.node, inst.label, inst.decl.spec.name, inst.key[:12],
+                      "run" if inst.runs else ("cached" if inst.cached else "skip"), inst.reason)
+    Console().print(table)
+    print(f"{len(plan.to_run)} of {len(plan.instances)} node instances would run")
+
+
+def nodes(name: Optional[str] = typer.Argument(None, help="Only node types containing this text.")) -> None:
+    """List the node types with their inputs, outputs, params (type, default, description) and docs."""
+    from pydantic_core import PydanticUndefined
+
+    from retrotouch.graph import registry
+
+    specs = registry.load()
+    for type_name in sorted(specs):
+        if name and name not in type_name:
+            continue
+        spec = specs[type_name]
+        print(f"{type_name}{'  (sink)' if spec.sink else ''}")
+        if spec.doc:
+            print("  " + spec.doc.split("\n\n")[0].replace("\n", "\n  "))
+        print(f"  inputs: {', '.join(spec.inputs) or '-'}    outputs: {', '.join(spec.outputs)}")
+        for field, info in spec.params.model_fields.items():
+            annotation = getattr(info.annotation, "__name__", None) or str(info.annotation).replace("typing.", "")
+            default = "required" if info.default is PydanticUndefined and info.default_factory is None else \
+                f"default {info.get_default(call_default_factory=True)!r}"
+            print(f"    {field}: {annotation} ({default}){' - ' + info.description if info.description else ''}")
+        print()
+
+
+cache_app = typer.Typer(help="Inspect and clean the cache.", no_args_is_help=True, add_completion=False)
+
+
+@cache_app.command("info")
+def cache_info(cache_dir: Optional[str] = CacheDirOption) -> None:
+    """Where the cache is, how many entries, how big."""
+    from retrotouch.graph import maintenance
+
+    for line in maintenance.info(_store(cache_dir)):
+        print(line)
+
+
+@cache_app.command("gc")
+def cache_gc(
+    pipelines: Optional[list[str]] = typer.Argument(None, help="Keep every entry these pipelines use."),
+    older_than: Optional[float] = typer.Option(None, "--older-than", metavar="DAYS",
+                                               help="Only drop entries not used for this many days."),
+    overrides: Optional[list[str]] = SetOption,
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Drop stale temp dirs and corrupt entries; with PIPELINES, drop entries they do not use; with
+    --older-than, drop entries unused for DAYS days (both given: unused by them AND old)."""
+    from retrotouch.graph import maintenance
+
+    store = _store(cache_dir)
+    keep = None
+    if pipelines:
+        keep = set()
+        for p in pipelines:
+            keep |= {inst.key for inst in _plan(p, overrides, store.root).instances}
+    for line in maintenance.gc(store, keep, older_than):
+        print(line)
+
+
+@cache_app.command("clear")
+def cache_clear(cache_dir: Optional[str] = CacheDirOption) -> None:
+    """Delete every entry, lock, run record, log and temp dir in the cache."""
+    from retrotouch.graph import maintenance
+
+    print(maintenance.clear(_store(cache_dir)))
+
+
+def _progress(total: int):
+    """Context manager yielding ``advance(label)``; a rich progress bar on stderr while tasks run."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def manager():
+        if total == 0:
+            yield lambda label: None
+            return
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                      console=Console(stderr=True), transient=True) as progress:
+            task = progress.add_task("running", total=total)
+            yield lambda label: progress.update(task, advance=1, description=f"done {label}")
+
+    return manager()
+
+
+def _print_explain(plan) -> None:
+    for inst in plan.to_run:
+        print(f"{inst.id}: runs because {inst.reason}")
+
+
+def _print_table(plan, status: dict[int, dict[str, Any]]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table("node", "branch", "cached/ran", "seconds")
+    for inst in plan.instances:
+        s = status.get(id(inst))
+        if s is None:
+            table.add_row(inst.node, inst.label, "cached" if inst.cached else "skipped", "")
+        else:
+            table.add_row(inst.node, inst.label, s["status"], f"{s['seconds']:.2f}")
+    Console(width=max(100, Console().width)).print(table)
+
+
+def build_app(with_extensions: bool = True) -> typer.Typer:
+    app = typer.Typer(help="retrotouch: retrofit 3D objects with surface-conforming touch sensing.",
+                      no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                      rich_markup_mode=None)
+    app.command("run")(run)
+    app.command("plan")(plan_command)
+    app.command("nodes")(nodes)
+    app.add_typer(cache_app, name="cache")
+    if with_extensions:
+        for module in EXTENSIONS:
+            try:
+                found = importlib.util.find_spec(module) is not None
+            except (ImportError, ValueError):
+                found = False
+            if found:
+                importlib.import_module(module).register(app)
+    return app
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: run the CLI, turning every error into one line and an exit code."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    try:
+        app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
+        command = typer.main.get_command(app)
+        result = command.main(args=args, prog_name="retrotouch", standalone_mode=False)
+    except UserError as exc:
+        _fail(str(exc), 2)
+    except NodeFailed as exc:
+        _fail(str(exc), 1)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        _fail(exc.format_message() + "  (see retrotouch --help)", 2)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        _fail("interrupted", 130)
+    except Exception as exc:  # an engine bug: keep the traceback, show one line
+        _fail(f"unexpected {type(exc).__name__}: {exc} (traceback: {_crash_log()})", 1)
+    sys.exit(result if isinstance(result, int) else 0)
+
+
+def _fail(message: str, code: int) -> None:
+    first = " ".join(str(message).split("\n"))
+    print(f"retrotouch: error: {first}", file=sys.stderr)
+    sys.exit(code)
+
+
+def _crash_log() -> str:
+    import tempfile
+    import traceback
+
+    fd, path = tempfile.mkstemp(prefix="retrotouch-crash-", suffix=".log")
+    with os.fdopen(fd, "w") as f:
+        traceback.print_exc(file=f)
+    return path
+
+
+if __name__ == "__main__":
+    main()

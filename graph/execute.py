@@ -1,0 +1,255 @@
+"""Execution: only the instances that must run go to a scheduler; artifacts travel by reference.
+
+Each task (:func:`run_task`) loads its inputs from the store by :class:`ArtifactRef`, calls the node
+function, writes the output to the store and returns the new reference, so the task graph never
+embeds arrays. A per-key file lock makes concurrent runs sharing a cache compute each key once.
+
+Schedulers (``--scheduler``):
+
+* ``auto`` (default): a ``dask.distributed.LocalCluster`` of worker processes (one per core, one
+  thread each) when at least two instances could run at once, otherwise in-process. Nothing of
+  dask is imported when everything is cached.
+* ``sync``: in-process, one instance at a time (debugging, profiling).
+* ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers.
+* ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need retrotouch installed
+  and the cache dir at the same path (a shared filesystem).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import os
+import time
+import traceback
+from typing import Any, Callable
+
+from retrotouch.graph import artifacts, registry
+from retrotouch.graph.errors import NodeFailed, UserError
+from retrotouch.graph.node import REGISTRY, Files
+from retrotouch.graph.plan import Instance, Plan
+from retrotouch.graph.store import ArtifactRef, Store
+
+SCHEDULERS = ("auto", "sync", "threads", "processes")
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    """Everything a worker needs to run one instance (plain data, cheap to ship)."""
+
+    instance_id: str
+    node_type: str
+    params: dict[str, Any]
+    key: str
+    cache_root: str
+    cache_mode: str
+    run_id: str
+    extra_modules: tuple[str, ...]
+    # input name -> fan-in?, [(positional ref index, output name, upstream has one output?)]
+    inputs: tuple[tuple[str, bool, tuple[tuple[int, str, bool], ...]], ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskResult:
+    ref: ArtifactRef
+    ran: bool  # False when a concurrent run had committed the key first
+    seconds: float
+
+
+def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
+    """Run one node instance (in whatever process the scheduler chose)."""
+    registry.load([spec.node_type], spec.extra_modules)
+    artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
+    node = REGISTRY[spec.node_type]
+    store = Store(spec.cache_root)
+    from filelock import FileLock
+
+    lock_path = store.lock_path(spec.key)
+    os.makedirs(os.path.dirname(lock_path), exist_ok=True)
+    with FileLock(lock_path):
+        if spec.cache_mode == "default":
+            existing = store.lookup(spec.key)
+            if existing is not None:
+                return TaskResult(existing, False, 0.0)
+        try:
+            loaded: dict[int, Any] = {}
+            kwargs: dict[str, Any] = {}
+            for name, fan_in, items in spec.inputs:
+                values = []
+                for index, output, single in items:
+                    if index not in loaded:
+                        loaded[index] = store.load(refs[index])
+                    values.append(loaded[index] if single else loaded[index][output])
+                kwargs[name] = values if fan_in else values[0]
+            params = node.params.model_validate(spec.params)
+            start = time.perf_counter()
+            value = node.func(params, **kwargs)
+            seconds = time.perf_counter() - start
+            _check_output(node.name, node.outputs, node.sink, value)
+            info = {"node": spec.instance_id, "type": spec.node_type, "seconds": seconds}
+            if spec.cache_mode == "disable":
+                ref = store.write(spec.key, value, info=info, scratch_run=spec.run_id)
+            elif spec.cache_mode == "recompute":
+                ref = store.replace(spec.key, value, info=info)
+            else:
+                ref = store.write(spec.key, value, info=info)
+        except UserError as exc:
+            raise UserError(f"node {spec.instance_id}: {exc}") from None
+        except Exception as exc:
+            log = _write_log(store, spec, traceback.format_exc())
+            raise NodeFailed(f"node {spec.instance_id} failed: {type(exc).__name__}: {exc} (traceback: {log})") from None
+    return TaskResult(ref, True, seconds)
+
+
+def _check_output(name: str, outputs: tuple[str, ...], sink: bool, value: Any) -> None:
+    if sink and not isinstance(value, Files):
+        raise TypeError(f"sink node {name} must return Files, got {type(value).__name__}")
+    if len(outputs) > 1 and (not isinstance(value, dict) or set(value) != set(outputs)):
+        got = sorted(value) if isinstance(value, dict) else type(value).__name__
+        raise TypeError(f"node {name} must return a dict with keys {list(outputs)}, got {got}")
+
+
+def _write_log(store: Store, spec: TaskSpec, text: str) -> str:
+    folder = os.path.join(store.root, "logs")
+    os.makedirs(folder, exist_ok=True)
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in spec.instance_id)
+    path = os.path.join(folder, f"{stamp}-{safe}-{spec.key[:8]}.log")
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(f"node {spec.instance_id} ({spec.node_type}), key {spec.key}\nparams {spec.params}\n\n{text}")
+    return path
+
+
+# -- building the task graph -------------------------------------------------------------------
+def _task_name(inst: Instance) -> str:
+    return f"{inst.id}-{inst.key[:16]}"
+
+
+def build_tasks(plan: Plan, run_id: str) -> dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]:
+    """Task name -> (spec, positional args: names of upstream tasks or refs of cache hits)."""
+    extra = tuple(registry.extra_modules())
+    tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]] = {}
+    for inst in plan.to_run:
+        args: list[str | ArtifactRef] = []
+        slots: dict[int, int] = {}
+        inputs = []
+        for name, ups in inst.inputs.items():
+            items = []
+            for up, output in ups:
+                if id(up) not in slots:
+                    slots[id(up)] = len(args)
+                    args.append(_task_name(up) if up.runs else up.cached)  # type: ignore[arg-type]
+                items.append((slots[id(up)], output, len(up.decl.spec.outputs) == 1))
+            inputs.append((name, inst.decl.inputs[name].fan_in, tuple(items)))
+        spec = TaskSpec(inst.id, inst.decl.spec.name, inst.params.model_dump(mode="json"), inst.key,
+                        plan.store.root, inst.decl.cache, run_id, extra, tuple(inputs))
+        tasks[_task_name(inst)] = (spec, args)
+    return tasks
+
+
+def parallel_width(plan: Plan) -> int:
+    """Largest number of to-run instances at the same dependency depth (how many could run at once)."""
+    depth: dict[int, int] = {}
+    for inst in plan.to_run:
+        ups = [depth[id(u)] for ups in inst.inputs.values() for u, _ in ups if id(u) in depth]
+        depth[id(inst)] = 1 + max(ups, default=0)
+    counts: dict[int, int] = {}
+    for d in depth.values():
+        counts[d] = counts.get(d, 0) + 1
+    return max(counts.values(), default=0)
+
+
+# -- schedulers --------------------------------------------------------------------------------
+Done = Callable[[str, TaskResult], None]
+
+
+def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done) -> dict[str, TaskResult]:
+    """Run ``plan.to_run``; ``on_done(task name, result)`` is called as each finishes."""
+    tasks = build_tasks(plan, run_id)
+    if not tasks:
+        return {}
+    if scheduler == "auto":
+        scheduler = "local-cluster" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
+    if scheduler == "sync":
+        return _run_sync(tasks, on_done)
+    if scheduler in ("threads", "processes"):
+        return _run_dask_local(tasks, scheduler, on_done)
+    if scheduler == "local-cluster" or scheduler.startswith("tcp://"):
+        return _run_distributed(tasks, scheduler, on_done)
+    raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+
+
+def _run_sync(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], on_done: Done) -> dict[str, TaskResult]:
+    results: dict[str, TaskResult] = {}
+    for name, (spec, args) in tasks.items():  # built in topological order
+        refs = [results[a].ref if isinstance(a, str) else a for a in args]
+        results[name] = run_task(spec, *refs)
+        on_done(name, results[name])
+    return results
+
+
+def _ref_of(result: TaskResult | ArtifactRef) -> ArtifactRef:
+    return result.ref if isinstance(result, TaskResult) else result
+
+
+def _run_from_results(spec: TaskSpec, *upstream: TaskResult | ArtifactRef) -> TaskResult:
+    return run_task(spec, *(_ref_of(u) for u in upstream))
+
+
+def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> dict[str, Any]:
+    from dask.core import literal
+
+    return {name: (_run_from_results, literal(spec), *[a if isinstance(a, str) else literal(a) for a in args])
+            for name, (spec, args) in tasks.items()}
+
+
+def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done) -> dict[str, TaskResult]:
+    from dask.callbacks import Callback
+
+    if kind == "threads":
+        from dask.threaded import get
+    else:
+        from dask.multiprocessing import get
+
+    class Progress(Callback):
+        def _posttask(self, key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
+            on_done(key, result)
+
+    names = list(tasks)
+    with Progress():
+        values = get(_dask_graph(tasks), names)
+    return dict(zip(names, values))
+
+
+def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], address: str, on_done: Done) -> dict[str, TaskResult]:
+    import logging
+
+    from distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    try:
+        if address == "local-cluster":
+            cluster = LocalCluster(n_workers=os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(address, timeout="10s")
+            except OSError as exc:
+                raise UserError(f"--scheduler {address}: cannot connect to a dask scheduler there ({exc})") from None
+        with client:
+            names = list(tasks)
+            futures = client.get(_dask_graph(tasks), names, sync=False)
+            by_future = dict(zip(futures, names))
+            results: dict[str, TaskResult] = {}
+            for future in as_completed(futures):
+                try:
+                    result = future.result()
+                except BaseException:
+                    client.cancel(futures)
+                    raise
+                results[by_future[future]] = result
+                on_done(by_future[future], result)
+            return results
+    finally:
+        if cluster is not None:
+            cluster.close()

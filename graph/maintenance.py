@@ -1,0 +1,78 @@
+"""``retrotouch cache info|gc|clear``.
+
+``gc`` always removes temp dirs and scratch areas older than an hour (left by killed runs) and
+entries that fail validation. With pipelines given it drops the entries those pipelines do not use
+(their current plans' keys are kept); with ``--older-than DAYS`` it drops entries not used (run or
+hit) for that many days; with both, an entry must be unused by the pipelines AND old to go.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+
+from retrotouch.graph.store import CorruptEntry, Store
+
+STALE_TMP_SECONDS = 3600.0
+
+
+def _size(path: str) -> int:
+    total = 0
+    for folder, _, names in os.walk(path):
+        for name in names:
+            try:
+                total += os.path.getsize(os.path.join(folder, name))
+            except OSError:
+                pass
+    return total
+
+
+def _count(path: str) -> int:
+    return len(os.listdir(path)) if os.path.isdir(path) else 0
+
+
+def info(store: Store) -> list[str]:
+    entries = store.entries()
+    size = sum(_size(folder) for _, folder in entries)
+    return [
+        f"cache dir: {store.root}",
+        f"entries:   {len(entries)} ({size / 1e6:.1f} MB)",
+        f"temp dirs: {_count(os.path.join(store.root, 'tmp'))}, scratch runs: {_count(os.path.join(store.root, 'scratch'))}",
+        f"pipelines with run records: {_count(os.path.join(store.root, 'runs'))}, crash logs: {_count(os.path.join(store.root, 'logs'))}",
+    ]
+
+
+def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> list[str]:
+    now = time.time()
+    removed_tmp = 0
+    for area in ("tmp", "scratch"):
+        root = os.path.join(store.root, area)
+        for name in os.listdir(root) if os.path.isdir(root) else []:
+            path = os.path.join(root, name)
+            if now - os.path.getmtime(path) > STALE_TMP_SECONDS:
+                shutil.rmtree(path, ignore_errors=True)
+                removed_tmp += 1
+    corrupt = dropped = freed = 0
+    for key, folder in store.entries():
+        try:
+            store.read_meta(folder, key)
+        except CorruptEntry:
+            store.discard(folder)
+            corrupt += 1
+            continue
+        unused = keep is not None and key not in keep
+        old = older_than_days is not None and now - os.path.getmtime(folder) > older_than_days * 86400
+        if (keep is not None or older_than_days is not None) and \
+                (unused or keep is None) and (old or older_than_days is None):
+            freed += _size(folder)
+            store.discard(folder)
+            dropped += 1
+    return [f"removed {removed_tmp} stale temp dirs, {corrupt} corrupt entries, "
+            f"{dropped} unused entries ({freed / 1e6:.1f} MB)"]
+
+
+def clear(store: Store) -> str:
+    entries = len(store.entries())
+    for area in ("objects", "tmp", "scratch", "locks", "runs", "logs"):
+        shutil.rmtree(os.path.join(store.root, area), ignore_errors=True)
+    return f"cleared {entries} entries from {store.root}"

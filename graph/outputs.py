@@ -1,0 +1,121 @@
+"""The output folder: sink files plus ``manifest.json``, replaced as a whole.
+
+Everything is written into a temporary sibling folder (manifest.json last), then swapped in with
+renames, so the output folder is never seen half-written. Sinks of mapped nodes write under a
+sub-folder named after their branch (``target_edge_mm=2/mesh.ply``).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import json
+import os
+import platform
+import posixpath
+import shutil
+import time
+import uuid
+from typing import Any
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.node import Files
+from retrotouch.graph.plan import Instance, Plan
+from retrotouch.graph.store import ArtifactRef
+
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "retrotouch.manifest/1"
+VERSIONED = ("retrotouch", "numpy", "scipy", "pydantic", "dask", "distributed", "trimesh", "pymeshlab", "pyyaml")
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for dist in VERSIONED:
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def _safe_relpath(path: str, node: str) -> str:
+    norm = posixpath.normpath(path)
+    if posixpath.isabs(norm) or norm.startswith("..") or norm in (".", MANIFEST):
+        raise UserError(f"node {node}: output file name {path!r} is not a relative path inside the output folder")
+    return norm
+
+
+def write_outputs(plan: Plan, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
+    """Write every sink's files and the manifest into ``out_dir``; return the manifest.
+
+    ``refs`` maps ``id(instance)`` to the reference of its output; ``run`` holds per-run facts
+    (overrides, scheduler, per-instance status and seconds) copied into the manifest.
+    """
+    out_dir = os.path.abspath(out_dir)
+    if os.path.isdir(out_dir) and os.listdir(out_dir) and not os.path.exists(os.path.join(out_dir, MANIFEST)):
+        raise UserError(f"--out {out_dir} exists and was not written by retrotouch (no {MANIFEST}); "
+                        "choose a new or empty folder")
+    parent = os.path.dirname(out_dir)
+    os.makedirs(parent, exist_ok=True)
+    tmp = os.path.join(parent, f".{os.path.basename(out_dir)}.tmp-{uuid.uuid4().hex[:8]}")
+    os.makedirs(tmp)
+    try:
+        files: dict[str, dict[str, Any]] = {}
+        for inst in plan.instances:
+            if not inst.decl.spec.sink:
+                continue
+            value = plan.store.load(refs[id(inst)])
+            assert isinstance(value, Files)
+            for path, data in value.contents.items():
+                rel = _safe_relpath(posixpath.join(_branch_dir(inst), path), inst.id)
+                if rel in files:
+                    raise UserError(f"nodes {files[rel]['node']} and {inst.id} both write {rel}; rename one")
+                target = os.path.join(tmp, *rel.split("/"))
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                with open(target, "wb") as f:
+                    f.write(data)
+                files[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data), "node": inst.id}
+        manifest = _manifest(plan, refs, files, run)
+        with open(os.path.join(tmp, MANIFEST), "w", encoding="utf-8") as f:
+            json.dump(manifest, f, indent=1)
+        _swap(tmp, out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return manifest
+
+
+def _branch_dir(inst: Instance) -> str:
+    return "".join(c if c.isalnum() or c in "=,.-_" else "_" for c in inst.label) if inst.label else ""
+
+
+def _swap(tmp: str, out_dir: str) -> None:
+    old = None
+    if os.path.exists(out_dir):
+        old = f"{tmp}.old"
+        os.rename(out_dir, old)
+    os.rename(tmp, out_dir)
+    if old:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _manifest(plan: Plan, refs: dict[int, ArtifactRef], files: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+    nodes = []
+    for inst in plan.instances:
+        status = run["status"].get(id(inst), {})
+        ref = refs.get(id(inst))
+        nodes.append({
+            "node": inst.node, "branch": inst.branch and {k: v for k, v in inst.branch.items()}, "label": inst.label,
+            "type": inst.decl.spec.name, "params": inst.params.model_dump(mode="json"), "key": inst.key,
+            "code_version": inst.code_version, "status": status.get("status", "cached"),
+            "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
+        })
+    return {
+        "format": MANIFEST_FORMAT,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "pipeline": {"path": os.path.abspath(plan.pipeline.file), "sha256": plan.pipeline.doc.text_sha256},
+        "overrides": plan.pipeline.overrides,
+        "scheduler": run["scheduler"],
+        "cache_dir": plan.store.root,
+        "files": dict(sorted(files.items())),
+        "nodes": nodes,
+        "versions": _versions(),
+    }

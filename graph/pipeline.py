@@ -1,0 +1,375 @@
+"""YAML pipelines: parsing with line/column marks, ``-S`` overrides, interpolation, validation.
+
+Format (see README.md for the full reference)::
+
+    params:                      # pipeline-level values, used as ${name} in node params and maps
+      diagonal_mm: 170
+    nodes:
+      load:   {type: mesh.load, params: {path: builtin:bunny}}
+      scaled: {type: mesh.scale, inputs: {mesh: load}, params: {diagonal_mm: "${diagonal_mm}"}}
+      sweep:  {type: mesh.remesh, inputs: {mesh: scaled}, map: {target_edge_mm: [2, 3, 4]}}
+      pick:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, cache: recompute}
+
+Every problem is reported as one line ``file:line:col: message`` (or ``-S PATH=VALUE: message`` for
+an override) through :class:`PipelineError`, a :class:`UserError`.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import hashlib
+import re
+from typing import Any, Iterable
+
+import yaml
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.node import NodeSpec
+
+Path = tuple[str | int, ...]
+NODE_KEYS = ("type", "inputs", "params", "map", "cache")
+TOP_KEYS = ("params", "nodes")
+CACHE_MODES = ("default", "recompute", "disable")
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
+_REF = re.compile(r"^([A-Za-z_][A-Za-z0-9_\-]*)(?:\.([A-Za-z_][A-Za-z0-9_]*))?(\[\*\])?$")
+_INTERP = re.compile(r"\$\{([^}]*)\}")
+
+
+class PipelineError(UserError):
+    """A pipeline problem, already prefixed with its location."""
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest choice, or ``""``."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+@dataclasses.dataclass
+class Document:
+    """A parsed YAML document: plain data plus where each value and key came from."""
+
+    file: str
+    text_sha256: str
+    data: Any
+    marks: dict[Path, str]  # value locations
+    key_marks: dict[Path, str]  # mapping-key locations (for "unknown key" errors)
+
+    def where(self, path: Path, key: bool = False) -> str:
+        """Location of ``path`` (its key when ``key``), or of its nearest located ancestor."""
+        if key and path in self.key_marks:
+            return self.key_marks[path]
+        while path:
+            if path in self.marks:
+                return self.marks[path]
+            path = path[:-1]
+        return self.marks.get((), f"{self.file}:1:1")
+
+    def fail(self, path: Path, message: str, key: bool = False) -> PipelineError:
+        return PipelineError(f"{self.where(path, key)}: {message}")
+
+
+def load_document(file: str) -> Document:
+    """Parse a YAML file keeping ``file:line:col`` marks for every value and key."""
+    try:
+        with open(file, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise UserError(f"cannot read pipeline {file}: {exc.strerror}") from None
+    marks: dict[Path, str] = {}
+    key_marks: dict[Path, str] = {}
+
+    def loc(mark: yaml.Mark) -> str:
+        return f"{file}:{mark.line + 1}:{mark.column + 1}"
+
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{file}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    loader = yaml.SafeLoader(text)
+    try:
+        root = loader.get_single_node()
+
+        def convert(node: yaml.Node, path: Path) -> Any:
+            marks[path] = loc(node.start_mark)
+            if isinstance(node, yaml.MappingNode):
+                out: dict[str, Any] = {}
+                for knode, vnode in node.value:
+                    if not isinstance(knode, yaml.ScalarNode):
+                        raise PipelineError(f"{loc(knode.start_mark)}: mapping keys must be plain names")
+                    key = knode.value
+                    if key in out:
+                        raise PipelineError(f"{loc(knode.start_mark)}: duplicate key {key!r} "
+                                            f"(first at {key_marks[path + (key,)]})")
+                    key_marks[path + (key,)] = loc(knode.start_mark)
+                    out[key] = convert(vnode, path + (key,))
+                return out
+            if isinstance(node, yaml.SequenceNode):
+                return [convert(v, path + (i,)) for i, v in enumerate(node.value)]
+            return loader.construct_object(node, deep=True)
+
+        data = convert(root, ()) if root is not None else None
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = loc(mark) if mark else f"{file}:1:1"
+        raise PipelineError(f"{where}: YAML syntax error: {exc.problem or exc.context}") from None
+    finally:
+        loader.dispose()
+    doc = Document(file, hashlib.sha256(raw).hexdigest(), data, marks, key_marks)
+    if not isinstance(data, dict):
+        raise doc.fail((), "a pipeline is a mapping with 'nodes:' (and optionally 'params:')")
+    for key in data:
+        if key not in TOP_KEYS:
+            raise doc.fail((key,), f"unknown top-level key {key!r}{did_you_mean(key, TOP_KEYS)} "
+                                   f"(allowed: {', '.join(TOP_KEYS)})", key=True)
+    if not isinstance(data.get("nodes"), dict) or not data["nodes"]:
+        raise doc.fail(("nodes",), "'nodes:' must be a mapping of node name -> {type: ..., ...}")
+    if not isinstance(data.setdefault("params", {}) or {}, dict):
+        raise doc.fail(("params",), "'params:' must be a mapping of name -> value")
+    data["params"] = data["params"] or {}
+    return doc
+
+
+# -- overrides ---------------------------------------------------------------------------------
+def apply_override(doc: Document, override: str) -> None:
+    """Apply ``-S PATH=VALUE`` to the document (VALUE parsed as YAML).
+
+    PATH is dotted into the document (``params.diagonal_mm``, ``nodes.remesh.params.target_edge_mm``,
+    list items by index); ``NODE.PARAM`` is short for ``nodes.NODE.params.PARAM``. Existing paths can
+    be replaced; new keys are accepted only inside a node's ``params`` (checked against the node
+    type later) and for a node's optional keys (``map``, ``cache``, ...).
+    """
+    where = f"-S {override}"
+    path_text, eq, raw = override.partition("=")
+    if not eq or not path_text:
+        raise UserError(f"{where}: expected PATH=VALUE, e.g. -S params.diagonal_mm=200")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise UserError(f"{where}: VALUE is not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    parts: list[str | int] = list(path_text.split("."))
+    nodes = doc.data["nodes"]
+    if parts[0] not in TOP_KEYS:
+        if parts[0] in nodes and len(parts) == 2:
+            parts = ["nodes", parts[0], "params", parts[1]]
+        else:
+            choices = list(TOP_KEYS) + [f"{n}.<param>" for n in nodes]
+            raise UserError(f"{where}: unknown path {path_text!r}{did_you_mean(str(parts[0]), choices)} "
+                            "(use params.NAME, nodes.NODE.params.NAME or NODE.NAME)")
+    cur: Any = doc.data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        done = ".".join(map(str, parts[:i])) or "<top>"
+        if isinstance(cur, list):
+            try:
+                part = int(part)
+                cur[part]
+            except (ValueError, IndexError):
+                raise UserError(f"{where}: {done} is a list of {len(cur)} items; {part!r} is not an index") from None
+            parts[i] = part
+        elif isinstance(cur, dict):
+            if part not in cur:
+                in_params = len(parts) >= 3 and parts[0] == "nodes" and parts[2] == "params" and i >= 2
+                node_key = i == 2 and parts[0] == "nodes" and part in NODE_KEYS
+                if not (in_params or node_key):
+                    raise UserError(f"{where}: {done} has no key {part!r}{did_you_mean(str(part), map(str, cur))}")
+                if not last:
+                    cur[part] = {}
+        else:
+            raise UserError(f"{where}: {done} is a value, not a mapping or list")
+        if last:
+            cur[part] = value
+        else:
+            cur = cur[part]
+    prefix = tuple(parts)
+    for marks in (doc.marks, doc.key_marks):
+        for p in [p for p in marks if p[: len(prefix)] == prefix]:
+            del marks[p]
+    doc.marks[prefix] = where
+    doc.key_marks[prefix] = where
+
+
+# -- interpolation -----------------------------------------------------------------------------
+def interpolate(doc: Document, value: Any, path: Path) -> Any:
+    """Replace ``${name}`` with pipeline params; a whole-string ``${name}`` keeps the value's type."""
+    params = doc.data["params"]
+
+    def lookup(name: str, at: Path) -> Any:
+        if name not in params:
+            raise doc.fail(at, f"unknown pipeline param ${{{name}}}{did_you_mean(name, params)}"
+                               f" (defined: {', '.join(params) or 'none'})")
+        return params[name]
+
+    def walk(v: Any, at: Path) -> Any:
+        if isinstance(v, str):
+            whole = _INTERP.fullmatch(v)
+            if whole:
+                return copy.deepcopy(lookup(whole.group(1).strip(), at))
+            return _INTERP.sub(lambda m: str(lookup(m.group(1).strip(), at)), v)
+        if isinstance(v, list):
+            return [walk(x, at + (i,)) for i, x in enumerate(v)]
+        if isinstance(v, dict):
+            return {k: walk(x, at + (k,)) for k, x in v.items()}
+        return v
+
+    return walk(value, path)
+
+
+# -- declarations ------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class InputRef:
+    """``node``, ``node.output`` or either with ``[*]`` (fan-in over the node's branches)."""
+
+    node: str
+    output: str
+    fan_in: bool
+    path: Path  # where it is written, for messages
+
+
+@dataclasses.dataclass
+class NodeDecl:
+    """One node of a pipeline, checked against its node type (params are validated per branch)."""
+
+    name: str
+    spec: NodeSpec
+    inputs: dict[str, InputRef]
+    params: dict[str, Any]  # interpolated, not yet validated
+    map: dict[str, list[Any]]  # param -> values (several keys: product, in the order written)
+    cache: str
+    path: Path
+
+
+@dataclasses.dataclass
+class Pipeline:
+    """A validated pipeline: declarations in topological order."""
+
+    doc: Document
+    nodes: dict[str, NodeDecl]
+    overrides: list[str]
+
+    @property
+    def file(self) -> str:
+        return self.doc.file
+
+
+def _expect(doc: Document, path: Path, value: Any, kind: type, what: str) -> Any:
+    if not isinstance(value, kind):
+        raise doc.fail(path, f"{what} must be a {'mapping' if kind is dict else kind.__name__}, "
+                             f"got {type(value).__name__}")
+    return value
+
+
+def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, NodeSpec] | None = None) -> Pipeline:
+    """Parse, override, interpolate and validate a pipeline file.
+
+    ``registry`` defaults to discovering the node types the file names.
+    """
+    doc = load_document(file)
+    overrides = list(overrides)
+    for override in overrides:
+        apply_override(doc, override)
+    raw_nodes: dict[str, Any] = doc.data["nodes"]
+    if registry is None:
+        from retrotouch.graph import registry as discovery
+
+        types = [n["type"] for n in raw_nodes.values() if isinstance(n, dict) and isinstance(n.get("type"), str)]
+        registry = discovery.load(types)
+
+    decls: dict[str, NodeDecl] = {}
+    for name, body in raw_nodes.items():
+        path: Path = ("nodes", name)
+        if not _NAME.match(name):
+            raise doc.fail(path, f"node name {name!r} must be letters, digits, '_' or '-'", key=True)
+        _expect(doc, path, body, dict, f"node {name!r}")
+        for key in body:
+            if key not in NODE_KEYS:
+                raise doc.fail(path + (key,), f"node {name!r}: unknown key {key!r}{did_you_mean(key, NODE_KEYS)}"
+                                              f" (allowed: {', '.join(NODE_KEYS)})", key=True)
+        if "type" not in body:
+            raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
+        type_name = body["type"]
+        if not isinstance(type_name, str) or type_name not in registry:
+            hint = did_you_mean(str(type_name), registry) or " (list them with `retrotouch nodes`)"
+            raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
+        spec = registry[type_name]
+        fields = spec.params.model_fields
+
+        inputs_raw = _expect(doc, path + ("inputs",), body.get("inputs") or {}, dict, f"node {name!r}: inputs")
+        inputs: dict[str, InputRef] = {}
+        for input_name, ref_text in inputs_raw.items():
+            ipath = path + ("inputs", input_name)
+            if input_name not in spec.inputs:
+                allowed = ", ".join(spec.inputs) or "none"
+                raise doc.fail(ipath, f"node {name!r} ({type_name}): unknown input {input_name!r}"
+                                      f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
+            m = _REF.match(ref_text) if isinstance(ref_text, str) else None
+            if not m:
+                raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
+                                      f"or either with [*], got {ref_text!r}")
+            inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
+        for input_name in spec.inputs:
+            if input_name not in inputs:
+                raise doc.fail(path, f"node {name!r} ({type_name}): input {input_name!r} is not connected; "
+                                     f"add inputs: {{{input_name}: <node>}}", key=True)
+
+        params = interpolate(doc, _expect(doc, path + ("params",), body.get("params") or {}, dict,
+                                          f"node {name!r}: params"), path + ("params",))
+        map_raw = _expect(doc, path + ("map",), body.get("map") or {}, dict, f"node {name!r}: map")
+        mapped: dict[str, list[Any]] = {}
+        for key, values in map_raw.items():
+            mpath = path + ("map", key)
+            if key not in fields:
+                raise doc.fail(mpath, f"node {name!r} ({type_name}): cannot map over unknown param {key!r}"
+                                      f"{did_you_mean(key, fields)}", key=True)
+            if key in params:
+                raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
+                                      "keep one", key=True)
+            values = interpolate(doc, values, mpath)
+            if not isinstance(values, list) or not values:
+                raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
+                                      f"got {values!r}")
+            mapped[key] = values
+        cache = body.get("cache", "default")
+        if cache not in CACHE_MODES:
+            raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
+                                              f"{did_you_mean(str(cache), CACHE_MODES)}")
+        decls[name] = NodeDecl(name, spec, inputs, params, mapped, cache, path)
+
+    for decl in decls.values():  # references
+        for input_name, ref in decl.inputs.items():
+            if ref.node not in decls:
+                raise doc.fail(ref.path, f"node {decl.name!r}: input {input_name!r} refers to unknown node "
+                                         f"{ref.node!r}{did_you_mean(ref.node, decls)}")
+            outputs = decls[ref.node].spec.outputs
+            if ref.output and ref.output not in outputs:
+                raise doc.fail(ref.path, f"node {ref.node!r} has no output {ref.output!r}"
+                                         f"{did_you_mean(ref.output, outputs)} (outputs: {', '.join(outputs)})")
+            if not ref.output:
+                if len(outputs) != 1:
+                    raise doc.fail(ref.path, f"node {ref.node!r} has outputs {', '.join(outputs)}; "
+                                             f"write {ref.node}.<output>")
+                decl.inputs[input_name] = dataclasses.replace(ref, output=outputs[0])
+    return Pipeline(doc, _toposort(doc, decls), overrides)
+
+
+def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
+    order: dict[str, NodeDecl] = {}
+    state: dict[str, int] = {}  # 1 visiting, 2 done
+
+    def visit(name: str, trail: list[str]) -> None:
+        if state.get(name) == 2:
+            return
+        state[name] = 1
+        for ref in decls[name].inputs.values():
+            if state.get(ref.node) == 1:
+                chain = trail + [name]
+                cycle = chain[chain.index(ref.node):] + [ref.node]
+                raise doc.fail(ref.path, f"cycle: {' -> '.join(cycle)}")
+            visit(ref.node, trail + [name])
+        state[name] = 2
+        order[name] = decls[name]
+
+    for name in decls:
+        visit(name, [])
+    return order

@@ -1,0 +1,207 @@
+"""The on-disk artifact store (the cache).
+
+Layout under the cache dir::
+
+    objects/<key[:2]>/<key>/   meta.json + the artifact files (see artifacts.py)
+    tmp/<uuid>/                entries being written; renamed into objects/ when complete
+    scratch/<run-id>/<key>/    outputs of ``cache: disable`` nodes, deleted after the run
+    locks/<key[:2]>/<key>.lock per-key file locks (two runs sharing a cache compute a key once)
+    runs/<pipeline-id>.json    what each node of a pipeline last ran with (for ``--explain``)
+    logs/                      tracebacks of unexpected node failures
+
+An entry is committed by writing its files and then ``meta.json`` (last) into ``tmp/<uuid>/`` and
+renaming that folder to ``objects/..../<key>``; if the rename finds the key already present,
+another writer won and the copy is discarded. ``meta.json`` records the size and sha256 of every
+file and the sha256 of the whole content. A lookup accepts an entry only when meta.json parses,
+names the right key and every file has its recorded size; loading also checks every sha256.
+Anything else (a writer killed mid-way, a truncated file, a missing meta.json) is a miss: the
+entry is moved aside and deleted, and the node recomputes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import errno
+import hashlib
+import json
+import os
+import shutil
+import time
+import uuid
+from typing import Any
+
+from retrotouch.graph import artifacts
+from retrotouch.graph.hashing import file_sha256
+
+META = "meta.json"
+META_FORMAT = "retrotouch.artifact/1"
+CACHE_ENV = "RETROTOUCH_CACHE_DIR"
+
+
+def default_cache_dir() -> str:
+    """``$RETROTOUCH_CACHE_DIR`` or ``./cache`` relative to the current directory."""
+    return os.path.abspath(os.environ.get(CACHE_ENV) or "cache")
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtifactRef:
+    """A stored node output, passed between tasks instead of the value itself."""
+
+    key: str
+    path: str  # the entry folder
+    content_sha256: str
+    seconds: float  # how long the node took when it was computed
+
+
+class CorruptEntry(Exception):
+    """A stored entry failed validation."""
+
+
+class Store:
+    """Artifacts addressed by cache key under one cache dir."""
+
+    def __init__(self, root: str):
+        self.root = os.path.abspath(root)
+
+    # -- paths --------------------------------------------------------------------------------
+    def entry_dir(self, key: str) -> str:
+        return os.path.join(self.root, "objects", key[:2], key)
+
+    def scratch_dir(self, run_id: str, key: str) -> str:
+        return os.path.join(self.root, "scratch", run_id, key)
+
+    def lock_path(self, key: str) -> str:
+        return os.path.join(self.root, "locks", key[:2], key + ".lock")
+
+    def _new_tmp(self) -> str:
+        path = os.path.join(self.root, "tmp", uuid.uuid4().hex)
+        os.makedirs(path)
+        return path
+
+    # -- reading ------------------------------------------------------------------------------
+    def read_meta(self, folder: str, key: str) -> dict[str, Any]:
+        """meta.json of an entry after the cheap checks (parses, right key, file sizes)."""
+        try:
+            with open(os.path.join(folder, META), encoding="utf-8") as f:
+                meta = json.load(f)
+        except (OSError, ValueError) as exc:
+            raise CorruptEntry(f"{folder}: unreadable {META}: {exc}") from None
+        if not isinstance(meta, dict) or meta.get("format") != META_FORMAT or meta.get("key") != key:
+            raise CorruptEntry(f"{folder}: {META} does not describe key {key}")
+        for name, info in meta.get("files", {}).items():
+            try:
+                size = os.path.getsize(os.path.join(folder, name))
+            except OSError:
+                raise CorruptEntry(f"{folder}: missing file {name}") from None
+            if size != info["size"]:
+                raise CorruptEntry(f"{folder}: {name} has {size} bytes, expected {info['size']}")
+        return meta
+
+    def lookup(self, key: str) -> ArtifactRef | None:
+        """The committed entry for ``key``, or None (a corrupt entry is discarded)."""
+        folder = self.entry_dir(key)
+        if not os.path.isdir(folder):
+            return None
+        try:
+            meta = self.read_meta(folder, key)
+        except CorruptEntry:
+            self.discard(folder)
+            return None
+        return ArtifactRef(key, folder, meta["content_sha256"], meta.get("seconds", 0.0))
+
+    def load(self, ref: ArtifactRef) -> Any:
+        """The stored value; every file's sha256 is checked first."""
+        meta = self.read_meta(ref.path, ref.key)
+        for name, info in meta["files"].items():
+            if file_sha256(os.path.join(ref.path, name)) != info["sha256"]:
+                self.discard(ref.path)
+                raise CorruptEntry(f"{ref.path}: {name} does not match its recorded sha256")
+        return artifacts.decode(ref.path)
+
+    def touch(self, ref: ArtifactRef) -> None:
+        """Mark an entry as used now (``cache gc --older-than`` looks at this)."""
+        try:
+            os.utime(ref.path)
+        except OSError:
+            pass
+
+    # -- writing ------------------------------------------------------------------------------
+    def write(self, key: str, value: Any, *, info: dict[str, Any], scratch_run: str | None = None) -> ArtifactRef:
+        """Store ``value`` under ``key`` atomically and return its reference.
+
+        ``scratch_run`` stores into the run's scratch area instead of the cache (``cache: disable``).
+        """
+        tmp = self._new_tmp()
+        try:
+            names = artifacts.encode(value, tmp)
+            files = {}
+            for name in names:
+                path = os.path.join(tmp, name)
+                files[name] = {"size": os.path.getsize(path), "sha256": file_sha256(path)}
+            content = json.dumps(sorted((n, f["sha256"]) for n, f in files.items()))
+            meta = {
+                "format": META_FORMAT,
+                "key": key,
+                "files": files,
+                "content_sha256": hashlib.sha256(content.encode()).hexdigest(),
+                "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **info,
+            }
+            with open(os.path.join(tmp, META), "w", encoding="utf-8") as f:
+                json.dump(meta, f, indent=1, sort_keys=True)
+                f.flush()
+                os.fsync(f.fileno())
+            final = self.scratch_dir(scratch_run, key) if scratch_run else self.entry_dir(key)
+            self._commit(tmp, final, key)
+            return ArtifactRef(key, final, meta["content_sha256"], info.get("seconds", 0.0))
+        finally:
+            if os.path.exists(tmp):
+                shutil.rmtree(tmp, ignore_errors=True)
+
+    def _commit(self, tmp: str, final: str, key: str) -> None:
+        os.makedirs(os.path.dirname(final), exist_ok=True)
+        for _ in range(3):
+            try:
+                os.rename(tmp, final)
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise
+            try:  # another writer committed first: keep theirs if it is sound
+                self.read_meta(final, key)
+                return
+            except CorruptEntry:
+                self.discard(final)
+        raise OSError(f"could not commit cache entry {final}")
+
+    def replace(self, key: str, value: Any, *, info: dict[str, Any]) -> ArtifactRef:
+        """Store ``value`` under ``key``, replacing an existing entry (``cache: recompute``)."""
+        folder = self.entry_dir(key)
+        if os.path.isdir(folder):
+            self.discard(folder)
+        return self.write(key, value, info=info)
+
+    def discard(self, folder: str) -> None:
+        """Remove an entry: first move it aside (so it is never seen half-deleted), then delete."""
+        aside = os.path.join(self.root, "tmp", "discard-" + uuid.uuid4().hex)
+        os.makedirs(os.path.dirname(aside), exist_ok=True)
+        try:
+            os.rename(folder, aside)
+        except FileNotFoundError:
+            return
+        shutil.rmtree(aside, ignore_errors=True)
+
+    def drop_scratch(self, run_id: str) -> None:
+        shutil.rmtree(os.path.join(self.root, "scratch", run_id), ignore_errors=True)
+
+    # -- maintenance ----------------------------------------------------------------------------
+    def entries(self) -> list[tuple[str, str]]:
+        """``(key, folder)`` of every folder under objects/ (sound or not)."""
+        out = []
+        objects = os.path.join(self.root, "objects")
+        if not os.path.isdir(objects):
+            return out
+        for prefix in sorted(os.listdir(objects)):
+            sub = os.path.join(objects, prefix)
+            if os.path.isdir(sub):
+                out += [(key, os.path.join(sub, key)) for key in sorted(os.listdir(sub))]
+        return out
