@@ -1,0 +1,461 @@
+"""``curves.trace_tx`` / ``curves.trace_rx``: integral curves of a trivial-connection field.
+
+Tracing is barycentric and exact for the piecewise-constant field (like geometry-central's
+``traceInFaceBarycentric``): in face ``f`` a curve moves along the unit direction ``u_f`` so its
+barycentrics change at the constant rate ``dl = G_f u_f`` per mm (``G_f`` = gradients of the
+barycentrics). It leaves through the edge whose barycentric reaches 0 first, and the barycentrics of
+the exit point carry over to the neighbour. Exit points within ``1e-7`` (barycentric) of a vertex
+are nudged along the edge, so a curve never passes through a vertex. All curves of one family are
+stepped together (numpy arrays over the active curves).
+
+Stops (``CurveEnd``):
+
+* ``BASE`` when the curve enters a face of the base region (``base_faces | exclusion_base``) after
+  having been outside it;
+* ``SINK_EDGE`` when the field of the face across the exit edge points back at that edge (both faces
+  point at their shared edge);
+* ``SINGULARITY`` when it enters a face with a vertex within ``singularity_stop_mm`` (Euclidean) of a
+  singularity it does not start from (Tx: the base centre; Rx: the dipole), after leaving its start
+  region;
+* ``LOOP`` when it enters the same face more than ``max_face_visits`` times;
+* ``MAX_STEPS`` when the step budget runs out.
+
+Families:
+
+* **Tx** (field with +1 at the far vertex and the base centre, pointing away from the far vertex):
+  ``n_curves`` start directions at uniform intervals of the intrinsic angle around the far vertex
+  (``(k + 1/2) / n`` of the cone angle, measured in the unfolded one-ring). Each curve goes straight
+  from the vertex across its first face and then follows the field, so Tx curves are field lines and
+  do not cross each other. The part inside ``exclusion_far`` is trimmed off.
+* **Rx** (dipole field, pointing away from ``base_dipole[0]``): start points lie on the level set of
+  geodesic distance ``r`` from ``base_dipole[0]`` (a ring inside the base region), placed at equal
+  quantiles of the outward flux ``max(u . n, 0) ds`` of the traced direction across the ring, i.e.
+  at equal perpendicular spacing of the curves leaving the ring. The traced direction in every face
+  is the field rotated by ``angle_deg`` about the outward normal (counter-clockwise positive): the
+  offset is relative to the field direction, and transport by the trivial connection keeps it
+  constant along the curve, so the curves of one angle do not cross each other either. The part
+  inside the base region before the curve first leaves it is trimmed off.
+
+Curves that never leave their start region are dropped (counted in the stats).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydantic import Field
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.node import NodeParams, node
+from retrotouch.nodes.connection import DirectionField
+from retrotouch.nodes.datatypes import CurveEnd, CurveSet, Mesh
+from retrotouch.nodes.mesh_tables import MeshTables, build_tables
+
+VERTEX_NUDGE = 1e-7  # barycentric distance kept from a vertex at edge crossings
+
+
+@dataclasses.dataclass(frozen=True)
+class TraceStats:
+    """What happened while tracing one family (rates are fractions of the traced curves)."""
+
+    layer: str
+    angle: float  # radians (Rx offset; 0 for Tx)
+    traced: int  # curves started
+    kept: int  # curves in the CurveSet (those that left their start region)
+    dropped: int  # curves that never left their start region
+    end_counts: np.ndarray  # (5,) int64, traced curves per CurveEnd code
+    sink_edges: int  # traces stopped at a sink edge
+    sink_edge_rate: float
+    reached_base_rate: float
+    face_steps: int  # total face-to-face steps
+    mean_length_mm: float  # over kept curves
+
+
+@dataclasses.dataclass(frozen=True)
+class Traces:
+    """Raw traced rows of a family before trimming (flat, grouped by curve)."""
+
+    curve: np.ndarray  # (P,) int64
+    faces: np.ndarray  # (P,) int64
+    bary: np.ndarray  # (P, 3) float64
+    end_reason: np.ndarray  # (C,) int8
+    face_steps: int
+
+
+def field_direction(field: DirectionField, tables: MeshTables, angle: float) -> np.ndarray:
+    """Unit direction per face: the field rotated by ``angle`` (rad) counter-clockwise about the normal."""
+    a = field.face_angle + angle
+    return np.cos(a)[:, None] * tables.frame_e1 + np.sin(a)[:, None] * tables.frame_e2
+
+
+def faces_near(tables: MeshTables, points: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Faces with a vertex within ``radius_mm`` (Euclidean) of any of ``points`` (k, 3)."""
+    near_vertex = np.zeros(len(tables.vertices), dtype=bool)
+    for p in np.atleast_2d(points):
+        near_vertex |= np.linalg.norm(tables.vertices - p, axis=1) < radius_mm
+    return np.any(near_vertex[tables.faces], axis=1)
+
+
+def trace(
+    tables: MeshTables,
+    direction: np.ndarray,
+    start_faces: np.ndarray,
+    start_bary: np.ndarray,
+    start_region: np.ndarray,
+    base_region: np.ndarray,
+    singular_region: np.ndarray,
+    max_steps: int,
+    max_face_visits: int,
+    prefix: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> Traces:
+    """Trace all curves of a family at once through the per-face unit ``direction`` (m, 3).
+
+    ``start_region``: faces the curves start in (a curve has "left" once it enters a face outside
+    it); ``base_region`` / ``singular_region`` stop a curve that has left. ``prefix`` optionally
+    gives rows (curve, face, bary) recorded before the start rows.
+    """
+    n = len(start_faces)
+    rate = np.einsum("fij,fj->fi", tables.bary_gradients, direction)  # d(bary)/d(mm) per face
+    opposite_face, opposite_corner = tables.opposite_face, tables.opposite_corner
+    visits = np.zeros((n, len(tables.faces)), dtype=np.uint8)
+    end_reason = np.full(n, CurveEnd.MAX_STEPS, dtype=np.int8)
+
+    cid = np.arange(n)
+    face = np.asarray(start_faces, dtype=np.int64).copy()
+    bary = np.asarray(start_bary, dtype=np.float64).copy()
+    left = ~start_region[face]
+    visits[cid, face] = 1
+    rec_curve, rec_face, rec_bary = ([prefix[0]], [prefix[1]], [prefix[2]]) if prefix else ([], [], [])
+    rec_curve.append(cid.copy())
+    rec_face.append(face.copy())
+    rec_bary.append(bary.copy())
+    steps = 0
+    for _ in range(max_steps):
+        if len(cid) == 0:
+            break
+        k = len(cid)
+        rows = np.arange(k)
+        dl = rate[face]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(dl < 0.0, bary / -dl, np.inf)
+        exit_corner = np.argmin(t, axis=1)
+        tt = t[rows, exit_corner]
+        out = bary + tt[:, None] * dl
+        out[rows, exit_corner] = 0.0
+        np.maximum(out, VERTEX_NUDGE, out=out)
+        out[rows, exit_corner] = 0.0
+        out /= out.sum(axis=1, keepdims=True)
+
+        nxt = opposite_face[face, exit_corner]
+        c = opposite_corner[face, exit_corner]
+        nb = np.empty_like(out)
+        nb[rows, c] = 0.0
+        nb[rows, (c + 1) % 3] = out[rows, (exit_corner + 2) % 3]
+        nb[rows, (c + 2) % 3] = out[rows, (exit_corner + 1) % 3]
+        steps += k
+
+        visits[cid, nxt] += 1
+        base = left & base_region[nxt]
+        sink = rate[nxt, c] <= 0.0
+        singular = left & singular_region[nxt] & ~base
+        loop = visits[cid, nxt] > max_face_visits
+        reason = np.full(k, -1, dtype=np.int8)
+        reason[loop] = CurveEnd.LOOP
+        reason[singular] = CurveEnd.SINGULARITY
+        reason[sink] = CurveEnd.SINK_EDGE
+        reason[base] = CurveEnd.BASE
+        stop = reason >= 0
+        go = ~stop
+
+        end_reason[cid[stop]] = reason[stop]
+        rec_curve.append(cid[stop])
+        rec_face.append(face[stop])
+        rec_bary.append(out[stop])
+        rec_curve.append(cid[go])
+        rec_face.append(nxt[go])
+        rec_bary.append(nb[go])
+
+        cid, face, bary = cid[go], nxt[go], nb[go]
+        left = left[go] | ~start_region[face]
+    curve = np.concatenate(rec_curve)
+    order = np.argsort(curve, kind="stable")
+    faces = np.concatenate(rec_face)[order]
+    barys = np.concatenate(rec_bary)[order]
+    curve = curve[order]
+    if len(cid):
+        # curves out of steps end on an edge stored in the next face: restate it in the last segment's face
+        last = np.searchsorted(curve, cid, side="right") - 1
+        points = tables.points(faces[last], barys[last])
+        faces[last] = faces[last - 1]
+        barys[last] = tables.bary_of_points(faces[last], points)
+    return Traces(curve=curve, faces=faces, bary=barys, end_reason=end_reason, face_steps=steps)
+
+
+def assemble(
+    tables: MeshTables, traces: Traces, start_region: np.ndarray, layer: str, angle: float
+) -> tuple[CurveSet, TraceStats]:
+    """Trim each curve's leading rows inside ``start_region`` and pack the kept curves into a ``CurveSet``."""
+    n = len(traces.end_reason)
+    bounds = np.searchsorted(traces.curve, np.arange(n + 1))
+    outside = ~start_region[traces.faces]
+    # first row outside the start region, per curve
+    first = np.full(n, -1, dtype=np.int64)
+    idx = np.flatnonzero(outside)
+    cur = traces.curve[idx]
+    uniq, pos = np.unique(cur, return_index=True)
+    first[uniq] = idx[pos]
+    keep_curve = (first >= 0) & (first < bounds[1:] - 1)
+    keep_row = np.zeros(len(traces.curve), dtype=bool)
+    for c in np.flatnonzero(keep_curve):
+        keep_row[first[c] : bounds[c + 1]] = True
+    kept = np.flatnonzero(keep_curve)
+    faces = traces.faces[keep_row]
+    bary = traces.bary[keep_row]
+    counts = np.bincount(traces.curve[keep_row], minlength=n)[kept]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    points = tables.points(faces, bary)
+    row_curve = np.repeat(np.arange(len(kept)), counts)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    within = row_curve[1:] == row_curve[:-1]
+    lengths = np.bincount(row_curve[:-1][within], weights=seg[within], minlength=len(kept))
+    curves = CurveSet(
+        layer=layer,
+        points=points,
+        faces=faces,
+        bary=bary,
+        offsets=offsets,
+        lengths_mm=lengths,
+        end_reason=traces.end_reason[kept],
+        angle=float(angle),
+    )
+    end_counts = np.bincount(traces.end_reason, minlength=len(CurveEnd)).astype(np.int64)
+    stats = TraceStats(
+        layer=layer,
+        angle=float(angle),
+        traced=n,
+        kept=len(kept),
+        dropped=n - len(kept),
+        end_counts=end_counts,
+        sink_edges=int(end_counts[CurveEnd.SINK_EDGE]),
+        sink_edge_rate=float(end_counts[CurveEnd.SINK_EDGE] / max(n, 1)),
+        reached_base_rate=float(end_counts[CurveEnd.BASE] / max(n, 1)),
+        face_steps=traces.face_steps,
+        mean_length_mm=float(lengths.mean()) if len(kept) else 0.0,
+    )
+    return curves, stats
+
+
+def vertex_fan(tables: MeshTables, vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Faces around ``vertex`` in counter-clockwise order and the corner of ``vertex`` in each."""
+    faces = tables.faces
+    f = int(np.flatnonzero(np.any(faces == vertex, axis=1))[0])
+    fan_faces, fan_corners = [], []
+    while True:
+        k = int(np.flatnonzero(faces[f] == vertex)[0])
+        fan_faces.append(f)
+        fan_corners.append(k)
+        f = int(tables.opposite_face[f, (k + 1) % 3])
+        if f == fan_faces[0]:
+            break
+    return np.asarray(fan_faces), np.asarray(fan_corners)
+
+
+def tx_starts(tables: MeshTables, vertex: int, n_curves: int):
+    """First straight segment of each Tx curve from ``vertex``: prefix rows and the start (face, bary) after it."""
+    fan_faces, fan_corners = vertex_fan(tables, vertex)
+    sector = tables.corner_angles[fan_faces, fan_corners]
+    cum = np.concatenate([[0.0], np.cumsum(sector)])
+    phi = (np.arange(n_curves) + 0.5) / n_curves * cum[-1]
+    j = np.searchsorted(cum, phi, side="right") - 1
+    f, k = fan_faces[j], fan_corners[j]
+    psi = phi - cum[j]
+    p_v = tables.vertices[tables.faces[f, k]]
+    edge = tables.vertices[tables.faces[f, (k + 1) % 3]] - p_v
+    edge /= np.linalg.norm(edge, axis=1)[:, None]
+    d = np.cos(psi)[:, None] * edge + np.sin(psi)[:, None] * np.cross(tables.normals[f], edge)
+    rows = np.arange(n_curves)
+    rate = np.einsum("kij,kj->ki", tables.bary_gradients[f], d)
+    start = np.zeros((n_curves, 3))
+    start[rows, k] = 1.0
+    out = start + (1.0 / -rate[rows, k])[:, None] * rate
+    out[rows, k] = 0.0
+    np.maximum(out, VERTEX_NUDGE, out=out)
+    out[rows, k] = 0.0
+    out /= out.sum(axis=1, keepdims=True)
+    g = tables.opposite_face[f, k]
+    c = tables.opposite_corner[f, k]
+    gb = np.zeros_like(out)
+    gb[rows, (c + 1) % 3] = out[rows, (k + 2) % 3]
+    gb[rows, (c + 2) % 3] = out[rows, (k + 1) % 3]
+    return (rows, f, start), g, gb
+
+
+def zero_set(tables: MeshTables, values: np.ndarray, faces_allowed: np.ndarray):
+    """Zero level set of piecewise-linear vertex ``values`` inside ``faces_allowed``, as chained segments.
+
+    Returns per segment (in chain order): face (s,), end points ``p``, ``q`` (s, 3).
+    """
+    faces = tables.faces
+    d = values[faces]
+    fidx = np.flatnonzero((d.min(axis=1) < 0.0) & (d.max(axis=1) > 0.0) & faces_allowed)
+    dd = d[fidx]
+    pts, eids = [], []
+    for i in range(3):
+        a, b = (i + 1) % 3, (i + 2) % 3
+        da, db = dd[:, a], dd[:, b]
+        hit = (da < 0.0) != (db < 0.0)
+        t = np.where(hit, -da / np.where(hit, db - da, 1.0), 0.0)
+        pa = tables.vertices[faces[fidx, a]]
+        pb = tables.vertices[faces[fidx, b]]
+        pts.append(pa + t[:, None] * (pb - pa))
+        eids.append(np.where(hit, tables.face_edges[fidx, (i + 1) % 3], -1))
+    pts = np.stack(pts, axis=1)
+    eids = np.stack(eids, axis=1)
+    two = np.argsort(eids < 0, axis=1, kind="stable")[:, :2]
+    rows = np.arange(len(fidx))
+    p, q = pts[rows, two[:, 0]], pts[rows, two[:, 1]]
+    ep, eq = eids[rows, two[:, 0]], eids[rows, two[:, 1]]
+    # orient every segment so that values increase to its left (N x (q - p) . grad > 0)
+    grad = np.einsum("kij,ki->kj", tables.bary_gradients[fidx], dd)
+    flip = np.einsum("kj,kj->k", np.cross(tables.normals[fidx], q - p), grad) < 0
+    p, q = np.where(flip[:, None], q, p), np.where(flip[:, None], p, q)
+    ep, eq = np.where(flip, eq, ep), np.where(flip, ep, eq)
+    # chains: the segment starting on edge eq follows; start chains at segments nothing leads into
+    by_start = {int(e): s for s, e in enumerate(ep)}
+    has_pred = np.isin(ep, eq)
+    order, seen = [], np.zeros(len(fidx), dtype=bool)
+    for s0 in np.r_[np.flatnonzero(~has_pred), np.flatnonzero(has_pred)]:
+        s = int(s0)
+        while not seen[s]:
+            seen[s] = True
+            order.append(s)
+            s = by_start.get(int(eq[s]), s)
+    order = np.asarray(order, dtype=np.int64)
+    return fidx[order], p[order], q[order]
+
+
+def rx_seeds(tables: MeshTables, field: DirectionField, sensing: np.ndarray, n_curves: int):
+    """Seeds on the apex line of the dipole loops: where the field is tangent to the geodesic circles
+    around the dipole source (``u . grad d = 0``), inside the sensing faces, at equal arc length."""
+    grad = np.einsum("fij,fi->fj", tables.bary_gradients, field.start_distance[tables.faces])
+    radial = np.einsum("fj,fj->f", field.face_direction, grad)
+    weights = np.zeros(len(tables.vertices))
+    np.add.at(weights, tables.faces.reshape(-1), np.repeat(tables.areas, 3))
+    vertex_value = np.zeros(len(tables.vertices))
+    np.add.at(vertex_value, tables.faces.reshape(-1), np.repeat(radial * tables.areas, 3))
+    vertex_value /= weights
+    seg_face, p, q = zero_set(tables, vertex_value, sensing)
+    if len(seg_face) == 0:
+        raise UserError("the Rx dipole field has no loop apex inside the sensing region: check the base region and dipole")
+    length = np.linalg.norm(q - p, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(length)])
+    target = (np.arange(n_curves) + 0.5) / n_curves * cum[-1]
+    j = np.clip(np.searchsorted(cum, target, side="right") - 1, 0, len(length) - 1)
+    frac = np.clip((target - cum[j]) / np.where(length[j] > 0, length[j], 1.0), 0.0, 1.0)
+    points = p[j] + frac[:, None] * (q[j] - p[j])
+    faces = seg_face[j]
+    bary = np.maximum(tables.bary_of_points(faces, points), 1e-6)
+    return faces, bary / bary.sum(axis=1, keepdims=True)
+
+
+def reversed_rows(tables: MeshTables, faces: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of one curve in reverse order, each restated in the face of the segment it now starts."""
+    points = tables.points(faces, bary)[::-1]
+    rev_faces = np.r_[faces[:-1][::-1], faces[:1]]
+    rev_bary = np.clip(tables.bary_of_points(rev_faces, points), 0.0, 1.0)
+    return rev_faces, rev_bary / rev_bary.sum(axis=1, keepdims=True)
+
+
+def join_both_ways(tables: MeshTables, backward: Traces, forward: Traces) -> Traces:
+    """Curves through their seeds: ``reversed(backward) + forward``, oriented to start at the base.
+
+    A curve whose backward half stopped elsewhere but whose forward half reached the base is
+    reversed as a whole; ``end_reason`` then describes the end away from the start.
+    """
+    n = len(forward.end_reason)
+    bb = np.searchsorted(backward.curve, np.arange(n + 1))
+    fb = np.searchsorted(forward.curve, np.arange(n + 1))
+    parts_curve, parts_face, parts_bary = [], [], []
+    end_reason = np.empty(n, dtype=np.int8)
+    for c in range(n):
+        rev_faces, rev_bary = reversed_rows(tables, backward.faces[bb[c] : bb[c + 1]], backward.bary[bb[c] : bb[c + 1]])
+        faces = np.r_[rev_faces[:-1], forward.faces[fb[c] : fb[c + 1]]]
+        bary = np.r_[rev_bary[:-1], forward.bary[fb[c] : fb[c + 1]]]
+        back_end, fwd_end = backward.end_reason[c], forward.end_reason[c]
+        if back_end != CurveEnd.BASE and fwd_end == CurveEnd.BASE:
+            faces, bary = reversed_rows(tables, faces, bary)
+            fwd_end = back_end
+        end_reason[c] = fwd_end
+        parts_curve.append(np.full(len(faces), c, dtype=np.int64))
+        parts_face.append(faces)
+        parts_bary.append(bary)
+    return Traces(
+        curve=np.concatenate(parts_curve),
+        faces=np.concatenate(parts_face),
+        bary=np.concatenate(parts_bary),
+        end_reason=end_reason,
+        face_steps=backward.face_steps + forward.face_steps,
+    )
+
+
+class TraceTxParams(NodeParams):
+    n_curves: int = Field(100, ge=1, description="Tx curves, at uniform angles around the far vertex")
+    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this distance (mm) of the base centre")
+    max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
+    max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
+
+
+class TraceRxParams(NodeParams):
+    angle_deg: float = Field(0.0, ge=-90, le=90, description="offset of the traced direction from the field (deg, CCW)")
+    n_curves: int = Field(100, ge=1, description="Rx curves per angle")
+    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this distance (mm) of the dipole")
+    max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
+    max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
+
+
+def base_region_of(regions) -> np.ndarray:
+    return np.asarray(regions.base_faces, dtype=bool) | np.asarray(regions.exclusion_base, dtype=bool)
+
+
+def trace_tx_curves(params: TraceTxParams, tables: MeshTables, regions, field: DirectionField) -> tuple[CurveSet, TraceStats]:
+    if field.layer != "tx":
+        raise UserError(f"curves.trace_tx needs the tx field, got the {field.layer} field: wire curves.connection with layer: tx")
+    base = base_region_of(regions)
+    start_region = np.asarray(regions.exclusion_far, dtype=bool) & ~base
+    singular = faces_near(tables, tables.vertices[[int(regions.base_centre)]], params.singularity_stop_mm)
+    prefix, faces, bary = tx_starts(tables, field.start_vertex, params.n_curves)
+    traces = trace(
+        tables, field.face_direction, faces, bary, start_region, base, singular, params.max_steps, params.max_face_visits, prefix
+    )
+    return assemble(tables, traces, start_region, "tx", 0.0)
+
+
+def trace_rx_curves(params: TraceRxParams, tables: MeshTables, regions, field: DirectionField) -> tuple[CurveSet, TraceStats]:
+    if field.layer != "rx":
+        raise UserError(f"curves.trace_rx needs the rx field, got the {field.layer} field: wire curves.connection with layer: rx")
+    base = base_region_of(regions)
+    sensing = ~base & ~np.asarray(regions.exclusion_far, dtype=bool)
+    faces, bary = rx_seeds(tables, field, sensing, params.n_curves)
+    angle = float(np.radians(params.angle_deg))
+    direction = field_direction(field, tables, angle)
+    singular = faces_near(tables, field.singular_points, params.singularity_stop_mm)
+    nothing = np.zeros(len(tables.faces), dtype=bool)
+    halves = [
+        trace(tables, sign * direction, faces, bary, nothing, base, singular, params.max_steps, params.max_face_visits)
+        for sign in (-1.0, 1.0)
+    ]
+    return assemble(tables, join_both_ways(tables, *halves), nothing, "rx", angle)
+
+
+@node("curves.trace_tx", params=TraceTxParams, inputs=("mesh", "regions", "field"), outputs=("curves", "stats"))
+def trace_tx(params: TraceTxParams, mesh: Mesh, regions, field: DirectionField) -> dict[str, object]:
+    """Tx curves: field lines from the far vertex at uniform angles, trimmed at the far exclusion, ending at the base."""
+    curves, stats = trace_tx_curves(params, build_tables(mesh.vertices, mesh.faces), regions, field)
+    return {"curves": curves, "stats": stats}
+
+
+@node("curves.trace_rx", params=TraceRxParams, inputs=("mesh", "regions", "field"), outputs=("curves", "stats"))
+def trace_rx(params: TraceRxParams, mesh: Mesh, regions, field: DirectionField) -> dict[str, object]:
+    """Rx curves of one angle offset: from a geodesic ring around the dipole, trimmed at the base, ending at the base."""
+    curves, stats = trace_rx_curves(params, build_tables(mesh.vertices, mesh.faces), regions, field)
+    return {"curves": curves, "stats": stats}
