@@ -65,7 +65,9 @@ class TraceStats:
     dropped: int  # curves that never left their start region
     end_counts: np.ndarray  # (5,) int64, traced curves per CurveEnd code
     sink_edges: int  # traces stopped at a sink edge
-    sink_edge_rate: float
+    sink_edge_rate: float  # sink_edges / traced (the paper reports about 3 %)
+    sink_hits: int  # sink edges met, including those escaped by sliding
+    sink_slides: int
     reached_base_rate: float
     face_steps: int  # total face-to-face steps
     mean_length_mm: float  # over kept curves
@@ -80,6 +82,8 @@ class Traces:
     bary: np.ndarray  # (P, 3) float64
     end_reason: np.ndarray  # (C,) int8
     face_steps: int
+    sink_hits: int  # sink edges met (slid along or stopped at)
+    sink_slides: int  # sink edges escaped by sliding to a vertex
 
 
 def field_direction(field: DirectionField, tables: MeshTables, angle: float) -> np.ndarray:
@@ -96,6 +100,36 @@ def faces_near(tables: MeshTables, points: np.ndarray, radius_mm: float) -> np.n
     return np.any(near_vertex[tables.faces], axis=1)
 
 
+def vertex_face_table(tables: MeshTables) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR-style incidence: faces (and the vertex's corner in them) of vertex v are rows ``ptr[v]:ptr[v+1]``."""
+    flat = tables.faces.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    ptr = np.searchsorted(flat[order], np.arange(len(tables.vertices) + 1))
+    return ptr, order // 3, order % 3
+
+
+def slide_to_vertex(tables, rate, direction, vertex_faces, f, exit_corner, g):
+    """Escape from sink edge (f, g): slide along it to the end both directions lean toward (else the
+    other end), then leave that vertex into the first incident face whose direction points strictly
+    into it.
+
+    Returns ``(face, bary at the vertex)`` or ``None`` when the vertex is a sink too.
+    """
+    a = tables.faces[f, (exit_corner + 1) % 3]
+    b = tables.faces[f, (exit_corner + 2) % 3]
+    along = (direction[f] + direction[g]) @ (tables.vertices[b] - tables.vertices[a])
+    if along == 0.0:
+        return None
+    ptr, vf, vc = vertex_faces
+    for v in ((b, a) if along > 0 else (a, b)):
+        for h, k in zip(vf[ptr[v] : ptr[v + 1]], vc[ptr[v] : ptr[v + 1]]):
+            if h != f and h != g and rate[h, (k + 1) % 3] > 0.0 and rate[h, (k + 2) % 3] > 0.0:
+                bary = np.zeros(3)
+                bary[k] = 1.0
+                return h, bary
+    return None
+
+
 def trace(
     tables: MeshTables,
     direction: np.ndarray,
@@ -107,12 +141,15 @@ def trace(
     max_steps: int,
     max_face_visits: int,
     prefix: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    slide_sink_edges: bool = True,
 ) -> Traces:
     """Trace all curves of a family at once through the per-face unit ``direction`` (m, 3).
 
     ``start_region``: faces the curves start in (a curve has "left" once it enters a face outside
     it); ``base_region`` / ``singular_region`` stop a curve that has left. ``prefix`` optionally
-    gives rows (curve, face, bary) recorded before the start rows.
+    gives rows (curve, face, bary) recorded before the start rows. With ``slide_sink_edges`` a
+    curve reaching a sink edge slides along it to the vertex the two directions agree on and leaves
+    that vertex into a face whose direction points out of it (see :func:`slide_to_vertex`).
     """
     n = len(start_faces)
     rate = np.einsum("fij,fj->fi", tables.bary_gradients, direction)  # d(bary)/d(mm) per face
@@ -129,7 +166,8 @@ def trace(
     rec_curve.append(cid.copy())
     rec_face.append(face.copy())
     rec_bary.append(bary.copy())
-    steps = 0
+    steps = sinks = slides = 0
+    vertex_faces = vertex_face_table(tables) if slide_sink_edges else None
     for _ in range(max_steps):
         if len(cid) == 0:
             break
@@ -154,9 +192,19 @@ def trace(
         nb[rows, (c + 2) % 3] = out[rows, (exit_corner + 1) % 3]
         steps += k
 
+        sink = rate[nxt, c] <= 0.0
+        sinks += int(np.count_nonzero(sink))
+        extra = []
+        if slide_sink_edges:
+            for r in np.flatnonzero(sink):
+                escape = slide_to_vertex(tables, rate, direction, vertex_faces, face[r], exit_corner[r], nxt[r])
+                if escape is not None:
+                    extra.append((cid[r], face[r], out[r].copy()))
+                    nxt[r], nb[r] = escape
+                    sink[r] = False
+                    slides += 1
         visits[cid, nxt] += 1
         base = left & base_region[nxt]
-        sink = rate[nxt, c] <= 0.0
         singular = left & singular_region[nxt] & ~base
         loop = visits[cid, nxt] > max_face_visits
         reason = np.full(k, -1, dtype=np.int8)
@@ -168,6 +216,10 @@ def trace(
         go = ~stop
 
         end_reason[cid[stop]] = reason[stop]
+        if extra:
+            rec_curve.append(np.array([e[0] for e in extra]))
+            rec_face.append(np.array([e[1] for e in extra]))
+            rec_bary.append(np.array([e[2] for e in extra]))
         rec_curve.append(cid[stop])
         rec_face.append(face[stop])
         rec_bary.append(out[stop])
@@ -188,7 +240,7 @@ def trace(
         points = tables.points(faces[last], barys[last])
         faces[last] = faces[last - 1]
         barys[last] = tables.bary_of_points(faces[last], points)
-    return Traces(curve=curve, faces=faces, bary=barys, end_reason=end_reason, face_steps=steps)
+    return Traces(curve=curve, faces=faces, bary=barys, end_reason=end_reason, face_steps=steps, sink_hits=sinks, sink_slides=slides)
 
 
 def assemble(
@@ -238,6 +290,8 @@ def assemble(
         end_counts=end_counts,
         sink_edges=int(end_counts[CurveEnd.SINK_EDGE]),
         sink_edge_rate=float(end_counts[CurveEnd.SINK_EDGE] / max(n, 1)),
+        sink_hits=traces.sink_hits,
+        sink_slides=traces.sink_slides,
         reached_base_rate=float(end_counts[CurveEnd.BASE] / max(n, 1)),
         face_steps=traces.face_steps,
         mean_length_mm=float(lengths.mean()) if len(kept) else 0.0,
@@ -395,6 +449,8 @@ def join_both_ways(tables: MeshTables, backward: Traces, forward: Traces) -> Tra
         bary=np.concatenate(parts_bary),
         end_reason=end_reason,
         face_steps=backward.face_steps + forward.face_steps,
+        sink_hits=backward.sink_hits + forward.sink_hits,
+        sink_slides=backward.sink_slides + forward.sink_slides,
     )
 
 
