@@ -14,8 +14,6 @@ import importlib
 import importlib.util
 import os
 import sys
-import time
-import uuid
 from typing import Any, Optional
 
 import click
@@ -38,20 +36,6 @@ def _store(cache_dir: Optional[str]):
     return Store(cache_dir or default_cache_dir())
 
 
-def _plan(pipeline: str, overrides: list[str] | None, cache_dir: Optional[str]):
-    from retrotouch.graph.pipeline import load_pipeline
-    from retrotouch.graph.plan import expand
-
-    return expand(load_pipeline(pipeline, overrides or []), _store(cache_dir))
-
-
-def _check_scheduler(scheduler: str) -> None:
-    from retrotouch.graph.execute import SCHEDULERS
-
-    if scheduler not in SCHEDULERS and not scheduler.startswith("tcp://"):
-        raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
-
-
 def run(
     pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
     overrides: Optional[list[str]] = SetOption,
@@ -62,41 +46,13 @@ def run(
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:
     """Run a pipeline: cached nodes are reused, the rest run on the scheduler; sinks write into --out."""
-    from retrotouch.graph import plan as planning
-    from retrotouch.graph.execute import execute
-    from retrotouch.graph.outputs import write_outputs
+    from retrotouch.graph.runner import run_pipeline
 
-    _check_scheduler(scheduler)
-    plan = _plan(pipeline, overrides, cache_dir)
-    out_dir = out or os.path.join("out", os.path.splitext(os.path.basename(pipeline))[0])
-    if explain:
-        planning.explain(plan)
-        _print_explain(plan)
-    by_task = {f"{i.id}-{i.key[:16]}": i for i in plan.to_run}
-    status: dict[int, dict[str, Any]] = {}
-    run_id = uuid.uuid4().hex
-    start = time.perf_counter()
-    try:
-        with _progress(len(by_task)) as advance:
-            def on_done(name: str, result: Any) -> None:
-                inst = by_task[name]
-                status[id(inst)] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds}
-                advance(inst.id)
-
-            results = execute(plan, scheduler, run_id, on_done)
-        refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
-        refs.update({id(by_task[name]): result.ref for name, result in results.items()})
-        write_outputs(plan, refs, out_dir, {"status": status, "scheduler": scheduler})
-    finally:
-        plan.store.drop_scratch(run_id)
-    planning.record_run(plan)
-    for inst in plan.instances:
-        if inst.cached is not None:
-            plan.store.touch(inst.cached)
-    _print_table(plan, status)
-    ran = sum(1 for s in status.values() if s["status"] == "ran")
-    print(f"{ran} ran, {len(plan.instances) - ran} cached, {time.perf_counter() - start:.2f} s; "
-          f"outputs in {os.path.abspath(out_dir)}")
+    result = run_pipeline(pipeline, overrides, out_dir=out, scheduler=scheduler, cache_dir=cache_dir,
+                          explain=explain, on_plan=_print_explain if explain else None, progress=_progress)
+    _print_table(result.plan, result.status)
+    ran = len(result.ran())
+    print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 
 def plan_command(
@@ -106,8 +62,9 @@ def plan_command(
 ) -> None:
     """Show what a run would do: every node instance, its cache key, hit or miss, and why it would run."""
     from retrotouch.graph import plan as planning
+    from retrotouch.graph.runner import make_plan
 
-    plan = _plan(pipeline, overrides, cache_dir)
+    plan = make_plan(pipeline, overrides, cache_dir)
     planning.explain(plan)
     from rich.console import Console
     from rich.table import Table
@@ -136,7 +93,8 @@ def nodes(name: Optional[str] = typer.Argument(None, help="Only node types conta
             print("  " + spec.doc.split("\n\n")[0].replace("\n", "\n  "))
         print(f"  inputs: {', '.join(spec.inputs) or '-'}    outputs: {', '.join(spec.outputs)}")
         for field, info in spec.params.model_fields.items():
-            annotation = getattr(info.annotation, "__name__", None) or str(info.annotation).replace("typing.", "")
+            annotation = info.annotation.__name__ if isinstance(info.annotation, type) else \
+                str(info.annotation).replace("typing.", "")
             default = "required" if info.default is PydanticUndefined and info.default_factory is None else \
                 f"default {info.get_default(call_default_factory=True)!r}"
             print(f"    {field}: {annotation} ({default}){' - ' + info.description if info.description else ''}")
@@ -166,13 +124,14 @@ def cache_gc(
     """Drop stale temp dirs and corrupt entries; with PIPELINES, drop entries they do not use; with
     --older-than, drop entries unused for DAYS days (both given: unused by them AND old)."""
     from retrotouch.graph import maintenance
+    from retrotouch.graph.runner import make_plan
 
     store = _store(cache_dir)
     keep = None
     if pipelines:
         keep = set()
         for p in pipelines:
-            keep |= {inst.key for inst in _plan(p, overrides, store.root).instances}
+            keep |= {inst.key for inst in make_plan(p, overrides, store.root).instances}
     for line in maintenance.gc(store, keep, older_than):
         print(line)
 

@@ -120,7 +120,7 @@ def _write_log(store: Store, spec: TaskSpec, text: str) -> str:
 
 
 # -- building the task graph -------------------------------------------------------------------
-def _task_name(inst: Instance) -> str:
+def task_name(inst: Instance) -> str:
     return f"{inst.id}-{inst.key[:16]}"
 
 
@@ -137,12 +137,12 @@ def build_tasks(plan: Plan, run_id: str) -> dict[str, tuple[TaskSpec, list[str |
             for up, output in ups:
                 if id(up) not in slots:
                     slots[id(up)] = len(args)
-                    args.append(_task_name(up) if up.runs else up.cached)  # type: ignore[arg-type]
+                    args.append(task_name(up) if up.runs else up.cached)  # type: ignore[arg-type]
                 items.append((slots[id(up)], output, len(up.decl.spec.outputs) == 1))
             inputs.append((name, inst.decl.inputs[name].fan_in, tuple(items)))
         spec = TaskSpec(inst.id, inst.decl.spec.name, inst.params.model_dump(mode="json"), inst.key,
                         plan.store.root, inst.decl.cache, run_id, extra, tuple(inputs))
-        tasks[_task_name(inst)] = (spec, args)
+        tasks[task_name(inst)] = (spec, args)
     return tasks
 
 
@@ -196,10 +196,7 @@ def _run_from_results(spec: TaskSpec, *upstream: TaskResult | ArtifactRef) -> Ta
 
 
 def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> dict[str, Any]:
-    from dask.core import literal
-
-    return {name: (_run_from_results, literal(spec), *[a if isinstance(a, str) else literal(a) for a in args])
-            for name, (spec, args) in tasks.items()}
+    return {name: (_run_from_results, spec, *args) for name, (spec, args) in tasks.items()}
 
 
 def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done) -> dict[str, TaskResult]:

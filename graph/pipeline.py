@@ -173,7 +173,8 @@ def apply_override(doc: Document, override: str) -> None:
                 in_params = len(parts) >= 3 and parts[0] == "nodes" and parts[2] == "params" and i >= 2
                 node_key = i == 2 and parts[0] == "nodes" and part in NODE_KEYS
                 if not (in_params or node_key):
-                    raise UserError(f"{where}: {done} has no key {part!r}{did_you_mean(str(part), map(str, cur))}")
+                    hint = did_you_mean(str(part), map(str, cur)) or f" (keys: {', '.join(map(str, cur)) or 'none'})"
+                    raise UserError(f"{where}: {done} has no key {part!r}{hint}")
                 if not last:
                     cur[part] = {}
         else:

@@ -1,0 +1,47 @@
+"""Shared test setup.
+
+Tests import the installed package (``retrotouch.graph``, ``retrotouch.nodes``), never the repo's
+``graph/``/``nodes/`` folders directly, so they run the same against an editable and a regular
+install. Repo files (pipelines, meshes) are located from this file's position.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ENGINE_NODES = REPO / "tests" / "engine_nodes"
+"""Tiny node types for engine tests (module ``rt_testnodes``)."""
+
+
+@pytest.fixture
+def repo() -> Path:
+    return REPO
+
+
+@pytest.fixture
+def test_nodes(monkeypatch: pytest.MonkeyPatch):
+    """Register the engine test node types in this process and in any subprocess or dask worker
+    started from it (through PYTHONPATH and RETROTOUCH_NODE_MODULES)."""
+    monkeypatch.syspath_prepend(str(ENGINE_NODES))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(ENGINE_NODES), os.environ.get("PYTHONPATH")])))
+    monkeypatch.setenv("RETROTOUCH_NODE_MODULES", "rt_testnodes")
+    import rt_testnodes  # noqa: F401  (registers the t.* node types)
+
+    return rt_testnodes
+
+
+@pytest.fixture
+def cli(tmp_path: Path):
+    """Run ``retrotouch ARGS`` in a subprocess (cwd: tmp_path) and return the CompletedProcess."""
+
+    def run(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 300):
+        full_env = {**os.environ, **(env or {})}
+        return subprocess.run([sys.executable, "-m", "retrotouch.graph.cli", *map(str, args)], cwd=cwd or tmp_path,
+                              env=full_env, capture_output=True, text=True, timeout=timeout)
+
+    return run

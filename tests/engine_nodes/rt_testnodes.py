@@ -1,0 +1,77 @@
+"""Tiny node types for the engine tests (cheap, deterministic).
+
+Subprocess runs see them through ``PYTHONPATH=tests/engine_nodes`` and
+``RETROTOUCH_NODE_MODULES=rt_testnodes``; dask workers started from such a process inherit both.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+from pydantic import Field
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.node import Files, NodeParams, node
+
+
+class SourceParams(NodeParams):
+    n: int = Field(4, ge=1, description="number of values")
+    scale: float = Field(1.0, description="multiplier")
+    sleep_s: float = Field(0.0, ge=0, description="pause before returning (s), to make runs overlap")
+
+
+@node("t.source", params=SourceParams, outputs=("values",))
+def source(params: SourceParams) -> np.ndarray:
+    """0, 1, ..., n-1 times scale."""
+    time.sleep(params.sleep_s)
+    return np.arange(params.n, dtype=np.float64) * params.scale
+
+
+class AddParams(NodeParams):
+    delta: float = Field(0.0, description="added to every value")
+
+
+@node("t.add", params=AddParams, inputs=("x",), outputs=("y",))
+def add(params: AddParams, x: np.ndarray) -> np.ndarray:
+    """x + delta."""
+    return x + params.delta
+
+
+class NoParams(NodeParams):
+    pass
+
+
+@node("t.sum", params=NoParams, inputs=("xs",), outputs=("total",))
+def total(params: NoParams, xs: list) -> float:
+    """Sum of every value of every branch (fan-in)."""
+    return float(sum(float(np.sum(x)) for x in xs))
+
+
+@node("t.stats", params=NoParams, inputs=("x",), outputs=("mean", "count"))
+def stats(params: NoParams, x: np.ndarray) -> dict:
+    """Two outputs: mean and count."""
+    return {"mean": float(np.mean(x)), "count": int(len(x))}
+
+
+class WriteParams(NodeParams):
+    filename: str = Field("value.json", description="file written into the output folder")
+
+
+@node("t.write", params=WriteParams, inputs=("value",), outputs=("files",), sink=True)
+def write(params: WriteParams, value) -> Files:
+    """The input as JSON."""
+    data = value.tolist() if isinstance(value, np.ndarray) else value
+    return Files({params.filename: json.dumps(data).encode()})
+
+
+class FailParams(NodeParams):
+    kind: str = Field("user", description="user | crash")
+
+
+@node("t.fail", params=FailParams, inputs=("x",), outputs=("y",))
+def fail(params: FailParams, x: np.ndarray) -> np.ndarray:
+    """Raises: a UserError (kind=user) or a ZeroDivisionError (kind=crash)."""
+    if params.kind == "user":
+        raise UserError("the input is unusable; pick another one")
+    return x / 0 if False else 1 // 0

@@ -1,0 +1,134 @@
+"""YAML pipelines: every mistake is one line with file:line:col, and -S overrides."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.runner import make_plan
+
+GOOD = """\
+params:
+  n: 3
+  deltas: [1, 2]
+nodes:
+  src:
+    type: t.source
+    params:
+      n: "${n}"
+  plus:
+    type: t.add
+    inputs: {x: src}
+    map: {delta: "${deltas}"}
+  tot:
+    type: t.sum
+    inputs: {xs: "plus[*]"}
+"""
+
+
+def error_of(tmp_path: Path, text: str, overrides=()) -> str:
+    path = tmp_path / "p.yaml"
+    path.write_text(text)
+    with pytest.raises(UserError) as info:
+        make_plan(str(path), list(overrides), str(tmp_path / "cache"))
+    message = str(info.value)
+    assert "\n" not in message
+    return message.replace(str(path), "p.yaml")
+
+
+def test_good_pipeline_expands_branches_and_fan_in(tmp_path, test_nodes):
+    path = tmp_path / "p.yaml"
+    path.write_text(GOOD)
+    plan = make_plan(str(path), [], str(tmp_path))
+    assert [i.id for i in plan.instances] == ["src", "plus[delta=1]", "plus[delta=2]", "tot"]
+    tot = plan.instances[-1]
+    assert [u.id for u, _ in tot.inputs["xs"]] == ["plus[delta=1]", "plus[delta=2]"]
+    assert plan.instances[0].params.n == 3  # "${n}" kept its int type
+
+
+def test_misspelt_param_points_at_its_line_with_a_suggestion(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace('      n: "${n}"', '      nn: "${n}"'))
+    assert msg == "p.yaml:8:7: node 'src' (t.source): unknown param 'nn'; did you mean 'n'?"
+
+
+def test_wrong_type_points_at_the_value(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace("  n: 3", "  n: three"))
+    assert msg.startswith("p.yaml:8:10: node 'src' (t.source): param 'n': Input should be a valid integer")
+
+
+def test_unknown_node_type_suggests_the_closest(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace("type: t.add", "type: t.ad"))
+    assert msg == "p.yaml:10:11: node 'plus': unknown node type 't.ad'; did you mean 't.add'?"
+
+
+def test_missing_input(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace("    inputs: {x: src}\n", ""))
+    assert msg == "p.yaml:9:3: node 'plus' (t.add): input 'x' is not connected; add inputs: {x: <node>}"
+
+
+def test_unknown_input_and_unknown_upstream(tmp_path, test_nodes):
+    assert error_of(tmp_path, GOOD.replace("{x: src}", "{x: src, z: src}")).startswith(
+        "p.yaml:11:22: node 'plus' (t.add): unknown input 'z' (inputs: x)")
+    assert error_of(tmp_path, GOOD.replace("{x: src}", "{x: scr}")) == \
+        "p.yaml:11:17: node 'plus': input 'x' refers to unknown node 'scr'; did you mean 'src'?"
+
+
+def test_cycle(tmp_path, test_nodes):
+    text = "nodes:\n  a: {type: t.add, inputs: {x: b}}\n  b: {type: t.add, inputs: {x: a}}\n"
+    assert error_of(tmp_path, text) == "p.yaml:3:32: cycle: a -> b -> a"
+
+
+def test_bad_map_values(tmp_path, test_nodes):
+    assert error_of(tmp_path, GOOD.replace("deltas: [1, 2]", "deltas: 5")) == \
+        "p.yaml:12:18: node 'plus': map 'delta' needs a non-empty list of values, got 5"
+    assert error_of(tmp_path, GOOD.replace("deltas: [1, 2]", "deltas: [1, oops]")).startswith(
+        "p.yaml:12:18: node 'plus' (t.add): param 'delta': Input should be a valid number")
+    assert error_of(tmp_path, GOOD.replace("map: {delta:", "map: {delt:")).startswith(
+        "p.yaml:12:11: node 'plus' (t.add): cannot map over unknown param 'delt'; did you mean 'delta'?")
+
+
+def test_unknown_interpolation_and_keys(tmp_path, test_nodes):
+    assert error_of(tmp_path, GOOD.replace('"${n}"', '"${m}"')) == \
+        "p.yaml:8:10: unknown pipeline param ${m} (defined: n, deltas)"
+    assert error_of(tmp_path, GOOD.replace("    type: t.source", "    typ: t.source")).startswith(
+        "p.yaml:6:5: node 'src': unknown key 'typ'; did you mean 'type'?")
+    assert error_of(tmp_path, GOOD + "  tot:\n    type: t.sum\n").startswith("p.yaml:16:3: duplicate key 'tot'")
+    assert re.match(r"p\.yaml:\d+:\d+: YAML syntax error", error_of(tmp_path, GOOD.replace("{x: src}", "{x: src")))
+
+
+def test_fan_in_of_an_unmapped_node_is_refused(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace('"plus[*]"', '"src[*]"'))
+    assert msg.startswith("p.yaml:15:18: node 'tot': input 'xs' fans in src[*]")
+
+
+def test_overrides(tmp_path, test_nodes):
+    path = tmp_path / "p.yaml"
+    path.write_text(GOOD)
+    plan = make_plan(str(path), ["params.n=5", "nodes.plus.map.delta=[7]", "nodes.tot.cache=recompute"], str(tmp_path))
+    assert plan.instances[0].params.n == 5
+    assert [i.id for i in plan.instances] == ["src", "plus[delta=7]", "tot"]
+    assert plan.instances[-1].runs and plan.instances[-1].reason == "cache: recompute"
+    assert make_plan(str(path), ["src.scale=2.5"], str(tmp_path)).instances[0].params.scale == 2.5
+    assert error_of(tmp_path, GOOD, ["params.m=1"]) == "-S params.m=1: params has no key 'm' (keys: n, deltas)"
+    assert error_of(tmp_path, GOOD, ["nodes.plsu.params.delta=1"]).startswith(
+        "-S nodes.plsu.params.delta=1: nodes has no key 'plsu'; did you mean 'plus'?")
+    assert error_of(tmp_path, GOOD, ["src.scael=2"]) == \
+        "-S src.scael=2: node 'src' (t.source): unknown param 'scael'; did you mean 'scale'?"
+    assert error_of(tmp_path, GOOD, ["params.n=[1"]).startswith("-S params.n=[1: VALUE is not valid YAML")
+    assert error_of(tmp_path, GOOD, ["novalue"]).startswith("-S novalue: expected PATH=VALUE")
+
+
+def test_cli_reports_one_line_and_exit_code_2(tmp_path, cli, test_nodes):
+    (tmp_path / "p.yaml").write_text(GOOD.replace('      n: "${n}"', '      nn: "${n}"'))
+    result = cli("run", "p.yaml")
+    assert result.returncode == 2
+    assert result.stderr.strip() == "retrotouch: error: p.yaml:8:7: node 'src' (t.source): unknown param 'nn'; " \
+                                    "did you mean 'n'?"
+    assert "Traceback" not in result.stderr + result.stdout
+    result = cli("run", "p.yaml", "-S", "params.nn=3")
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "did you mean 'n'" in result.stderr
+    result = cli("run", "missing.yaml")
+    assert result.returncode == 2 and result.stderr.strip() == \
+        "retrotouch: error: cannot read pipeline missing.yaml: No such file or directory"
