@@ -1,0 +1,604 @@
+"""From raw Muca frames to 3D touch points on the object (paper section 8).
+
+Per frame (``TouchProcessor.process``):
+
+1. **Baseline**: the first ``calibration_frames`` frames (no touch assumed) give each cell's
+   baseline and noise sigma. Afterwards a common-mode term (median relative offset of the quiet
+   cells) removes global drift at once, and each quiet cell's baseline follows the raw counts with
+   time constant ``baseline_tau_s``. Cells near an active touch are *held* (not updated) while
+   touched; a cell held longer than ``max_hold_s`` is re-baselined (a stuck touch fades). A cell
+   reading far below its baseline for ``negative_reset_frames`` frames is re-baselined (a finger
+   that rested on it at start-up).
+2. **Detection**: ``delta = raw - baseline`` in counts (a touch raises counts on FT5x16 raw output).
+   A cell turns on above ``on_sigma`` noise sigmas and stays on above ``off_sigma`` (hysteresis).
+3. **Contact areas**: the deltas are interpolated over mesh vertices near active cells (Gaussian
+   kernel, Nadaraya-Watson); vertices above the off threshold form connected components on the mesh
+   graph. Each component is split among its touch peaks (active cells that are local maxima and are
+   not explained by a stronger peak's coupling tail); the intensity-weighted, area-weighted centroid
+   of each part, projected on the surface, is the coarse touch point, and the part's area above half
+   of its peak intensity is the contact area.
+4. **Sub-cell refinement** (``refine``): a Gaussian coupling model
+   ``delta_i = A exp(-|p - x_i|^2 / (2 s^2))`` fitted to the cells around the coarse point by weighted
+   log-linear least squares with ``p`` in the tangent plane, then projected on the surface (twice).
+5. **Tracking**: touches are matched to the previous frame's tracks by minimum total distance
+   (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
+   ids, unmatched tracks end.
+
+Units: mm for lengths, seconds for times inside (ms only in params named ``*_ms``), counts for
+capacitance. Touch points lie on the mesh (``face`` + ``bary`` follow the datatypes conventions).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import trimesh
+from pydantic import Field
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.node import NodeParams
+from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
+
+REFINE_ITERATIONS = 2
+NORMAL_RIDGE = 0.05
+
+
+# --------------------------------------------------------------------------------------------
+# Sensing map
+
+
+@dataclasses.dataclass(frozen=True)
+class SensingMap:
+    """A layout as the runtime sees it: the mesh (mm) and, per cell, its channels and 3D crossing."""
+
+    vertices: np.ndarray  # (n, 3) float64, mm
+    faces: np.ndarray  # (m, 3) int64
+    num_tx: int
+    num_rx: int
+    cell_tx: np.ndarray  # (K,) int64
+    cell_rx: np.ndarray  # (K,) int64
+    cell_points: np.ndarray  # (K, 3) float64, mm
+    cell_faces: np.ndarray  # (K,) int64
+    cell_bary: np.ndarray  # (K, 3) float64
+    cell_normals: np.ndarray  # (K, 3) float64, unit
+    cell_pad: np.ndarray  # (K,) bool
+    source: str  # the sensing_map.json it came from
+
+    @property
+    def cell_count(self) -> int:
+        return len(self.cell_tx)
+
+    @property
+    def frame_index(self) -> np.ndarray:
+        """Index of each cell in a flattened channel-order frame (``tx * num_rx + rx``)."""
+        return self.cell_tx * self.num_rx + self.cell_rx
+
+    def pitch_mm(self) -> float:
+        """Median distance from a cell to its nearest neighbour cell (mm)."""
+        distances, _ = cKDTree(self.cell_points).query(self.cell_points, k=2)
+        return float(np.median(distances[:, 1]))
+
+
+def resolve_sensing_map_path(path: str | Path) -> Path:
+    """A sensing_map.json or a run folder holding one -> the json path (UserError if neither)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "sensing_map.json"
+    if not path.is_file():
+        raise UserError(f"sensing map {path} not found: pass --layout <run folder or sensing_map.json>")
+    return path
+
+
+def load_sensing_map(path: str | Path) -> SensingMap:
+    """Read ``sensing_map.json`` (datatypes.SENSING_MAP_FORMAT) and its mesh; one-line UserError on
+    a missing file, a bad schema or a mesh that does not match the recorded sha256."""
+    path = resolve_sensing_map_path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"sensing map {path} is not valid JSON ({exc}): regenerate it with the pipeline") from None
+    if not isinstance(doc, dict) or doc.get("format") != SENSING_MAP_FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise UserError(f"sensing map {path} has format {found!r}, expected {SENSING_MAP_FORMAT!r}")
+    try:
+        mesh_file = path.parent / doc["mesh"]["file"]
+        num_tx, num_rx = int(doc["tx_channels"]), int(doc["rx_channels"])
+        cells = doc["cells"]
+        cell_tx = np.array([c["tx"] for c in cells], dtype=np.int64)
+        cell_rx = np.array([c["rx"] for c in cells], dtype=np.int64)
+        points = np.array([c["point"] for c in cells], dtype=np.float64).reshape(-1, 3)
+        faces_k = np.array([c["face"] for c in cells], dtype=np.int64)
+        bary = np.array([c["bary"] for c in cells], dtype=np.float64).reshape(-1, 3)
+        normals = np.array([c["normal"] for c in cells], dtype=np.float64).reshape(-1, 3)
+        pad = np.array([bool(c.get("pad", True)) for c in cells], dtype=bool)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"sensing map {path} misses or mangles field {exc}: regenerate it with the pipeline") from None
+    if len(cells) == 0:
+        raise UserError(f"sensing map {path} lists no cells: the layout has no Tx/Rx crossings")
+    if cell_tx.min() < 0 or cell_tx.max() >= num_tx or cell_rx.min() < 0 or cell_rx.max() >= num_rx:
+        raise UserError(f"sensing map {path} has cell channels outside {num_tx} x {num_rx}")
+    if len(np.unique(cell_tx * num_rx + cell_rx)) != len(cells):
+        raise UserError(f"sensing map {path} lists a (tx, rx) pair twice")
+    if not mesh_file.is_file():
+        raise UserError(f"mesh {mesh_file} named by {path} not found: keep mesh.ply next to sensing_map.json")
+    expected = doc["mesh"].get("sha256")
+    if expected and hashlib.sha256(mesh_file.read_bytes()).hexdigest() != expected:
+        raise UserError(f"mesh {mesh_file} does not match the sha256 in {path}: re-run the pipeline")
+    mesh = trimesh.load(mesh_file, process=False, force="mesh")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if faces_k.max() >= len(faces):
+        raise UserError(f"sensing map {path} names face {faces_k.max()} but {mesh_file} has {len(faces)} faces")
+    return SensingMap(vertices, faces, num_tx, num_rx, cell_tx, cell_rx, points, faces_k, bary,
+                      normals / np.linalg.norm(normals, axis=1, keepdims=True), pad, str(path))
+
+
+def write_sensing_map(
+    folder: str | Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cell_tx: np.ndarray,
+    cell_rx: np.ndarray,
+    cell_faces: np.ndarray,
+    cell_bary: np.ndarray,
+    num_tx: int = 21,
+    num_rx: int = 12,
+) -> Path:
+    """Write ``mesh.ply`` + ``sensing_map.json`` (same schema as the pipeline's sink) into ``folder``;
+    cell points and normals are computed exactly from faces/bary. Returns the json path."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh_bytes = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+    (folder / "mesh.ply").write_bytes(mesh_bytes)
+    points = np.einsum("kj,kjd->kd", cell_bary, vertices[faces[cell_faces]])
+    normals = mesh.face_normals[cell_faces]
+    channels = {
+        layer: [{"channel": c, "name": f"{layer.capitalize()}{c:02d}", "curve": c,
+                 "length_mm": round(_channel_length(points[ids == c]), 3)} for c in range(count)]
+        for layer, ids, count in (("tx", cell_tx, num_tx), ("rx", cell_rx, num_rx))
+    }
+    doc = {
+        "format": SENSING_MAP_FORMAT,
+        "units": "mm",
+        "mesh": {"file": "mesh.ply", "sha256": hashlib.sha256(mesh_bytes).hexdigest(),
+                 "vertices": len(vertices), "faces": len(faces)},
+        "tx_channels": num_tx,
+        "rx_channels": num_rx,
+        "channels": channels,
+        "cells": [{"tx": int(t), "rx": int(r), "point": p.tolist(), "face": int(f), "bary": b.tolist(),
+                   "normal": n.tolist(), "pad": True}
+                  for t, r, p, f, b, n in zip(cell_tx, cell_rx, points, cell_faces, cell_bary, normals)],
+    }
+    path = folder / "sensing_map.json"
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    return path
+
+
+def _channel_length(points: np.ndarray) -> float:
+    """Length of the polyline through a channel's crossings ordered greedily (a synthetic stand-in)."""
+    if len(points) < 2:
+        return 0.0
+    order = [0]
+    rest = list(range(1, len(points)))
+    while rest:
+        last = points[order[-1]]
+        nearest = min(rest, key=lambda i: float(np.sum((points[i] - last) ** 2)))
+        order.append(nearest)
+        rest.remove(nearest)
+    return float(np.sum(np.linalg.norm(np.diff(points[order], axis=0), axis=1)))
+
+
+# --------------------------------------------------------------------------------------------
+# Surface helpers
+
+
+def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Barycentrics (n, 3) of the closest point on triangle ``triangles[i]`` (n, 3, 3) to
+    ``points[i]`` (n, 3) (Ericson's region test, vectorised)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    ab, ac = b - a, c - a
+    ap, bp, cp = points - a, points - b, points - c
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v_ab = d1 / (d1 - d3)
+        w_ac = d2 / (d2 - d6)
+        w_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        total = va + vb + vc
+        v_in, w_in = vb / total, vc / total
+    zero, one = np.zeros_like(d1), np.ones_like(d1)
+    conditions = [
+        (d1 <= 0) & (d2 <= 0),
+        (d3 >= 0) & (d4 <= d3),
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (d6 >= 0) & (d5 <= d6),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+    ]
+    v = np.select(conditions, [zero, one, v_ab, zero, zero, 1 - w_bc], v_in)
+    w = np.select(conditions, [zero, zero, zero, one, w_ac, w_bc], w_in)
+    return np.column_stack([1 - v - w, v, w])
+
+
+class SurfaceProjector:
+    """Closest point on the mesh for query points near it (among the k faces nearest by centroid)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 12):
+        self.vertices, self.faces = vertices, faces
+        self.triangles = vertices[faces]
+        self.tree = cKDTree(self.triangles.mean(axis=1))
+        self.k = min(k, len(faces))
+        normals = np.cross(self.triangles[:, 1] - self.triangles[:, 0], self.triangles[:, 2] - self.triangles[:, 0])
+        self.face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+    def project(self, points: np.ndarray, facing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(n, 3) points -> closest surface points (n, 3), their faces (n,), barycentrics (n, 3).
+
+        With ``facing`` (3,), faces whose normal points away from it are skipped when others are
+        near: on thin parts (ears, handles) the point lands on the side facing that way."""
+        points = np.atleast_2d(points)
+        _, candidates = self.tree.query(points, k=self.k)
+        candidates = candidates.reshape(len(points), self.k)
+        triangles = self.triangles[candidates].reshape(-1, 3, 3)
+        bary = closest_points_on_triangles(np.repeat(points, self.k, axis=0), triangles)
+        closest = np.einsum("ij,ijd->id", bary, triangles).reshape(len(points), self.k, 3)
+        distance2 = np.sum((closest - points[:, None]) ** 2, axis=2)
+        if facing is not None:
+            away = self.face_normals[candidates] @ facing <= 0.0
+            distance2 = np.where(away & ~np.all(away, axis=1, keepdims=True), np.inf, distance2)
+        best = np.argmin(distance2, axis=1)
+        rows = np.arange(len(points))
+        return closest[rows, best], candidates[rows, best], bary.reshape(len(points), self.k, 3)[rows, best]
+
+
+def processing_mesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """A simplified copy of the mesh (quadric edge collapse, topology kept) for contact areas; the
+    mesh itself when it is already small enough."""
+    if len(faces) <= target_faces:
+        return vertices, faces
+    import pymeshlab
+
+    meshes = pymeshlab.MeshSet()
+    meshes.add_mesh(pymeshlab.Mesh(vertices, faces))
+    meshes.meshing_decimation_quadric_edge_collapse(targetfacenum=target_faces, preservetopology=True,
+                                                   preservenormal=True, planarquadric=True)
+    simplified = meshes.current_mesh()
+    return simplified.vertex_matrix().astype(np.float64), simplified.face_matrix().astype(np.int64)
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """One third of the area of the faces around each vertex (mm^2)."""
+    triangles = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    return np.bincount(faces.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
+
+
+def vertex_adjacency(faces: np.ndarray, n: int) -> sp.csr_matrix:
+    """Symmetric vertex adjacency of the mesh edges (CSR, bool)."""
+    rows = faces[:, [0, 1, 2, 1, 2, 0]].ravel()
+    cols = faces[:, [1, 2, 0, 0, 1, 2]].ravel()
+    return sp.csr_matrix((np.ones(len(rows), dtype=bool), (rows, cols)), shape=(n, n))
+
+
+# --------------------------------------------------------------------------------------------
+# Processing
+
+
+class ProcessingParams(NodeParams):
+    """Touch processing settings (counts, mm, seconds; see the module docstring)."""
+
+    calibration_frames: int = Field(20, ge=2, description="frames averaged for the initial baseline")
+    baseline_tau_s: float = Field(2.0, gt=0, description="drift tracking time constant of quiet cells (s)")
+    noise_tau_s: float = Field(20.0, gt=0, description="noise sigma tracking time constant (s)")
+    update_sigma: float = Field(3.0, gt=0, description="a cell updates its baseline only while |delta| < this x sigma")
+    on_sigma: float = Field(6.0, gt=0, description="cell turns on above this many noise sigmas")
+    off_sigma: float = Field(4.0, gt=0, description="an on cell stays on above this many noise sigmas")
+    min_noise_counts: float = Field(0.5, gt=0, description="floor of the per-cell noise sigma (counts)")
+    hold_radius_mm: float | None = Field(None, gt=0, description="cells this close to a touch hold their baseline; None: 2.5 x pitch")
+    max_hold_s: float = Field(60.0, gt=0, description="a cell held longer is re-baselined (stuck touch)")
+    negative_reset_frames: int = Field(10, ge=1, description="frames below -on threshold before a re-baseline")
+    coupling_sigma_mm: float | None = Field(None, gt=0, description="finger coupling width; None: sqrt(finger_radius^2 + (pitch/2)^2)")
+    finger_radius_mm: float = Field(4.5, gt=0, description="finger contact radius used for the default coupling width")
+    interpolation_radius_mm: float | None = Field(None, gt=0, description="vertex-to-cell interpolation radius; None: 1.5 x pitch")
+    peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
+    refine: bool = Field(True, description="refine the centroid with the Gaussian coupling fit")
+    contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
+    track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Touch:
+    """One touch point of one frame."""
+
+    id: int  # stable across frames while the finger stays down
+    point: np.ndarray  # (3,) mm, on the surface
+    face: int
+    bary: np.ndarray  # (3,)
+    normal: np.ndarray  # (3,) unit outward face normal
+    intensity: float  # peak delta (counts)
+    area_mm2: float  # contact area (interpolated intensity >= half of the peak)
+    peak_cell: int  # index into the sensing map's cells
+
+    def as_json(self) -> dict[str, Any]:
+        return {"id": self.id, "point": [round(float(x), 3) for x in self.point], "face": self.face,
+                "bary": [round(float(x), 5) for x in self.bary], "normal": [round(float(x), 4) for x in self.normal],
+                "intensity": round(self.intensity, 1), "area_mm2": round(self.area_mm2, 1), "cell": self.peak_cell}
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameResult:
+    """What one frame produced: touches (with ids), their lifecycle events, and per-cell deltas."""
+
+    t: float  # s
+    calibrated: bool
+    touches: tuple[Touch, ...]
+    events: tuple[dict[str, Any], ...]  # touch_down / touch_move / touch_up, JSON-ready
+    delta: np.ndarray  # (K,) counts after baseline removal (0 during calibration)
+    active: np.ndarray  # (K,) bool, cells on
+
+
+class TouchProcessor:
+    """Stateful frame -> touches processing for one sensing map (see the module docstring)."""
+
+    def __init__(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()):
+        self.map = sensing_map
+        self.params = params
+        self.pitch = sensing_map.pitch_mm()
+        self.coupling_sigma = params.coupling_sigma_mm or float(np.hypot(params.finger_radius_mm, self.pitch / 2))
+        self.hold_radius = params.hold_radius_mm or 2.5 * self.pitch
+        self.peak_radius = params.peak_radius_mm or 1.5 * self.pitch
+        interpolation_radius = params.interpolation_radius_mm or 1.5 * self.pitch
+        cells = sensing_map.cell_points
+        self.frame_index = sensing_map.frame_index
+        self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
+        self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
+        self.contact_vertices, contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
+                                                               params.contact_mesh_faces)
+        self.areas = vertex_areas(self.contact_vertices, contact_faces)
+        self.adjacency = vertex_adjacency(contact_faces, len(self.contact_vertices))
+        self._build_interpolation(interpolation_radius)
+        neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
+        width = max(1, max(len(n) for n in neighbours))
+        self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
+        self.reset()
+
+    def _build_interpolation(self, radius: float) -> None:
+        """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell."""
+        vertices = self.contact_vertices
+        cell_tree = cKDTree(self.map.cell_points)
+        pairs = cell_tree.sparse_distance_matrix(cKDTree(vertices), radius, output_type="coo_matrix")
+        bandwidth = self.pitch / 2
+        weights = np.exp(-(pairs.data**2) / (2 * bandwidth**2))
+        cell_to_vertex = sp.csr_matrix((weights, (pairs.row, pairs.col)), shape=(self.map.cell_count, len(vertices)))
+        totals = np.asarray(cell_to_vertex.sum(axis=0)).ravel()
+        self.vertex_to_cell = sp.csr_matrix(cell_to_vertex.T.multiply(1.0 / np.maximum(totals, 1e-300)[:, None]))
+        self.cell_vertices = [cell_to_vertex.indices[cell_to_vertex.indptr[k]:cell_to_vertex.indptr[k + 1]]
+                              for k in range(self.map.cell_count)]
+
+    def reset(self) -> None:
+        """Forget baseline, noise and tracks (the next frames recalibrate)."""
+        k = self.map.cell_count
+        self._calibration: list[np.ndarray] = []
+        self.baseline = np.zeros(k)
+        self.noise = np.ones(k)
+        self.active = np.zeros(k, dtype=bool)
+        self._held_since = np.full(k, np.inf)
+        self._below = np.zeros(k, dtype=np.int64)
+        self._tracks: dict[int, np.ndarray] = {}
+        self._next_id = 0
+        self._last_t: float | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        return len(self._calibration) >= self.params.calibration_frames
+
+    def process(self, values: np.ndarray, t: float) -> FrameResult:
+        """One channel-order frame ``(num_tx, num_rx)`` at time ``t`` (s) -> :class:`FrameResult`."""
+        raw = np.asarray(values, dtype=np.float64).ravel()[self.frame_index]
+        valid = raw >= 0
+        if not self.calibrated:
+            return self._calibrate(raw, valid, t)
+        dt = 0.1 if self._last_t is None else min(max(t - self._last_t, 1e-3), 1.0)
+        self._last_t = t
+        p = self.params
+        sigma = self._sigma()
+        delta = raw - self.baseline
+        quiet = valid & (np.abs(delta) < p.update_sigma * sigma) & ~self.active
+        if np.count_nonzero(quiet) >= 3:
+            common = float(np.median(delta[quiet] / self.baseline[quiet]))
+            delta = raw - self.baseline * (1.0 + common)
+        delta[~valid] = 0.0
+        threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
+        self.active = valid & (delta > threshold)
+        touches = self._touches(delta, sigma) if self.active.any() else []
+        tracked, events = self._track(touches, t)
+        self._update_baseline(raw, delta, valid, sigma, tracked, t, dt)
+        return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
+
+    def _calibrate(self, raw: np.ndarray, valid: np.ndarray, t: float) -> FrameResult:
+        self._calibration.append(raw)
+        if self.calibrated:
+            stack = np.array(self._calibration)
+            self.baseline = stack.mean(axis=0)
+            self.noise = stack.std(axis=0, ddof=1)
+            self._last_t = t
+        k = self.map.cell_count
+        return FrameResult(t, self.calibrated, (), (), np.zeros(k), np.zeros(k, dtype=bool))
+
+    def _sigma(self) -> np.ndarray:
+        floor = max(self.params.min_noise_counts, 0.5 * float(np.median(self.noise)))
+        return np.maximum(self.noise, floor)
+
+    def _update_baseline(self, raw, delta, valid, sigma, touches, t, dt) -> None:
+        p = self.params
+        held = np.zeros(len(raw), dtype=bool)
+        if touches:
+            peaks = np.array([touch.peak_cell for touch in touches])
+            held = np.any(self.cell_distance[:, peaks] <= self.hold_radius, axis=1)
+        self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
+        stuck = held & (t - self._held_since > p.max_hold_s)
+        self.baseline[stuck] = raw[stuck]
+        self._held_since[stuck] = np.inf
+        quiet = valid & ~held & (np.abs(delta) < p.update_sigma * sigma)
+        alpha = 1.0 - np.exp(-dt / p.baseline_tau_s)
+        self.baseline[quiet] += alpha * (raw[quiet] - self.baseline[quiet])
+        beta = 1.0 - np.exp(-dt / p.noise_tau_s)
+        self.noise[quiet] = np.sqrt((1 - beta) * self.noise[quiet] ** 2 + beta * delta[quiet] ** 2)
+        below = valid & (delta < -p.on_sigma * sigma)
+        self._below = np.where(below, self._below + 1, 0)
+        reset = self._below >= p.negative_reset_frames
+        self.baseline[reset] = raw[reset]
+        self._below[reset] = 0
+
+    # ---- contact areas and touch points
+
+    def _peaks(self, delta: np.ndarray) -> np.ndarray:
+        """Active cells that are local maxima and not explained by a stronger peak's coupling tail.
+
+        A finger at distance ``a`` from a peak cell gives a cell ``D`` farther on at most
+        ``exp(-(D^2 - 2 a D) / (2 s^2))`` times the peak's delta; ``a`` is at most 0.6 pitch inside
+        the sensed region. A candidate must exceed twice that bound for every stronger peak.
+        """
+        candidates = np.flatnonzero(self.active & (delta >= delta[self.peak_neighbours].max(axis=1)))
+        candidates = candidates[np.argsort(-delta[candidates])]
+        kept: list[int] = []
+        two_s2 = 2 * self.coupling_sigma**2
+        offset = 0.6 * self.pitch
+        for c in candidates:
+            distance = self.cell_distance[c, kept]
+            bound = delta[kept] * np.exp(-np.maximum(distance**2 - 2 * offset * distance, 0.0) / two_s2)
+            if np.all(delta[c] > 2.0 * bound):
+                kept.append(int(c))
+        return np.array(kept, dtype=np.int64)
+
+    def _touches(self, delta: np.ndarray, sigma: np.ndarray) -> list[Touch]:
+        peaks = self._peaks(delta)
+        if len(peaks) == 0:
+            return []
+        positive = np.maximum(delta, 0.0)
+        region = np.unique(np.concatenate([self.cell_vertices[k] for k in np.flatnonzero(self.active)]))
+        field = self.vertex_to_cell[region] @ positive
+        floor = self.params.off_sigma * float(np.median(sigma))
+        inside = field > floor
+        region, field = region[inside], field[inside]
+        if len(region) == 0:
+            return []
+        _, labels = connected_components(self.adjacency[region][:, region], directed=False)
+        vertices = self.contact_vertices[region]
+        # Each vertex belongs to the nearest peak of its own component (components without a peak drop).
+        peak_points = self.map.cell_points[peaks]
+        peak_vertex = np.array([region[np.argmin(np.sum((vertices - q) ** 2, axis=1))] for q in peak_points])
+        peak_label = labels[np.searchsorted(region, peak_vertex)]
+        d2 = np.sum((vertices[:, None] - peak_points[None]) ** 2, axis=2)
+        d2[labels[:, None] != peak_label[None]] = np.inf
+        owner = np.argmin(d2, axis=1)
+        owned = np.isfinite(d2[np.arange(len(region)), owner])
+        touches = []
+        for j, cell in enumerate(peaks):
+            mine = owned & (owner == j)
+            if not mine.any():
+                continue
+            weights = self.areas[region[mine]] * (field[mine] - floor)
+            centroid = weights @ vertices[mine] / weights.sum()
+            peak_field = field[mine].max()
+            area = float(self.areas[region[mine]][field[mine] >= 0.5 * peak_field].sum())
+            facing = self.map.cell_normals[cell]
+            points, faces, barys = self.projector.project(centroid, facing)
+            point, face, bary = points[0], int(faces[0]), barys[0]
+            if self.projector.face_normals[face] @ facing <= 0.0:
+                # The centroid of a contact wrapping a thin part projected onto the far side.
+                point, face, bary = self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
+            if self.params.refine:
+                # Start at the peak crossing: it lies on the touched side and within a pitch of the finger.
+                refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), positive, sigma)
+                if refined is not None:
+                    point, face, bary = refined
+            touches.append(Touch(-1, point, face, bary, self.projector.face_normals[face], float(delta[cell]),
+                                 area, int(cell)))
+        return touches
+
+    def _refine(self, point, face, positive, sigma):
+        """Gaussian coupling fit around ``point``; returns (point, face, bary) on the surface, or None
+        when fewer than 4 cells carry signal.
+
+        With ``p = point + u`` and ``y_i = x_i - point``:
+        ``log d_i + |y_i|^2 / (2 s^2) = c + u.y_i / s^2`` is linear in ``(c, u)``. It is solved by
+        least squares weighted with ``d_i^2`` (the log of a noisy delta has variance ``sigma^2 / d_i^2``)
+        in the frame (t1, t2, n) of the current face, with a weak ridge on the normal component: on a
+        flat patch the cells do not see it (the projection removes it anyway), while around thin or
+        sharply curved parts the cells on both sides pin the finger to its sheet.
+        """
+        s2 = self.coupling_sigma**2
+        cells = self.map.cell_points
+        reach2 = (2.5 * self.coupling_sigma) ** 2
+        strong = positive > 2.0 * sigma
+        bary = None
+        for _ in range(REFINE_ITERATIONS):
+            near = np.flatnonzero(strong & (np.sum((cells - point) ** 2, axis=1) <= reach2))
+            if len(near) < 4:
+                break
+            normal = self.projector.face_normals[face]
+            t1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+            t1 /= np.linalg.norm(t1)
+            frame = np.array([t1, np.cross(normal, t1), normal])
+            y = cells[near] - point
+            d = positive[near]
+            design = np.column_stack([np.ones(len(near)), y @ frame.T / s2])
+            target = np.log(d) + np.einsum("ij,ij->i", y, y) / (2 * s2)
+            weighted = design * (d * d)[:, None]
+            normal_matrix = design.T @ weighted
+            normal_matrix[3, 3] += NORMAL_RIDGE * 0.5 * (normal_matrix[1, 1] + normal_matrix[2, 2])
+            try:
+                solution = np.linalg.solve(normal_matrix, weighted.T @ target)
+            except np.linalg.LinAlgError:
+                break
+            step = solution[1:] @ frame
+            step_len = np.linalg.norm(step)
+            if step_len > self.pitch:
+                step *= self.pitch / step_len
+            projected, faces, barys = self.projector.project(point + step)
+            point, face, bary = projected[0], int(faces[0]), barys[0]
+        return None if bary is None else (point, face, bary)
+
+    # ---- tracking
+
+    def _track(self, touches: list[Touch], t: float) -> tuple[list[Touch], list[dict[str, Any]]]:
+        previous_ids = list(self._tracks)
+        assigned: dict[int, int] = {}
+        if previous_ids and touches:
+            before = np.array([self._tracks[i] for i in previous_ids])
+            now = np.array([touch.point for touch in touches])
+            cost = np.linalg.norm(before[:, None] - now[None], axis=2)
+            gate = self.params.track_gate_mm
+            rows, cols = linear_sum_assignment(np.where(cost <= gate, cost, 1e6))
+            assigned = {int(c): previous_ids[r] for r, c in zip(rows, cols) if cost[r, c] <= gate}
+        events: list[dict[str, Any]] = []
+        tracked = []
+        for j, touch in enumerate(touches):
+            if j in assigned:
+                touch = dataclasses.replace(touch, id=assigned[j])
+                kind = "touch_move"
+            else:
+                touch = dataclasses.replace(touch, id=self._next_id)
+                self._next_id += 1
+                kind = "touch_down"
+            tracked.append(touch)
+            events.append({"type": kind, "t": round(t, 4), **touch.as_json()})
+        live = {touch.id for touch in tracked}
+        for track_id in previous_ids:
+            if track_id not in live:
+                events.append({"type": "touch_up", "t": round(t, 4), "id": track_id,
+                               "point": [round(float(x), 3) for x in self._tracks[track_id]]})
+        self._tracks = {touch.id: touch.point for touch in tracked}
+        return tracked, events
