@@ -108,25 +108,67 @@ def vertex_face_table(tables: MeshTables) -> tuple[np.ndarray, np.ndarray, np.nd
     return ptr, order // 3, order % 3
 
 
-def slide_to_vertex(tables, rate, direction, vertex_faces, f, exit_corner, g):
-    """Escape from sink edge (f, g): slide along it to the end both directions lean toward (else the
-    other end), then leave that vertex into the first incident face whose direction points strictly
-    into it.
+MAX_SLIDE_EDGES = 64  # edges one sink-edge slide may follow before the curve is stopped
 
-    Returns ``(face, bary at the vertex)`` or ``None`` when the vertex is a sink too.
+
+def vertex_exit(tables: MeshTables, rate: np.ndarray, vertex_faces, v: int, avoid: tuple[int, ...]):
+    """A face incident to ``v`` whose direction points strictly into it from ``v``: ``(face, corner)`` or ``None``."""
+    ptr, vf, vc = vertex_faces
+    for h, k in zip(vf[ptr[v] : ptr[v + 1]], vc[ptr[v] : ptr[v + 1]]):
+        if h not in avoid and rate[h, (k + 1) % 3] > 0.0 and rate[h, (k + 2) % 3] > 0.0:
+            return int(h), int(k)
+    return None
+
+
+def next_sink_edge(tables: MeshTables, rate: np.ndarray, direction: np.ndarray, vertex_faces, v: int, came_from: int):
+    """The edge ``(v, w)`` both of whose faces point at it and whose directions lean from ``v`` to ``w``.
+
+    Returns ``(w, face, corner of v in face)`` for the steepest such edge, or ``None``.
     """
-    a = tables.faces[f, (exit_corner + 1) % 3]
-    b = tables.faces[f, (exit_corner + 2) % 3]
-    along = (direction[f] + direction[g]) @ (tables.vertices[b] - tables.vertices[a])
+    ptr, vf, vc = vertex_faces
+    best, best_along = None, 0.0
+    for h, k in zip(vf[ptr[v] : ptr[v + 1]], vc[ptr[v] : ptr[v + 1]]):
+        w = int(tables.faces[h, (k + 1) % 3])  # edge (v, w) is opposite corner k + 2 of h
+        if w == came_from:
+            continue
+        opp = (k + 2) % 3
+        h2, c2 = tables.opposite_face[h, opp], tables.opposite_corner[h, opp]
+        if rate[h, opp] < 0.0 and rate[h2, c2] < 0.0:
+            along = float((direction[h] + direction[h2]) @ (tables.vertices[w] - tables.vertices[v]))
+            if along > best_along:
+                best, best_along = (w, int(h), int(k)), along
+    return best
+
+
+def slide(tables: MeshTables, rate: np.ndarray, direction: np.ndarray, vertex_faces, f: int, exit_corner: int, g: int):
+    """Escape from sink edge (f, g) by sliding along sink edges (Filippov sliding).
+
+    The curve slides along the edge to the end both face directions lean toward, then either leaves
+    that vertex into an incident face whose direction points strictly into it, or follows the next
+    sink edge leaning away from it (at most ``MAX_SLIDE_EDGES`` edges). Returns the rows to record
+    for the slid edges after the first (``[(face, bary)]``, each the start of an edge segment) and
+    the escape state ``(face, bary at the vertex)``, or ``None`` when the curve is stuck.
+    """
+    a = int(tables.faces[f, (exit_corner + 1) % 3])
+    b = int(tables.faces[f, (exit_corner + 2) % 3])
+    along = float((direction[f] + direction[g]) @ (tables.vertices[b] - tables.vertices[a]))
     if along == 0.0:
         return None
-    ptr, vf, vc = vertex_faces
-    for v in ((b, a) if along > 0 else (a, b)):
-        for h, k in zip(vf[ptr[v] : ptr[v + 1]], vc[ptr[v] : ptr[v + 1]]):
-            if h != f and h != g and rate[h, (k + 1) % 3] > 0.0 and rate[h, (k + 2) % 3] > 0.0:
-                bary = np.zeros(3)
-                bary[k] = 1.0
-                return h, bary
+    v, came_from = (b, a) if along > 0 else (a, b)
+    rows: list[tuple[int, np.ndarray]] = []
+    seen = {a, b}
+    for _ in range(MAX_SLIDE_EDGES):
+        exit_face = vertex_exit(tables, rate, vertex_faces, v, (f, g) if not rows else ())
+        if exit_face is not None:
+            h, k = exit_face
+            return rows, (h, np.eye(3)[k])
+        nxt = next_sink_edge(tables, rate, direction, vertex_faces, v, came_from)
+        if nxt is None or nxt[0] in seen:
+            return None
+        w, h, k = nxt
+        rows.append((h, np.eye(3)[k]))
+        seen.add(w)
+        v, came_from = w, v
     return None
 
 
@@ -148,8 +190,7 @@ def trace(
     ``start_region``: faces the curves start in (a curve has "left" once it enters a face outside
     it); ``base_region`` / ``singular_region`` stop a curve that has left. ``prefix`` optionally
     gives rows (curve, face, bary) recorded before the start rows. With ``slide_sink_edges`` a
-    curve reaching a sink edge slides along it to the vertex the two directions agree on and leaves
-    that vertex into a face whose direction points out of it (see :func:`slide_to_vertex`).
+    curve reaching a sink edge slides along sink edges until it can leave a vertex (see :func:`slide`).
     """
     n = len(start_faces)
     rate = np.einsum("fij,fj->fi", tables.bary_gradients, direction)  # d(bary)/d(mm) per face
@@ -197,10 +238,11 @@ def trace(
         extra = []
         if slide_sink_edges:
             for r in np.flatnonzero(sink):
-                escape = slide_to_vertex(tables, rate, direction, vertex_faces, face[r], exit_corner[r], nxt[r])
+                escape = slide(tables, rate, direction, vertex_faces, int(face[r]), int(exit_corner[r]), int(nxt[r]))
                 if escape is not None:
                     extra.append((cid[r], face[r], out[r].copy()))
-                    nxt[r], nb[r] = escape
+                    extra.extend((cid[r], h, bary) for h, bary in escape[0])
+                    nxt[r], nb[r] = escape[1]
                     sink[r] = False
                     slides += 1
         visits[cid, nxt] += 1

@@ -70,16 +70,26 @@ def load_scaled(path: Path, diagonal_mm: float = 170.0, target_vertices: int | N
     )
 
 
-def simple_regions(mesh: Mesh, up=(0.0, 1.0, 0.0), base_margin_mm: float = 3.0, far_radius_mm: float = 8.0) -> FixtureRegions:
-    """Base/far regions as described in the module docstring."""
+def base_candidates(mesh: Mesh, up: np.ndarray) -> np.ndarray:
+    """Faces facing down within 15 degrees and lying in the lowest 5 % of the height along ``up``."""
     v, f = mesh.vertices, mesh.faces
-    up = np.asarray(up, dtype=np.float64)
-    up = up / np.linalg.norm(up)
     normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     normals /= np.linalg.norm(normals, axis=1)[:, None]
     height = v @ up
     low = height.min() + 0.05 * (height.max() - height.min())
-    candidate = (normals @ -up > np.cos(np.radians(15.0))) & np.all(height[f] < low, axis=1)
+    return (normals @ -up > np.cos(np.radians(15.0))) & np.all(height[f] < low, axis=1)
+
+
+def simple_regions(mesh: Mesh, up=None, base_margin_mm: float = 3.0, far_radius_mm: float = 8.0) -> FixtureRegions:
+    """Base/far regions as described in the module docstring; ``up`` defaults to the axis direction
+    (+-x, +-y, +-z) with the most base-candidate faces."""
+    v, f = mesh.vertices, mesh.faces
+    if up is None:
+        axes = np.vstack([np.eye(3), -np.eye(3)])
+        up = axes[int(np.argmax([base_candidates(mesh, a).sum() for a in axes]))]
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    candidate = base_candidates(mesh, up)
     idx = np.flatnonzero(candidate)
     # face adjacency among candidates by shared vertices
     rows = np.repeat(idx, 3)
