@@ -103,28 +103,23 @@ def label_glyphs(text: str, origin: np.ndarray, direction: np.ndarray, box_lengt
     return [origin + ((p - centre) * scale) @ frame for p in polygons]
 
 
-def _conflict_cuts(samples: np.ndarray, radius: np.ndarray, arc: np.ndarray, clearance: float) -> list[float]:
-    """Arc positions where to cut so that no piece holds two samples that touch while far apart along
-    the trace. Conflicts are pairs with distance < r_i + r_j + clearance and arc distance above
-    pi/2 times that contact distance."""
-    tree = cKDTree(samples)
-    pairs = tree.query_pairs(2 * radius.max() + clearance, output_type="ndarray")
+def _first_conflict(samples: np.ndarray, radius: np.ndarray, u: np.ndarray, clearance: float) -> tuple[float, float] | None:
+    """The conflicting sample pair (lo, hi distance from the base) with the smallest hi, or None.
+
+    Two samples conflict when their discs come closer than ``clearance`` (distance < r_i + r_j +
+    clearance) while they are more than pi/2 times that contact distance apart along the trace.
+    """
+    pairs = cKDTree(samples).query_pairs(2 * radius.max() + clearance, output_type="ndarray")
     if len(pairs) == 0:
-        return []
+        return None
     i, j = pairs[:, 0], pairs[:, 1]
     contact = radius[i] + radius[j] + clearance
-    dist = np.linalg.norm(samples[i] - samples[j], axis=1)
-    far = np.abs(arc[i] - arc[j]) > np.pi / 2 * contact
-    bad = (dist < contact) & far
-    lo = np.minimum(arc[i], arc[j])[bad]
-    hi = np.maximum(arc[i], arc[j])[bad]
-    cuts: list[float] = []
-    start = -np.inf
-    for k in np.argsort(hi, kind="stable"):
-        if lo[k] >= start:  # the pair lies inside the current piece: cut just before its far end
-            start = hi[k] - min(0.25 * (hi[k] - lo[k]), 0.5)
-            cuts.append(float(start))
-    return cuts
+    bad = (np.linalg.norm(samples[i] - samples[j], axis=1) < contact) & (np.abs(u[i] - u[j]) > np.pi / 2 * contact)
+    if not bad.any():
+        return None
+    lo, hi = np.minimum(u[i], u[j])[bad], np.maximum(u[i], u[j])[bad]
+    k = int(np.argmin(hi))
+    return float(lo[k]), float(hi[k])
 
 
 def _sub_polyline(points: np.ndarray, arc: np.ndarray, a0: float, a1: float) -> np.ndarray:
@@ -152,43 +147,51 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
         marks = np.nonzero(unfolded.mark_trace == c)[0]
         pad_marks = marks[unfolded.mark_pad[marks]]
 
-        # discs standing for the outline, with their arc positions, for the self-overlap test
-        step = params.width_mm / 2
-        s = np.append(np.arange(0.0, length, step), length)
-        centre_samples = np.stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])], axis=1)
-        base_arc = length if at_end else 0.0
-        base_xy, base_tangent = point_at_arc(points, arc, base_arc)
-        outward = base_tangent if at_end else -base_tangent
-        t = np.append(np.arange(0.0, tab_len, step), tab_len)
-        tab_samples = base_xy + t[:, None] * outward
-        tab_arc = base_arc + (t if at_end else -t)
-        samples = np.vstack([centre_samples, unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks], tab_samples])
-        radius = np.concatenate([
-            np.full(len(s), w2),
-            np.full(len(marks), max(params.landmark_radius_mm, w2)),
-            np.full(len(pad_marks), params.pad_radius_mm),
-            np.full(len(t), tab_w2),
-        ])
-        sample_arc = np.concatenate([s, unfolded.mark_arc[marks], unfolded.pad_arc[pad_marks], tab_arc])
-        cuts = _conflict_cuts(samples, radius, sample_arc, params.self_clearance_mm)
         name = unfolded.names[c]
-        if cuts and params.on_self_overlap == "error":
-            raise UserError(
-                f"{name} overlaps itself once unfolded (near arc {cuts[0]:.1f} mm of {length:.1f} mm); "
-                "set on_self_overlap: split, or choose a layout without this curve"
-            )
-        bounds = [-np.inf, *cuts, np.inf]
-        pieces = list(zip(bounds[:-1], bounds[1:]))
-        if at_end:
-            pieces = pieces[::-1]  # number pieces from the base end
+        # u = distance from the base end along the trace; pieces [u0, u1) are grown from the base:
+        # each piece, with its own solder tab at u0, ends just before its first self-conflict
+        u_of = (lambda a: length - a) if at_end else (lambda a: a)
+        step = params.width_mm / 2
+        u = np.append(np.arange(0.0, length, step), length)
+        arc_of_u = length - u if at_end else u
+        centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
+        disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
+        disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, w2)),
+                                 np.full(len(pad_marks), params.pad_radius_mm)])
+        disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
+        t = np.append(np.arange(0.0, tab_len, step), tab_len)
+        pieces: list[tuple[float, float]] = []
+        u0 = 0.0
+        while True:
+            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
+            outward = tangent if at_end else -tangent
+            keep_c, keep_d = u >= u0, disc_u >= u0
+            samples = np.vstack([centre_samples[keep_c], disc_xy[keep_d], tab_xy + t[:, None] * outward])
+            radius = np.concatenate([np.full(keep_c.sum(), w2), disc_r[keep_d], np.full(len(t), tab_w2)])
+            sample_u = np.concatenate([u[keep_c], disc_u[keep_d], u0 - t])
+            conflict = _first_conflict(samples, radius, sample_u, params.self_clearance_mm)
+            if conflict is None:
+                pieces.append((u0, np.inf))
+                break
+            if params.on_self_overlap == "error":
+                raise UserError(
+                    f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
+                    f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
+                )
+            lo, hi = conflict
+            u1 = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step)
+            if u1 >= hi:
+                raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
+            pieces.append((u0, u1))
+            u0 = u1
         if len(pieces) > 1:
             split.append(name)
-        for number, (a0, a1) in enumerate(pieces, start=1):
+        for number, (u0, u1) in enumerate(pieces, start=1):
             part = len(parts["name"])
             part_name = name if len(pieces) == 1 else f"{name}.{number}"
+            a0, a1 = (length - u1, length - u0) if at_end else (u0, u1)
             centre = _sub_polyline(points, arc, a0, a1)
-            tab_at = min(a1, length) if at_end else max(a0, 0.0)
-            tab_xy, tangent = point_at_arc(points, arc, tab_at)
+            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
             direction = tangent if at_end else -tangent
             normal = np.array([-direction[1], direction[0]])
             tab = np.array([
@@ -200,21 +203,22 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
             shapes = [Polygon(tab)]
             line = LineString(centre) if np.ptp(centre, axis=0).max() > 0 else Point(centre[0])
             shapes.append(line.buffer(w2, quad_segs=params.arc_segments))
-            in_piece = marks[(unfolded.mark_arc[marks] >= a0) & (unfolded.mark_arc[marks] < a1)]
+            mark_u, pad_u = u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])
             if params.landmark_radius_mm > 0:
-                for m in in_piece:
+                for m in marks[(mark_u >= u0) & (mark_u < u1)]:
                     shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
                     landmarks.append((part, unfolded.mark_xy[m]))
-            for m in pad_marks[(unfolded.pad_arc[pad_marks] >= a0) & (unfolded.pad_arc[pad_marks] < a1)]:
+            for m in pad_marks[(pad_u >= u0) & (pad_u < u1)]:
                 shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
                 pads.append((part, unfolded.pad_xy[m]))
             shape = shapely.unary_union(shapes)
-            if shape.geom_type != "Polygon" or not shape.is_valid:
+            if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
+                shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
+            if shape.geom_type != "Polygon" or not shape.is_valid or len(shape.interiors) > 0:
                 raise UserError(
-                    f"{part_name}: its outline is not one closed polygon ({shape.geom_type}); "
-                    "check the layout's pad positions for this trace"
+                    f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "
+                    f"{len(getattr(shape, 'interiors', []))} holes); raise self_clearance_mm so the trace is split"
                 )
-            shape = Polygon(shape.exterior)  # a hole would be a speck of scrap: never cut it
             ring = np.asarray(shape.exterior.coords)[:-1]
             margin = params.label_margin_mm
             for glyph in label_glyphs(

@@ -1,0 +1,153 @@
+"""fab.outline: trace width, pads at the unfolded pad positions, landmarks, named solder tab,
+self-overlapping traces split into pieces that do not overlap."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from fab_layouts import mesh_from_trimesh, section_layout
+from shapely.geometry import LineString, Point, Polygon
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.trace_outline import Params, outline
+from retrotouch.nodes.unfold import Params as UnfoldParams
+from retrotouch.nodes.unfold import UnfoldedTraces, unfold
+
+
+def unfolded_from_polylines(polylines: list[np.ndarray], marks: list[tuple[int, float, bool]] = (),
+                            pad_offset: float = 3.0) -> UnfoldedTraces:
+    """Hand-made unfolded traces (all Tx, base at the end); marks = (trace, arc, pad)."""
+    arcs = [np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]) for p in polylines]
+
+    def at(c, s):
+        return np.array([np.interp(s, arcs[c], polylines[c][:, i]) for i in range(2)])
+
+    mark_xy, tangent, pad_arc, pad_xy = [], [], [], []
+    for c, s, _ in marks:
+        mark_xy.append(at(c, s))
+        d = at(c, s + 1e-6) - at(c, s - 1e-6)
+        tangent.append(d / np.linalg.norm(d))
+        pad_arc.append(min(s + pad_offset, arcs[c][-1]))
+        pad_xy.append(at(c, pad_arc[-1]))
+    n = len(polylines)
+    return UnfoldedTraces(
+        names=tuple(f"Tx{c:02d}" for c in range(n)),
+        layers=("tx",) * n,
+        channels=np.arange(n),
+        points=np.concatenate(polylines),
+        arc=np.concatenate(arcs),
+        offsets=np.concatenate([[0], np.cumsum([len(p) for p in polylines])]),
+        length_3d=np.array([a[-1] for a in arcs]),
+        base_at_end=np.ones(n, dtype=bool),
+        mark_trace=np.array([m[0] for m in marks], dtype=np.int64),
+        mark_other=np.zeros(len(marks), dtype=np.int64),
+        mark_cell=np.arange(len(marks)),
+        mark_arc=np.array([m[1] for m in marks], dtype=np.float64),
+        mark_xy=np.array(mark_xy).reshape(-1, 2),
+        mark_tangent=np.array(tangent).reshape(-1, 2),
+        mark_pad=np.array([m[2] for m in marks], dtype=bool),
+        pad_arc=np.array(pad_arc, dtype=np.float64),
+        pad_xy=np.array(pad_xy).reshape(-1, 2),
+    )
+
+
+def straight(length: float, n: int = 50) -> np.ndarray:
+    """From x = -length to the base end at the origin."""
+    return np.stack([np.linspace(-length, 0.0, n), np.zeros(n)], axis=1)
+
+
+@pytest.mark.parametrize("width", [1.0, 0.6])
+def test_trace_width(width):
+    outlines = outline(Params(width_mm=width, landmark_radius_mm=0), unfolded_from_polylines([straight(120.0)]))
+    assert outlines.count == 1
+    body = outlines.polygon(0).difference(Polygon(outlines.tab[0]).buffer(0.01))
+    # rectangle width x length plus the far round cap (a half disc)
+    expected = width * 120.0 + np.pi * width**2 / 8
+    assert body.area == pytest.approx(expected, rel=2e-3)
+    assert not body.buffer(-width / 2 + 0.02).is_empty
+    assert body.buffer(-width / 2 - 0.02).is_empty
+
+
+def test_pads_landmarks_and_tab_positions():
+    curve = np.stack([np.linspace(-100, 0, 200), 8 * np.sin(np.linspace(0, 2, 200))], axis=1)
+    curve -= curve[-1]  # base end at the origin, as fab.unfold leaves it
+    unfolded = unfolded_from_polylines([curve], [(0, 20.0, True), (0, 50.0, False), (0, 80.0, True)])
+    params = Params()
+    outlines = outline(params, unfolded)
+    polygon = outlines.polygon(0)
+    # pads exactly at the unfolded pad positions (3 mm further along the trace) and inside the outline
+    np.testing.assert_allclose(outlines.pad_xy, unfolded.pad_xy[[0, 2]], atol=1e-12)
+    arc = unfolded.arc
+    for pad, mark in zip(outlines.pad_xy, [0, 2]):
+        along = [np.interp(unfolded.mark_arc[mark] + 3.0, arc, curve[:, i]) for i in range(2)]
+        np.testing.assert_allclose(pad, along, atol=1e-9)
+        assert polygon.contains(Point(pad).buffer(params.pad_radius_mm - 0.05, quad_segs=8))
+        assert not polygon.contains(Point(pad).buffer(params.pad_radius_mm + 0.05))
+    # a landmark at every crossing
+    np.testing.assert_allclose(outlines.landmark_xy, unfolded.mark_xy, atol=1e-12)
+    for xy in outlines.landmark_xy:
+        assert polygon.contains(Point(xy).buffer(params.landmark_radius_mm - 0.05, quad_segs=8))
+    # the solder tab starts at the base end (origin), continues the end tangent, holds the label
+    tab = outlines.tab[0]
+    np.testing.assert_allclose((tab[0] + tab[1]) / 2, [0.0, 0.0], atol=1e-9)
+    end_tangent = (curve[-1] - curve[-2]) / np.linalg.norm(curve[-1] - curve[-2])
+    axis = (tab[2] + tab[3]) / 2 - (tab[0] + tab[1]) / 2
+    np.testing.assert_allclose(axis, params.solder_tab_length_mm * end_tangent, atol=1e-6)
+    tab_polygon = Polygon(tab)
+    assert polygon.contains(tab_polygon.buffer(-1e-6))
+    glyphs = outlines.label_polylines(0)
+    assert len(glyphs) >= 4  # "Tx00": at least one outline per glyph
+    for glyph in glyphs:
+        assert tab_polygon.buffer(-params.label_margin_mm + 1e-6).contains(LineString(glyph))
+    assert outlines.names == ("Tx00",) and outlines.split_traces == ()
+
+
+def test_outlines_of_a_sphere_layout_are_single_polygons():
+    mesh = mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3, radius=40.0), "icosphere")
+    layout = section_layout(mesh, 6, 4)
+    unfolded = unfold(UnfoldParams(), mesh, layout)
+    outlines = outline(Params(), unfolded)
+    assert outlines.count == unfolded.count
+    assert len(outlines.pad_xy) == 2 * int(layout.pad.sum())
+    assert len(outlines.landmark_xy) == 2 * len(layout.cells.curve_a)
+    for i in range(outlines.count):
+        polygon = outlines.polygon(i)
+        assert polygon.is_valid and len(polygon.interiors) == 0
+        assert polygon.area == pytest.approx(outlines.area_mm2[i])
+        centre = outlines.centre[outlines.centre_offsets[i] : outlines.centre_offsets[i + 1]]
+        assert polygon.contains(LineString(centre).buffer(0.49))
+
+
+def _self_overlapping_pairs(centre: np.ndarray, contact: float) -> int:
+    """Pairs of centreline samples closer than ``contact`` while > pi/2 * contact apart along it."""
+    line = LineString(centre)
+    s = np.arange(0.0, line.length, 0.1)
+    pts = np.array([line.interpolate(x).coords[0] for x in s])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    far = np.abs(s[:, None] - s[None]) > np.pi / 2 * contact
+    return int(np.count_nonzero((d < contact) & far))
+
+
+def test_spiral_is_split_into_pieces_that_do_not_overlap():
+    t = np.linspace(0, 3 * np.pi, 600)  # 1.5 turns of a circle of radius 10 mm
+    spiral = np.stack([10 * np.cos(t), 10 * np.sin(t) + 0.3 * t], axis=1)
+    spiral -= spiral[-1]
+    params = Params()
+    contact = params.width_mm + params.self_clearance_mm
+    assert _self_overlapping_pairs(spiral, contact) > 0
+    unfolded = unfolded_from_polylines([spiral], [(0, 30.0, True)])
+    with pytest.raises(UserError, match="Tx00 overlaps itself"):
+        outline(params.model_copy(update={"on_self_overlap": "error"}), unfolded)
+    outlines = outline(params, unfolded)
+    assert outlines.split_traces == ("Tx00",)
+    assert outlines.count >= 2 and outlines.names[:2] == ("Tx00.1", "Tx00.2")
+    covered = sorted(map(tuple, outlines.arc_range))
+    assert covered[0][0] == 0.0 and covered[-1][1] == pytest.approx(unfolded.arc[-1])
+    for (_, hi), (lo, _) in zip(covered[:-1], covered[1:]):
+        assert hi == pytest.approx(lo)  # pieces are contiguous along the trace
+    for i in range(outlines.count):
+        centre = outlines.centre[outlines.centre_offsets[i] : outlines.centre_offsets[i + 1]]
+        assert _self_overlapping_pairs(centre, contact) == 0
+        polygon = outlines.polygon(i)
+        assert polygon.is_valid and polygon.geom_type == "Polygon"
+        assert len(outlines.label_polylines(i)) >= 6  # "Tx00.1": five glyphs, "0" has two outlines
