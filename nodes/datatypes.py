@@ -119,3 +119,25 @@ SENSING_MAP_FORMAT = "retrotouch.sensing_map/1"
 Cells list only channel pairs whose curves cross; the Muca frame index of a cell is
 ``tx * 12 + rx`` on a 21 x 12 board (TX-major).
 """
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfaceRegions:
+    """Base (non-sensing), exclusion and sensing regions of a mesh, and the singularity anchors.
+
+    The face masks ``base_faces``, ``exclusion_base``, ``exclusion_far`` and ``sensing_faces`` are
+    disjoint and cover every face. ``base_boundary_edges`` are the halfedges ``(a, b)`` of sensing
+    faces whose neighbour across the edge is base or first exclusion: CCW in the sensing face, so
+    the sensing region lies to the left of ``a -> b``. Distances are geodesic (heat method), mm.
+    """
+
+    base_faces: np.ndarray  # (m,) bool, the region the object rests on
+    exclusion_base: np.ndarray  # (m,) bool, first exclusion ring grown from the base
+    exclusion_far: np.ndarray  # (m,) bool, geodesic disc around far_vertex
+    sensing_faces: np.ndarray  # (m,) bool, where curves may run
+    base_centre: int  # interior base vertex farthest from the base boundary (Tx singularity)
+    base_dipole: np.ndarray  # (2,) int64, base_centre and an adjacent interior base vertex (Rx)
+    far_vertex: int  # vertex farthest from the base outside base/exclusion_base (Tx singularity)
+    up: np.ndarray  # (3,) float64 unit vector, opposite to the resting direction
+    base_boundary_edges: np.ndarray  # (E, 2) int64 vertex pairs, see above
+    base_distance_mm: np.ndarray  # (n,) float64, geodesic distance of each vertex from the base
