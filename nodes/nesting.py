@@ -163,11 +163,16 @@ def _spyrrow(polygons: list[Polygon], params: Params, long_side: float, short_si
         x0 = min(b[0] for _, _, b in placed.values())
         y0 = min(b[1] for _, _, b in placed.values())
         keep = [i for i in remaining if placed[i][2][2] - x0 <= long_side]
-        if not keep:
-            raise RuntimeError("spyrrow placed no part within one sheet length")
-        for i in keep:
-            rotation, (tx, ty), _ = placed[i]
-            result[i] = (sheet, rotation, (tx - x0, ty - y0))
+        if keep:
+            for i in keep:
+                rotation, (tx, ty), _ = placed[i]
+                result[i] = (sheet, rotation, (tx - x0, ty - y0))
+        else:  # only fits at an angle spyrrow did not try: alone on its sheet at a fitting rotation
+            i = remaining[0]
+            keep = [i]
+            rotation = float(_fit_angles(polygons[i], long_side, short_side)[0])
+            bx0, by0, _, _ = affinity.rotate(polygons[i], rotation, origin=(0, 0)).bounds
+            result[i] = (sheet, rotation, (-bx0, -by0))
         remaining = [i for i in remaining if i not in keep]
         sheet += 1
     return [result[i] for i in range(len(polygons))]
