@@ -150,7 +150,7 @@ def _progress(total: int):
 
     @contextlib.contextmanager
     def manager():
-        if total == 0:
+        if total == 0 or not sys.stderr.isatty():
             yield lambda label: None
             return
         from rich.console import Console

@@ -230,7 +230,7 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
             client = Client(cluster)
         else:
             try:
-                client = Client(address, timeout="10s")
+                client = Client(address, timeout="5s")
             except OSError as exc:
                 raise UserError(f"--scheduler {address}: cannot connect to a dask scheduler there ({exc})") from None
         with client:
