@@ -25,7 +25,8 @@ Recording file (JSON lines, replayable through the same parser)::
     {"t": 0.1031, "b64": "<raw bytes as received>"}
     {"t": 2.5, "label": {...}}          # optional annotations (e.g. evaluation ground truth)
 
-``t`` is seconds since the recording started.
+``t`` is seconds since the recording started; a header with ``"timebase": "board"`` (simulator
+recordings made in fast mode) replays frame ``k`` at ``k / rate_hz`` instead, the time its labels use.
 """
 from __future__ import annotations
 
@@ -287,8 +288,11 @@ def replay_frames(
     0 = as fast as possible. Labels are passed to ``on_label(t, label)`` in stream order."""
     header, records = read_recording(path)
     if options is None:
-        options = FrameOptions(num_tx=header.get("num_tx", NUM_TX), num_rx=header.get("num_rx", NUM_RX))
+        options = FrameOptions(num_tx=header.get("num_tx", NUM_TX), num_rx=header.get("num_rx", NUM_RX),
+                               flip_tx=header.get("flip_tx", False), flip_rx=header.get("flip_rx", False),
+                               skip_tx=tuple(header.get("skip_tx", ())), skip_rx=tuple(header.get("skip_rx", ())))
     parser = make_parser(header.get("frame_format", "ascii"), options)
+    board_rate = float(header["rate_hz"]) if header.get("timebase") == "board" else None
     start = time.monotonic()
     seq = 0
     for record in records:
@@ -302,7 +306,7 @@ def replay_frames(
             if delay > 0:
                 time.sleep(delay)
         for values in parser.feed(base64.b64decode(record["b64"])):
-            yield Frame(values, t, seq)
+            yield Frame(values, t if board_rate is None else seq / board_rate, seq)
             seq += 1
 
 
@@ -327,6 +331,7 @@ class MucaReader:
         reconnect_interval_s: float = 0.5,
         reconnect_timeout_s: float | None = None,
         open_port: Callable[..., serial.SerialBase] | None = None,
+        record_header: dict[str, Any] | None = None,
     ):
         self.port = port
         self.baudrate = baudrate
@@ -348,7 +353,9 @@ class MucaReader:
             raise UserError(f"cannot open serial port {port} ({_short(exc)}): check the cable and --port") from None
         self.recorder = (
             Recorder(record, {"frame_format": frame_format, "port": port, "baudrate": baudrate,
-                              "num_tx": options.num_tx, "num_rx": options.num_rx})
+                              "num_tx": options.num_tx, "num_rx": options.num_rx, "flip_tx": options.flip_tx,
+                              "flip_rx": options.flip_rx, "skip_tx": list(options.skip_tx),
+                              "skip_rx": list(options.skip_rx), **(record_header or {})})
             if record else None
         )
 

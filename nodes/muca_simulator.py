@@ -38,7 +38,7 @@ import pty
 import threading
 import time
 import tty
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
-from retrotouch.nodes.muca_serial import MAX_COUNT, encode_ascii_frame, encode_binary_frame
+from retrotouch.nodes.muca_serial import MAX_COUNT, Frame, FrameOptions, MucaReader, encode_ascii_frame, encode_binary_frame
 from retrotouch.nodes.touch_processing import SensingMap, SurfaceProjector, load_sensing_map, write_sensing_map
 
 # --------------------------------------------------------------------------------------------
@@ -510,3 +510,52 @@ def simulated_session(
     board = VirtualBoard(sensing_map, board_params)
     script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
     return sensing_map, board, script
+
+
+def frames_through_pty(
+    board: VirtualBoard,
+    script: Script | None,
+    fast: bool = True,
+    frame_format: str = "ascii",
+    frames: int | None = None,
+    garbage_every: int = 0,
+    record: str | Path | None = None,
+) -> Iterator[Frame]:
+    """Run ``board`` on a pseudo-terminal and read it back with :class:`MucaReader` (the real serial
+    path). Frames carry board time ``seq / rate_hz`` (s), so fast mode keeps the script's timing.
+    Ends after the board's last frame; labels of the script go into the recording if any."""
+    simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
+                         garbage_every=garbage_every)
+    options = FrameOptions(board.map.num_tx, board.map.num_rx, board.params.flip_tx, board.params.flip_rx)
+    simulator.start()
+    reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
+                        reconnect_timeout_s=0.0,
+                        record_header={"timebase": "board", "rate_hz": board.params.rate_hz, "simulated": True})
+    if reader.recorder is not None and script is not None:
+        for t, label in script.labels:
+            reader.recorder.label(label, t=t)
+    stalled = threading.Event()
+
+    def watchdog() -> None:
+        # The reader blocks on the port: end it once the board is done and the stream went quiet.
+        seen = -1
+        while not stalled.wait(0.5):
+            if simulator.done.is_set() and reader_seq[0] == seen:
+                reader.close()
+                return
+            seen = reader_seq[0]
+
+    reader_seq = [0]
+    guard = threading.Thread(target=watchdog, daemon=True)
+    guard.start()
+    try:
+        for frame in reader.frames():
+            yield Frame(frame.values, frame.seq / board.params.rate_hz, frame.seq)
+            reader_seq[0] = frame.seq + 1
+            if simulator.frames_total is not None and reader_seq[0] >= simulator.frames_total:
+                break
+    finally:
+        stalled.set()
+        reader.close()
+        simulator.stop()
+        guard.join()

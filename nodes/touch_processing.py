@@ -47,8 +47,8 @@ from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
 
-REFINE_ITERATIONS = 2
-NORMAL_RIDGE = 0.05
+REFINE_ITERATIONS = 2  # re-linearisations of the coupling fit (the second one absorbs curvature)
+NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
 
 
 # --------------------------------------------------------------------------------------------
