@@ -140,14 +140,19 @@ def next_sink_edge(tables: MeshTables, rate: np.ndarray, direction: np.ndarray, 
     return best
 
 
-def slide(tables: MeshTables, rate: np.ndarray, direction: np.ndarray, vertex_faces, f: int, exit_corner: int, g: int):
+def slide(
+    tables: MeshTables, rate: np.ndarray, direction: np.ndarray, vertex_faces, f: int, exit_corner: int, g: int, base: np.ndarray | None
+):
     """Escape from sink edge (f, g) by sliding along sink edges (Filippov sliding).
 
     The curve slides along the edge to the end both face directions lean toward, then either leaves
     that vertex into an incident face whose direction points strictly into it, or follows the next
     sink edge leaning away from it (at most ``MAX_SLIDE_EDGES`` edges). Returns the rows to record
-    for the slid edges after the first (``[(face, bary)]``, each the start of an edge segment) and
-    the escape state ``(face, bary at the vertex)``, or ``None`` when the curve is stuck.
+    for the slid edges after the first (``[(face, bary)]``, each the start of an edge segment), the
+    escape state ``(face, bary at the vertex)`` and the vertex restated in the face of the last slid
+    edge (the curve's end row if it stops right there); ``None`` when the curve is stuck. A slide
+    that would continue along an edge between two ``base`` faces ends there instead (escape ``None``):
+    the curve has reached the base.
     """
     a = int(tables.faces[f, (exit_corner + 1) % 3])
     b = int(tables.faces[f, (exit_corner + 2) % 3])
@@ -157,17 +162,23 @@ def slide(tables: MeshTables, rate: np.ndarray, direction: np.ndarray, vertex_fa
     v, came_from = (b, a) if along > 0 else (a, b)
     rows: list[tuple[int, np.ndarray]] = []
     seen = {a, b}
+    last_face = f
     for _ in range(MAX_SLIDE_EDGES):
         exit_face = vertex_exit(tables, rate, vertex_faces, v, (f, g) if not rows else ())
         if exit_face is not None:
             h, k = exit_face
-            return rows, (h, np.eye(3)[k])
+            at_vertex = np.asarray(tables.faces[last_face] == v, dtype=np.float64)
+            return rows, (h, np.eye(3)[k]), (last_face, at_vertex)
         nxt = next_sink_edge(tables, rate, direction, vertex_faces, v, came_from)
         if nxt is None or nxt[0] in seen:
             return None
         w, h, k = nxt
+        if base is not None and base[h] and base[tables.opposite_face[h, (k + 2) % 3]]:
+            at_vertex = np.asarray(tables.faces[last_face] == v, dtype=np.float64)
+            return rows, None, (last_face, at_vertex)
         rows.append((h, np.eye(3)[k]))
         seen.add(w)
+        last_face = h
         v, came_from = w, v
     return None
 
@@ -236,17 +247,24 @@ def trace(
         sink = rate[nxt, c] <= 0.0
         sinks += int(np.count_nonzero(sink))
         extra = []
+        slid_to_base = np.zeros(k, dtype=bool)
         if slide_sink_edges:
             for r in np.flatnonzero(sink):
-                escape = slide(tables, rate, direction, vertex_faces, int(face[r]), int(exit_corner[r]), int(nxt[r]))
+                escape = slide(
+                    tables, rate, direction, vertex_faces, int(face[r]), int(exit_corner[r]), int(nxt[r]), base_region if left[r] else None
+                )
                 if escape is not None:
                     extra.append((cid[r], face[r], out[r].copy()))
                     extra.extend((cid[r], h, bary) for h, bary in escape[0])
-                    nxt[r], nb[r] = escape[1]
+                    if escape[1] is None:
+                        slid_to_base[r] = True
+                    else:
+                        nxt[r], nb[r] = escape[1]
+                    face[r], out[r] = escape[2]
                     sink[r] = False
                     slides += 1
         visits[cid, nxt] += 1
-        base = left & base_region[nxt]
+        base = (left & base_region[nxt]) | slid_to_base
         singular = left & singular_region[nxt] & ~base
         loop = visits[cid, nxt] > max_face_visits
         reason = np.full(k, -1, dtype=np.int8)

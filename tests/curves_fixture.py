@@ -7,6 +7,7 @@ The fixture follows the paper's description: base = the largest connected patch 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from importlib import resources
 from pathlib import Path
 
@@ -16,7 +17,9 @@ import pymeshlab
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from retrotouch.nodes.connection import compute_field
 from retrotouch.nodes.datatypes import Mesh
+from retrotouch.nodes.mesh_tables import build_tables
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
@@ -135,3 +138,16 @@ def simple_regions(mesh: Mesh, up=None, base_margin_mm: float = 3.0, far_radius_
         up=up,
         base_boundary_edges=boundary_edges.astype(np.int64),
     )
+
+
+@functools.lru_cache(maxsize=None)
+def prepared(path: str, target_vertices: int = 4000):
+    """(mesh, regions, tables, tx field, rx field) for a mesh file, cached across the curve tests."""
+    mesh = load_scaled(Path(path), target_vertices=target_vertices)
+    regions = simple_regions(mesh)
+    tables = build_tables(mesh.vertices, mesh.faces)
+    return mesh, regions, tables, compute_field(tables, "tx", regions), compute_field(tables, "rx", regions)
+
+
+def bunny():
+    return prepared(str(sample_mesh_path("bunny.obj")))
