@@ -82,8 +82,8 @@ def rasterize_depth(
         ]
     )
     settings = cv2.TriangleRasterizeSettings()
-    # The shear flips y, so outward CCW faces appear clockwise on screen: cull CCW ones (the back faces).
-    settings.setCullingMode(cv2.RASTERIZE_CULLING_CCW)
+    # Culling mode checked against an unculled render: RASTERIZE_CULLING_CW drops the back faces here.
+    settings.setCullingMode(cv2.RASTERIZE_CULLING_CW)
     settings.setShadingType(cv2.RASTERIZE_SHADING_FLAT)
     depth = np.full((height, width), z_far_mm, np.float32)
     depth = cv2.triangleRasterizeDepth(
