@@ -18,6 +18,7 @@ so straight 3D segments map to straight image segments (perspective-correct by c
 from __future__ import annotations
 
 import dataclasses
+import io
 from pathlib import Path
 
 import cv2
@@ -146,8 +147,6 @@ def build_scene(mesh: Mesh, layout: Layout) -> ProjectionScene:
 
 def save_scene(scene: ProjectionScene) -> bytes:
     """Serialise a scene as ``.npz`` bytes (no pickle)."""
-    import io
-
     arrays: dict[str, np.ndarray] = {
         "format": np.array(SCENE_FORMAT),
         "vertices": scene.vertices,
