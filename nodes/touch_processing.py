@@ -504,7 +504,7 @@ class TouchProcessor:
         d2[labels[:, None] != peak_label[None]] = np.inf
         owner = np.argmin(d2, axis=1)
         owned = np.isfinite(d2[np.arange(len(region)), owner])
-        touches = []
+        found = []  # (cell, point, face, bary, area)
         for j, cell in enumerate(peaks):
             mine = owned & (owner == j)
             if not mine.any():
@@ -519,18 +519,41 @@ class TouchProcessor:
             if self.projector.face_normals[face] @ facing <= 0.0:
                 # The centroid of a contact wrapping a thin part projected onto the far side.
                 point, face, bary = self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
-            if self.params.refine:
-                # Start at the peak crossing: it lies on the touched side and within a pitch of the finger.
-                refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), positive, sigma)
-                if refined is not None:
-                    point, face, bary = refined
-            touches.append(Touch(-1, point, face, bary, self.projector.face_normals[face], float(delta[cell]),
-                                 area, int(cell)))
-        return touches
+            found.append([int(cell), point, face, bary, area])
+        if self.params.refine:
+            self._refine_all(found, positive, sigma)
+        return [Touch(-1, point, face, bary, self.projector.face_normals[face], float(delta[cell]), area, cell)
+                for cell, point, face, bary, area in found]
+
+    def _refine_all(self, found: list[list[Any]], positive: np.ndarray, sigma: np.ndarray) -> None:
+        """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
+        within a pitch of the finger); with several touches a second pass fits each one to the
+        deltas minus the other touches' fitted coupling."""
+        fits: list[tuple[np.ndarray, float] | None] = []
+        for entry in found:
+            cell = entry[0]
+            refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), positive, sigma)
+            fits.append(None if refined is None else (refined[0], refined[3]))
+            if refined is not None:
+                entry[1:4] = refined[:3]
+        if sum(fit is not None for fit in fits) < 2:
+            return
+        two_s2 = 2 * self.coupling_sigma**2
+        cells = self.map.cell_points
+        modelled = [np.zeros(len(cells)) if fit is None else fit[1] * np.exp(-np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
+                    for fit in fits]
+        total = np.sum(modelled, axis=0)
+        for entry, fit, own in zip(found, fits, modelled):
+            if fit is None:
+                continue
+            residual = np.maximum(positive - (total - own), 0.0)
+            refined = self._refine(entry[1], entry[2], residual, sigma)
+            if refined is not None:
+                entry[1:4] = refined[:3]
 
     def _refine(self, point, face, positive, sigma):
-        """Gaussian coupling fit around ``point``; returns (point, face, bary) on the surface, or None
-        when fewer than 4 cells carry signal.
+        """Gaussian coupling fit around ``point``; returns (point, face, bary) on the surface and the
+        fitted amplitude A (counts), or None when fewer than 4 cells carry signal.
 
         With ``p = point + u`` and ``y_i = x_i - point``:
         ``log d_i + |y_i|^2 / (2 s^2) = c + u.y_i / s^2`` is linear in ``(c, u)``. It is solved by
@@ -564,12 +587,13 @@ class TouchProcessor:
             except np.linalg.LinAlgError:
                 break
             step = solution[1:] @ frame
+            amplitude = float(np.exp(solution[0] + solution[1:] @ solution[1:] / (2 * s2)))
             step_len = np.linalg.norm(step)
             if step_len > self.pitch:
                 step *= self.pitch / step_len
             projected, faces, barys = self.projector.project(point + step)
             point, face, bary = projected[0], int(faces[0]), barys[0]
-        return None if bary is None else (point, face, bary)
+        return None if bary is None else (point, face, bary, amplitude)
 
     # ---- tracking
 

@@ -1,0 +1,189 @@
+"""Touch processing end to end on the synthetic bunny sensing map: localization through the
+pseudo-terminal, rest without false touches under drift, holds, multi-touch ids, map loading."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.muca_simulator import (
+    BoardParams,
+    ScriptBuilder,
+    VirtualBoard,
+    frames_through_pty,
+    synthetic_bunny_map,
+)
+from retrotouch.nodes.sense_eval import EvalParams, evaluate_recording, evaluate_simulator
+from retrotouch.nodes.touch_processing import (
+    ProcessingParams,
+    SurfaceProjector,
+    TouchProcessor,
+    closest_points_on_triangles,
+    load_sensing_map,
+)
+
+
+@pytest.fixture(scope="module")
+def bunny_map_path(tmp_path_factory):
+    return synthetic_bunny_map(tmp_path_factory.mktemp("bunny"))
+
+
+@pytest.fixture(scope="module")
+def bunny_map(bunny_map_path):
+    return load_sensing_map(bunny_map_path)
+
+
+def feed(processor, board, fingers_at, seconds, start=0.0):
+    """Feed ``seconds`` of board frames directly; returns the FrameResults."""
+    rate = board.params.rate_hz
+    results = []
+    for k in range(int(round(seconds * rate))):
+        t = start + k / rate
+        results.append(processor.process(board.frame(t, fingers_at(t)), t))
+    return results
+
+
+def test_synthetic_map_is_a_bunny_170mm_with_cells_on_the_surface(bunny_map):
+    diagonal = np.linalg.norm(np.ptp(bunny_map.vertices, axis=0))
+    assert diagonal == pytest.approx(170.0, rel=1e-9)
+    assert 150 <= bunny_map.cell_count <= 252
+    pairs = bunny_map.cell_tx * 12 + bunny_map.cell_rx
+    assert len(np.unique(pairs)) == bunny_map.cell_count
+    corners = bunny_map.vertices[bunny_map.faces[bunny_map.cell_faces]]
+    assert np.allclose(np.einsum("kj,kjd->kd", bunny_map.cell_bary, corners), bunny_map.cell_points, atol=1e-9)
+    assert np.allclose(np.linalg.norm(bunny_map.cell_normals, axis=1), 1.0)
+    assert 5.0 < bunny_map.pitch_mm() < 15.0
+
+
+def test_closest_point_on_triangles_matches_brute_force():
+    rng = np.random.default_rng(0)
+    triangles = rng.normal(size=(300, 3, 3))
+    points = rng.normal(size=(300, 3)) * 2
+    bary = closest_points_on_triangles(points, triangles)
+    closest = np.einsum("ij,ijd->id", bary, triangles)
+    assert np.all(bary >= -1e-9) and np.allclose(bary.sum(axis=1), 1.0)
+    # Dense sampling of each triangle never beats the returned point.
+    u, v = np.meshgrid(np.linspace(0, 1, 60), np.linspace(0, 1, 60))
+    keep = u + v <= 1
+    samples = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], axis=1)
+    sampled = np.einsum("sj,ijd->isd", samples, triangles)
+    best = np.min(np.linalg.norm(sampled - points[:, None], axis=2), axis=1)
+    assert np.all(np.linalg.norm(closest - points, axis=1) <= best + 1e-9)
+
+
+def test_projector_finds_the_closest_surface_point(bunny_map):
+    projector = SurfaceProjector(bunny_map.vertices, bunny_map.faces)
+    queries = bunny_map.cell_points[:12] + 0.5 * bunny_map.cell_normals[:12]
+    points, faces, bary = projector.project(queries)
+    assert np.allclose(np.einsum("kj,kjd->kd", bary, bunny_map.vertices[bunny_map.faces[faces]]), points)
+    triangles = bunny_map.vertices[bunny_map.faces]
+    for query, point in zip(queries, points):
+        every = np.einsum("ij,ijd->id", closest_points_on_triangles(np.broadcast_to(query, (len(triangles), 3)),
+                                                                    triangles), triangles)
+        assert np.linalg.norm(point - query) == pytest.approx(np.linalg.norm(every - query, axis=1).min(), abs=1e-9)
+        assert np.linalg.norm(point - query) <= 0.5 + 1e-6
+
+
+def test_localization_through_the_pty_at_snr_60(bunny_map_path, tmp_path):
+    """The paper's protocol (15 locations x 10 presses) through the pseudo-terminal in fast mode."""
+    recording = tmp_path / "eval.jsonl"
+    report = evaluate_simulator(bunny_map_path, BoardParams(snr=60), record=recording)
+    summary = report.summary()
+    assert summary["presses"] == 150 and summary["locations"] == 15
+    assert summary["missed_presses"] == 0 and summary["false_touches"] == 0
+    assert summary["localization_error_mm_mean"] < 1.5
+    assert 35 < summary["snr_mean"] < 65  # 60 for a finger centred on a crossing, less in between
+    assert summary["snr_p2p_mean"] < summary["snr_mean"] / 3  # p2p of gaussian noise spans several sigma
+    # The same session replayed from its recording scores the same.
+    replayed = evaluate_recording(recording, bunny_map_path).summary()
+    assert replayed["localization_error_mm_mean"] == pytest.approx(summary["localization_error_mm_mean"], abs=1e-9)
+
+
+def test_low_snr_still_localizes_within_a_pitch(bunny_map_path, bunny_map):
+    summary = evaluate_simulator(bunny_map_path, BoardParams(snr=15, seed=3),
+                                 EvalParams(locations=6, repetitions=3), through_pty=False).summary()
+    assert summary["missed_presses"] == 0 and summary["false_touches"] == 0
+    assert summary["localization_error_mm_mean"] < bunny_map.pitch_mm() / 2
+
+
+def test_ten_minutes_at_rest_with_drift_give_no_touch(bunny_map):
+    board = VirtualBoard(bunny_map, BoardParams(drift_fraction=0.01, drift_period_s=240, cell_walk_counts=0.3, seed=5))
+    processor = TouchProcessor(bunny_map)
+    results = feed(processor, board, lambda t: [], 600.0)
+    assert len(results) == 6000
+    assert sum(len(r.touches) for r in results) == 0
+    # The common drift swings by +-100 counts; the baseline follows it to within the noise.
+    assert max(np.abs(r.delta).max() for r in results[100:]) < 6 * board.noise_sigma
+
+
+def test_a_long_hold_does_not_fade_and_releases_cleanly(bunny_map):
+    board = VirtualBoard(bunny_map, BoardParams(drift_fraction=0.01, drift_period_s=60, seed=6))
+    processor = TouchProcessor(bunny_map)
+    point = bunny_map.cell_points[ScriptBuilder(bunny_map).interior_cells[0]]
+    held = lambda t: [(point, 300.0)] if 3.0 <= t < 23.0 else []  # noqa: E731
+    results = feed(processor, board, held, 30.0)
+    during = results[31:230]
+    assert all(len(r.touches) == 1 for r in during)
+    assert len({r.touches[0].id for r in during}) == 1
+    assert all(len(r.touches) == 0 for r in results[231:])
+
+
+def test_finger_resting_at_start_up_is_forgotten(bunny_map):
+    board = VirtualBoard(bunny_map, BoardParams(seed=7))
+    processor = TouchProcessor(bunny_map)
+    resting = bunny_map.cell_points[5]
+    results = feed(processor, board, lambda t: [(resting, 300.0)] if t < 2.5 else [], 5.0)
+    assert sum(len(r.touches) for r in results) == 0  # the finger left: counts fall below baseline
+    again = feed(processor, board, lambda t: [(resting, 300.0)], 1.0, start=5.0)
+    assert len(again[-1].touches) == 1  # the cell re-baselined and sees touches again
+
+
+def test_two_fingers_keep_their_ids_while_moving(bunny_map):
+    board = VirtualBoard(bunny_map, BoardParams(seed=8))
+    builder = ScriptBuilder(bunny_map, seed=8)
+    script = builder.build([{"gesture": "spread", "at": "random", "from_mm": 30, "to_mm": 60, "ms": 1500}])
+    processor = TouchProcessor(bunny_map)
+    results = feed(processor, board, script.fingers_at, script.duration)
+    two = [r for r in results if len(r.touches) == 2]
+    assert len(two) >= 13
+    assert len({tuple(sorted(t.id for t in r.touches)) for r in two}) == 1
+    for r in two:
+        truth = np.array([s.position(r.t) for s in script.strokes])
+        got = np.array([t.point for t in r.touches])
+        assert np.min(np.linalg.norm(got[:, None] - truth[None], axis=2), axis=1).max() < 2.0
+
+
+def test_binary_format_with_flipped_rx_through_the_pty(bunny_map):
+    # Binary frames carry value - min in one byte (wrapping above 255, as on the board): keep the spread small.
+    params = BoardParams(flip_rx=True, seed=9, baseline_low=9980, baseline_high=10020, signal_counts=150,
+                         drift_fraction=0.0)
+    board = VirtualBoard(bunny_map, params)
+    script = ScriptBuilder(bunny_map, params, seed=9).build([{"gesture": "press", "at": {"cell": 10}, "ms": 500}])
+    processor = TouchProcessor(bunny_map, ProcessingParams())
+    touches = []
+    for frame in frames_through_pty(board, script, fast=True, frame_format="binary"):
+        touches.extend(processor.process(frame.values, frame.t).touches)
+    assert len(touches) == 5
+    assert all(np.linalg.norm(t.point - bunny_map.cell_points[10]) < 1.5 for t in touches)
+
+
+def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        load_sensing_map(tmp_path / "missing")
+    bad = tmp_path / "bad" / "sensing_map.json"
+    bad.parent.mkdir()
+    bad.write_text(json.dumps({"format": "something/else"}))
+    with pytest.raises(UserError, match="expected 'retrotouch.sensing_map/1'"):
+        load_sensing_map(bad.parent)
+    doc = json.loads(bunny_map_path.read_text())
+    doc["mesh"]["sha256"] = "0" * 64
+    tampered = bunny_map_path.parent / "tampered.json"
+    tampered.write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="does not match the sha256"):
+        load_sensing_map(tampered)
+    del doc["cells"][0]["tx"]
+    tampered.write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="misses or mangles field"):
+        load_sensing_map(tampered)
