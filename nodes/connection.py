@@ -43,7 +43,8 @@ class DirectionField:
     ``face_angle[f]`` is measured in the face frame (``e1 = (P1 - P0)/|.|``, ``e2 = N x e1``);
     ``face_direction[f] = cos a e1 + sin a e2``. ``start_vertex`` is the singularity curves start from
     (Tx: far vertex; Rx: the dipole source) and ``start_distance`` the geodesic (heat method)
-    distance of every vertex from it.
+    distance of every vertex from it; ``stop_distance`` is the distance from the singularities
+    curves end at (Tx: the base centre; Rx: both dipole vertices).
     """
 
     layer: str  # "tx" or "rx"
@@ -58,6 +59,11 @@ class DirectionField:
     face_direction: np.ndarray  # (m, 3) float64, unit, in the face plane
     start_vertex: int
     start_distance: np.ndarray  # (n,) float64, mm
+    stop_distance: np.ndarray  # (n,) float64, mm, geodesic distance from the singularities curves stop at
+
+    def singular_distance(self) -> np.ndarray:
+        """Geodesic distance (mm) of every vertex from the nearest singularity of this field."""
+        return np.minimum(self.start_distance, self.stop_distance)
 
     @property
     def indices_ok(self) -> bool:
@@ -177,6 +183,8 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
     direction = np.cos(alpha)[:, None] * tables.frame_e1 + np.sin(alpha)[:, None] * tables.frame_e2
     solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices, tables.faces)
     distance = np.asarray(solver.compute_distance(start), dtype=np.float64)
+    stops = [v for v in singular_vertices.tolist() if v != start] if layer == "tx" else singular_vertices.tolist()
+    stop_distance = np.asarray(solver.compute_distance_multisource(stops), dtype=np.float64)
     return DirectionField(
         layer=layer,
         singular_vertices=singular_vertices,
@@ -190,6 +198,7 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
         face_direction=direction,
         start_vertex=start,
         start_distance=distance,
+        stop_distance=stop_distance,
     )
 
 

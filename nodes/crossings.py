@@ -8,7 +8,7 @@ crossing's barycentrics, 3D point and arc lengths follow by interpolation. Param
 half-open (``0 <= s < 1``) so a crossing exactly on an edge is counted once.
 
 Same-layer crossings (each unordered pair once, ``curve_a < curve_b``) within
-``singularity_exclusion_mm`` (Euclidean) of one of the layer's singularities are dropped: curves of
+``singularity_exclusion_mm`` (geodesic) of one of the layer's singularities are dropped: curves of
 one family all meet there by construction. Tx x Rx crossings are all kept;
 :func:`pair_multiplicity` counts them per curve pair (the layout needs pairs crossing exactly once).
 """
@@ -113,12 +113,12 @@ def intersect(sa: Segments, sb: Segments, points_a: np.ndarray, layer_a: str, la
     )
 
 
-def drop_near(crossings: Crossings, centres: np.ndarray, radius_mm: float) -> Crossings:
-    """The crossings farther than ``radius_mm`` from every point of ``centres`` (k, 3)."""
-    far = np.ones(len(crossings.curve_a), dtype=bool)
-    for c in np.atleast_2d(centres):
-        far &= np.linalg.norm(crossings.points - c, axis=1) >= radius_mm
-    return dataclasses.replace(crossings, **{f.name: getattr(crossings, f.name)[far] for f in dataclasses.fields(crossings) if f.name not in ("layer_a", "layer_b")})
+def drop_near(crossings: Crossings, mesh_faces: np.ndarray, vertex_distance: np.ndarray, radius_mm: float) -> Crossings:
+    """The crossings whose distance (``vertex_distance`` per vertex, interpolated by barycentrics) is at least ``radius_mm``."""
+    distance = np.einsum("ki,ki->k", crossings.bary, vertex_distance[mesh_faces[crossings.faces]])
+    far = distance >= radius_mm
+    kept = {f.name: getattr(crossings, f.name)[far] for f in dataclasses.fields(crossings) if f.name not in ("layer_a", "layer_b")}
+    return dataclasses.replace(crossings, **kept)
 
 
 def find_crossings(a: CurveSet, b: CurveSet, mesh_faces: np.ndarray) -> Crossings:
@@ -137,7 +137,7 @@ def pair_multiplicity(crossings: Crossings, count_a: int, count_b: int) -> np.nd
 
 class CrossingsParams(NodeParams):
     singularity_exclusion_mm: float = Field(
-        10.0, ge=0, description="same-layer crossings closer than this (mm) to a singularity of that layer are dropped"
+        10.0, ge=0, description="same-layer crossings closer than this geodesic distance (mm) to a singularity of that layer are dropped"
     )
 
 
@@ -154,6 +154,6 @@ def crossings(
     radius = params.singularity_exclusion_mm
     return {
         "tx_rx": find_crossings(tx, rx, mesh.faces),
-        "tx_tx": drop_near(find_crossings(tx, tx, mesh.faces), tx_field.singular_points, radius),
-        "rx_rx": drop_near(find_crossings(rx, rx, mesh.faces), rx_field.singular_points, radius),
+        "tx_tx": drop_near(find_crossings(tx, tx, mesh.faces), mesh.faces, tx_field.singular_distance(), radius),
+        "rx_rx": drop_near(find_crossings(rx, rx, mesh.faces), mesh.faces, rx_field.singular_distance(), radius),
     }

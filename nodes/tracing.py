@@ -14,9 +14,8 @@ Stops (``CurveEnd``):
   having been outside it;
 * ``SINK_EDGE`` when the field of the face across the exit edge points back at that edge (both faces
   point at their shared edge);
-* ``SINGULARITY`` when it enters a face with a vertex within ``singularity_stop_mm`` (Euclidean) of a
-  singularity it does not start from (Tx: the base centre; Rx: the dipole), after leaving its start
-  region;
+* ``SINGULARITY`` when it enters a face with a vertex within ``singularity_stop_mm`` (geodesic) of
+  a singularity it ends at (Tx: the base centre; Rx: the dipole), after leaving its start region;
 * ``LOOP`` when it enters the same face more than ``max_face_visits`` times;
 * ``MAX_STEPS`` when the step budget runs out.
 
@@ -92,12 +91,9 @@ def field_direction(field: DirectionField, tables: MeshTables, angle: float) -> 
     return np.cos(a)[:, None] * tables.frame_e1 + np.sin(a)[:, None] * tables.frame_e2
 
 
-def faces_near(tables: MeshTables, points: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Faces with a vertex within ``radius_mm`` (Euclidean) of any of ``points`` (k, 3)."""
-    near_vertex = np.zeros(len(tables.vertices), dtype=bool)
-    for p in np.atleast_2d(points):
-        near_vertex |= np.linalg.norm(tables.vertices - p, axis=1) < radius_mm
-    return np.any(near_vertex[tables.faces], axis=1)
+def faces_near(tables: MeshTables, vertex_distance: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Faces with a vertex whose (geodesic) ``vertex_distance`` is below ``radius_mm``."""
+    return np.any(vertex_distance[tables.faces] < radius_mm, axis=1)
 
 
 def vertex_face_table(tables: MeshTables) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -516,7 +512,7 @@ def join_both_ways(tables: MeshTables, backward: Traces, forward: Traces) -> Tra
 
 class TraceTxParams(NodeParams):
     n_curves: int = Field(100, ge=1, description="Tx curves, at uniform angles around the far vertex")
-    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this distance (mm) of the base centre")
+    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this geodesic distance (mm) of the base centre")
     max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
     max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
 
@@ -524,7 +520,7 @@ class TraceTxParams(NodeParams):
 class TraceRxParams(NodeParams):
     angle_deg: float = Field(0.0, ge=-90, le=90, description="offset of the traced direction from the field (deg, CCW)")
     n_curves: int = Field(100, ge=1, description="Rx curves per angle")
-    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this distance (mm) of the dipole")
+    singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this geodesic distance (mm) of the dipole")
     max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
     max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
 
@@ -538,7 +534,7 @@ def trace_tx_curves(params: TraceTxParams, tables: MeshTables, regions, field: D
         raise UserError(f"curves.trace_tx needs the tx field, got the {field.layer} field: wire curves.connection with layer: tx")
     base = base_region_of(regions)
     start_region = np.asarray(regions.exclusion_far, dtype=bool) & ~base
-    singular = faces_near(tables, tables.vertices[[int(regions.base_centre)]], params.singularity_stop_mm)
+    singular = faces_near(tables, field.stop_distance, params.singularity_stop_mm)
     prefix, faces, bary = tx_starts(tables, field.start_vertex, params.n_curves)
     traces = trace(
         tables, field.face_direction, faces, bary, start_region, base, singular, params.max_steps, params.max_face_visits, prefix
@@ -554,7 +550,7 @@ def trace_rx_curves(params: TraceRxParams, tables: MeshTables, regions, field: D
     faces, bary = rx_seeds(tables, field, sensing, params.n_curves)
     angle = float(np.radians(params.angle_deg))
     direction = field_direction(field, tables, angle)
-    singular = faces_near(tables, field.singular_points, params.singularity_stop_mm)
+    singular = faces_near(tables, field.stop_distance, params.singularity_stop_mm)
     nothing = np.zeros(len(tables.faces), dtype=bool)
     halves = [
         trace(tables, sign * direction, faces, bary, nothing, base, singular, params.max_steps, params.max_face_visits)

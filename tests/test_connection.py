@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from curves_fixture import SHARED_MESHES, bunny, prepared, sample_mesh_path, simple_regions
+from curves_fixture import SHARED_MESHES, bunny, prepared, sample_mesh_path
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.connection import ConnectionParams, compute_field, connection, genus_check
 from retrotouch.nodes.datatypes import Mesh
 from retrotouch.nodes.mesh_tables import angle_defects, build_tables, edge_transport, wrap_angle
+from retrotouch.nodes.regions import RegionParams, detect_regions
 
 
 def icosphere_mesh() -> Mesh:
@@ -65,7 +66,7 @@ def test_tx_field_points_away_from_far_vertex():
 
 def test_icosphere_indices():
     mesh = icosphere_mesh()
-    assert_prescribed(mesh, simple_regions(mesh, up=(0.0, 0.0, 1.0)))
+    assert_prescribed(mesh, detect_regions(RegionParams(up_axis="+z"), mesh))
 
 
 def test_bone_indices():

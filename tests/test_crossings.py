@@ -64,8 +64,10 @@ def test_same_layer_pairs_once_and_exclusion():
     c = find_crossings(lines, lines, SQUARE_F)
     assert c.curve_a.tolist() == [0] and c.curve_b.tolist() == [1]
     np.testing.assert_allclose(c.points[0], [0.6, 0.4, 0.0], atol=1e-12)
-    assert len(drop_near(c, np.array([[0.6, 0.45, 0.0]]), 0.1).curve_a) == 0
-    assert len(drop_near(c, np.array([[0.6, 0.55, 0.0]]), 0.1).curve_a) == 1
+    # vertex distances from vertex 1, interpolated linearly: 0.4 * 1 + 0.2 * 0 + 0.4 * 1 = 0.8 at the crossing
+    distance = np.linalg.norm(SQUARE_V - SQUARE_V[1], axis=1)
+    assert len(drop_near(c, SQUARE_F, distance, 0.81).curve_a) == 0
+    assert len(drop_near(c, SQUARE_F, distance, 0.79).curve_a) == 1
 
 
 @pytest.fixture(scope="module")

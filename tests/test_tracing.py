@@ -64,7 +64,7 @@ def test_tx_curves_reach_the_base(bunny_curves):
 def test_tx_curves_do_not_cross(bunny_curves):
     mesh, _, _, tx_field, _ = bunny()
     tx = bunny_curves[0]["curves"]
-    crossings = drop_near(find_crossings(tx, tx, mesh.faces), tx_field.singular_points, 10.0)
+    crossings = drop_near(find_crossings(tx, tx, mesh.faces), mesh.faces, tx_field.singular_distance(), 10.0)
     assert len(crossings.curve_a) == 0
 
 
@@ -101,8 +101,9 @@ def test_stop_radius_stops_near_singularity():
     # a stop radius reaching beyond the base region stops the curves at the base-centre disc instead
     curves, stats = trace_tx_curves(TraceTxParams(singularity_stop_mm=80.0), tables, regions, tx_field)
     assert stats.end_counts[CurveEnd.SINGULARITY] > 0
-    ends = curves.points[curves.offsets[1:] - 1][curves.end_reason == CurveEnd.SINGULARITY]
-    assert np.all(np.linalg.norm(ends - mesh.vertices[regions.base_centre], axis=1) < 80.0 + 5.0)
+    last = (curves.offsets[1:] - 1)[curves.end_reason == CurveEnd.SINGULARITY]
+    # the curve stopped on the edge into a face with a vertex within the radius
+    assert np.all(np.min(tx_field.stop_distance[mesh.faces[curves.faces[last]]], axis=1) < 80.0 + 5.0)
 
 
 def test_step_budget_and_wrong_field_are_reported():
