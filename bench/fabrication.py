@@ -1,16 +1,22 @@
 """Fabrication benchmark: unfolding + outlining + nesting + writing the cut sheets for the bunny.
 
-Layout: the real pipeline's (``layout.pick_best`` in ``pipelines/retrofit.yaml``, run through the
-engine with its cache) when the pipeline has it and it runs; otherwise a synthetic 21 Tx x 12 Rx
-layout of plane sections (Tx: meridians, Rx: horizontal sections opened into arcs) on the bunny,
-loaded, scaled to a 170 mm diagonal, repaired and remeshed by the pipeline's own mesh nodes.
+Layout (``--layout auto`` tries them in this order):
+
+* ``real``: the pipeline's (``layout.pick_best`` in ``pipelines/retrofit.yaml``, run through the
+  engine with its cache), when the pipeline has it and it runs;
+* ``traced``: the curve helpers' real Tx/Rx tracing on the bunny (``tests/curves_fixture.py``
+  preparation, 170 mm), 21 Tx / 12 Rx picked evenly (not optimised), crossings from
+  ``curves.crossings``, pads greedily >= 15 mm apart;
+* ``synthetic``: 21 Tx x 12 Rx plane sections (Tx: meridians, Rx: horizontal sections opened into
+  arcs) on the bunny loaded, scaled to a 170 mm diagonal, repaired and remeshed by the pipeline's
+  own mesh nodes.
 
 The written SVGs are parsed back and checked with shapely (overlaps, smallest gap, fit on the mat),
 independently of the nester's own verification. Prints a table, then as its LAST line one JSON
 object: seconds (unfold + outline + nest + write), sheets, material_use (parts area / area of the
 sheets used), min_gap_mm, overlaps, plus details.
 
-Usage: python bench/fabrication.py [--layout auto|real|synthetic] [--seconds 10] [--mat 12x12] [--guide] [--out DIR]
+Usage: python bench/fabrication.py [--layout auto|real|traced|synthetic] [--seconds 10] [--mat 12x12] [--guide] [--out DIR]
 """
 from __future__ import annotations
 
@@ -30,7 +36,7 @@ from shapely.geometry import Polygon
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from fab_layouts import section_layout  # noqa: E402
+from fab_layouts import greedy_pads, section_layout  # noqa: E402
 
 from retrotouch.nodes import mesh_io, mesh_repair  # noqa: E402
 from retrotouch.nodes.assembly_guide import Params as GuideParams  # noqa: E402
@@ -65,6 +71,38 @@ def real_layout():
     consumer = next(i for i in result.plan.instances if "mesh" in i.inputs and "layout" in i.inputs)
     upstream, output = consumer.inputs["mesh"][0]
     return value(upstream, output), value(pick, "layout")
+
+
+def traced_layout():
+    """(mesh, layout): real traced curves on the bunny, an even (not optimised) 21 x 12 choice."""
+    import dataclasses
+
+    from curves_fixture import bunny
+
+    from retrotouch.nodes.crossings import find_crossings
+    from retrotouch.nodes.datatypes import CurveEnd, CurveSet, Layout
+    from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+
+    mesh, regions, _, tx_field, rx_field = bunny()
+    families = (trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"],
+                trace_rx(TraceRxParams(angle_deg=0.0), mesh, regions, rx_field)["curves"])
+
+    def pick(curves: CurveSet, count: int) -> CurveSet:
+        usable = np.nonzero(curves.end_reason == CurveEnd.BASE)[0] if curves.layer == "tx" else np.arange(curves.count)
+        chosen = usable[np.linspace(0, len(usable) - 1, count).astype(int)]
+        rows = np.concatenate([np.arange(curves.offsets[c], curves.offsets[c + 1]) for c in chosen])
+        offsets = np.concatenate([[0], np.cumsum(np.diff(curves.offsets)[chosen])]).astype(np.int64)
+        return dataclasses.replace(curves, points=curves.points[rows], faces=curves.faces[rows],
+                                   bary=curves.bary[rows], offsets=offsets, lengths_mm=curves.lengths_mm[chosen],
+                                   end_reason=curves.end_reason[chosen])
+
+    tx, rx = pick(families[0], 21), pick(families[1], 12)
+    cells = find_crossings(tx, rx, mesh.faces)
+    _, first = np.unique(cells.curve_a * rx.count + cells.curve_b, return_index=True)  # one per channel pair
+    cells = dataclasses.replace(cells, **{f.name: getattr(cells, f.name)[first] for f in dataclasses.fields(cells)
+                                          if f.name not in ("layer_a", "layer_b")})
+    layout = Layout(tx, rx, cells, greedy_pads(cells.points, 15.0), np.arange(21), np.arange(12))
+    return mesh, layout
 
 
 def synthetic_layout():
@@ -107,7 +145,7 @@ def check_sheets(files: dict[str, bytes], sheet_count: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--layout", choices=["auto", "real", "synthetic"], default="auto")
+    parser.add_argument("--layout", choices=["auto", "real", "traced", "synthetic"], default="auto")
     parser.add_argument("--seconds", type=int, default=10, help="spyrrow budget per sheet (s)")
     parser.add_argument("--mat", default="12x12", choices=["12x12", "12x24"])
     parser.add_argument("--guide", action="store_true", help="also time the assembly guide PDF")
@@ -116,22 +154,21 @@ def main() -> None:
 
     t0 = time.perf_counter()
     source = None
-    if args.layout in ("auto", "real"):
+    builders = {"real": real_layout, "traced": traced_layout, "synthetic": synthetic_layout}
+    for name in (["real", "traced", "synthetic"] if args.layout == "auto" else [args.layout]):
         try:
-            found = real_layout()
-        except Exception as error:  # noqa: BLE001 - the real pipeline may not run yet: say so, fall back
-            if args.layout == "real":
+            found = builders[name]()
+        except Exception as error:  # noqa: BLE001 - upstream stages may not run yet: say so, try the next
+            if args.layout != "auto":
                 raise
-            print(f"real layout unavailable ({type(error).__name__}: {error}); using the synthetic layout",
-                  file=sys.stderr)
-            found = None
+            print(f"{name} layout unavailable ({type(error).__name__}: {error})", file=sys.stderr)
+            continue
         if found is not None:
-            (mesh, layout), source = found, "pipeline layout.pick_best"
+            (mesh, layout), source = found, name
+            break
+        print(f"{name} layout unavailable (pipelines/retrofit.yaml has no layout.pick_best yet)", file=sys.stderr)
     if source is None:
-        if args.layout == "real":
-            raise SystemExit("pipelines/retrofit.yaml has no layout.pick_best node yet")
-        mesh, layout = synthetic_layout()
-        source = "synthetic plane sections"
+        raise SystemExit(f"no {args.layout} layout available")
     t_layout = time.perf_counter() - t0
 
     timings = {}
