@@ -515,6 +515,7 @@ class TraceTxParams(NodeParams):
     singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this geodesic distance (mm) of the base centre")
     max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
     max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
+    slide_sink_edges: bool = Field(True, description="slide along sink edges instead of stopping there (the paper stops)")
 
 
 class TraceRxParams(NodeParams):
@@ -523,6 +524,7 @@ class TraceRxParams(NodeParams):
     singularity_stop_mm: float = Field(3.0, gt=0, description="stop within this geodesic distance (mm) of the dipole")
     max_steps: int = Field(20000, ge=1, description="face steps per family before giving up")
     max_face_visits: int = Field(3, ge=1, description="loop guard: a curve may enter a face this many times")
+    slide_sink_edges: bool = Field(True, description="slide along sink edges instead of stopping there (the paper stops)")
 
 
 def base_region_of(regions) -> np.ndarray:
@@ -537,7 +539,17 @@ def trace_tx_curves(params: TraceTxParams, tables: MeshTables, regions, field: D
     singular = faces_near(tables, field.stop_distance, params.singularity_stop_mm)
     prefix, faces, bary = tx_starts(tables, field.start_vertex, params.n_curves)
     traces = trace(
-        tables, field.face_direction, faces, bary, start_region, base, singular, params.max_steps, params.max_face_visits, prefix
+        tables,
+        field.face_direction,
+        faces,
+        bary,
+        start_region,
+        base,
+        singular,
+        params.max_steps,
+        params.max_face_visits,
+        prefix,
+        params.slide_sink_edges,
     )
     return assemble(tables, traces, start_region, "tx", 0.0)
 
@@ -553,7 +565,9 @@ def trace_rx_curves(params: TraceRxParams, tables: MeshTables, regions, field: D
     singular = faces_near(tables, field.stop_distance, params.singularity_stop_mm)
     nothing = np.zeros(len(tables.faces), dtype=bool)
     halves = [
-        trace(tables, sign * direction, faces, bary, nothing, base, singular, params.max_steps, params.max_face_visits)
+        trace(
+            tables, sign * direction, faces, bary, nothing, base, singular, params.max_steps, params.max_face_visits, None, params.slide_sink_edges
+        )
         for sign in (-1.0, 1.0)
     ]
     return assemble(tables, join_both_ways(tables, *halves), nothing, "rx", angle)
