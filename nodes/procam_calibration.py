@@ -323,6 +323,32 @@ def load_calibration(path: Path) -> ProCamCalibration:
         raise UserError(f"{path}: malformed calibration ({exc}): re-run the calibration") from exc
 
 
+def demo_rig(width: int = 1280, height: int = 720) -> ProCamCalibration:
+    """A plausible rig (the known truth of synthetic runs): camera f = 0.78 w, projector f = 1.2 w,
+    the projector 150 mm left of and 30 mm below the camera, turned 15 degrees towards it, both
+    ``width`` x ``height``; a little radial distortion on each; about 550 mm to the work area.
+    """
+    from scipy.spatial.transform import Rotation
+
+    f_cam, f_proj = 0.78 * width, 1.2 * width
+    camera = DeviceIntrinsics(
+        np.array([[f_cam, 0.0, width / 2 + 3.0], [0.0, f_cam, height / 2 - 2.0], [0.0, 0.0, 1.0]]),
+        np.array([0.04, -0.08, 0.0, 0.0, 0.0]),
+        width,
+        height,
+    )
+    projector = DeviceIntrinsics(
+        np.array([[f_proj, 0.0, width / 2], [0.0, f_proj, 0.58 * height], [0.0, 0.0, 1.0]]),
+        np.array([0.02, 0.0, 0.0, 0.0, 0.0]),
+        width,
+        height,
+    )
+    R_cam_proj = Rotation.from_euler("y", 15.0, degrees=True).as_matrix()
+    centre = np.array([-150.0, 30.0, 0.0])  # projector centre in camera coordinates (mm)
+    R = R_cam_proj.T
+    return ProCamCalibration(camera, projector, R, -R @ centre, 0.0, 0.0, 0.0)
+
+
 # ---------------------------------------------------------------------------------------------
 # Synthetic captures (known truth, for tests, benchmarks and dry runs)
 

@@ -9,11 +9,13 @@ Conventions (stated once here, used by the projection modules):
   in millimetres: ``X_b = T_b_a[:3, :3] @ X_a + T_b_a[:3, 3]``. The object frame is the mesh frame.
 * Depth images hold the z coordinate (mm) along the optical axis, ``inf`` where nothing was hit.
 
-The projector image is rendered per layer (Tx first): the layer's curves are lifted ``offset_mm``
-along the interpolated surface normal, culled when their surface faces away from the projector,
-depth-tested against a z-buffer of the mesh rendered from the projector, projected with the
-projector's distortion and drawn as anti-aliased polylines. Every curve vertex is projected exactly,
-so straight 3D segments map to straight image segments (perspective-correct by construction).
+The projector image is rendered per layer (Tx first): curve points are culled when their surface
+faces away from the projector (or is nearly edge-on), lifted ``offset_mm`` along the interpolated
+surface normal and depth-tested against a z-buffer of the mesh rendered from the projector; the
+visible surface points are projected with the projector's distortion and drawn as anti-aliased
+polylines (the light lands on the surface point itself; the lift only keeps the depth test from
+self-occluding). Every curve vertex is projected exactly, so straight 3D segments map to straight
+image segments (perspective-correct by construction, no affine interpolation in screen space).
 """
 from __future__ import annotations
 
@@ -199,6 +201,7 @@ class RenderStyle:
     crossing_radius_mm: float = 1.0
     pad_radius_mm: float = 2.0
     depth_tolerance_mm: float = 2.0
+    max_incidence_deg: float = 80.0
 
 
 def visible_points(
@@ -207,27 +210,29 @@ def visible_points(
     T_dev_obj: np.ndarray,
     K: np.ndarray,
     zbuffer: np.ndarray,
-    tolerance_mm: float,
+    style: RenderStyle,
 ) -> np.ndarray:
-    """(n,) bool: the point faces the device, lies in front of it, inside the image and passes the depth test.
+    """(n,) bool: the surface point is lit by the device and should be drawn.
 
-    The depth test compares the point's z with the z-buffer (undistorted pinhole pixels) at the
-    nearest pixel; ``tolerance_mm`` absorbs the normal offset and rasterization error.
+    Kept when the surface faces the device at less than ``style.max_incidence_deg`` from its normal
+    (back-face culling plus dropping grazing spots, where light smears), lies in front of the device
+    and inside the image, and the point lifted ``style.offset_mm`` along its normal passes the depth
+    test against the z-buffer (nearest undistorted pixel, ``style.depth_tolerance_mm`` slack).
     """
     p = transform_points(T_dev_obj, points_obj)
     n = normals_obj @ np.ascontiguousarray(T_dev_obj[:3, :3].T)
-    facing = np.einsum("ij,ij->i", n, -p) > 0.0
-    z = p[:, 2]
+    lifted = p + style.offset_mm * n
+    to_device = -p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
+    facing = np.einsum("ij,ij->i", n, to_device) > np.cos(np.deg2rad(style.max_incidence_deg))
+    z = lifted[:, 2]
     in_front = z > 1e-6
-    uv = p[:, :2] / np.where(in_front, z, 1.0)[:, None] * np.diag(K)[:2] + K[:2, 2]
-    uv[:, 0] += K[0, 1] * p[:, 1] / np.where(in_front, z, 1.0)
-    col = np.rint(uv[:, 0]).astype(np.int64)
-    row = np.rint(uv[:, 1]).astype(np.int64)
+    safe_z = np.where(in_front, z, 1.0)
+    col = np.rint((K[0, 0] * lifted[:, 0] + K[0, 1] * lifted[:, 1]) / safe_z + K[0, 2]).astype(np.int64)
+    row = np.rint(K[1, 1] * lifted[:, 1] / safe_z + K[1, 2]).astype(np.int64)
     h, w = zbuffer.shape
-    inside = in_front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    ok = facing & inside
+    ok = facing & in_front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
     z_ok = np.zeros(len(p), bool)
-    z_ok[ok] = z[ok] <= zbuffer[row[ok], col[ok]] + tolerance_mm
+    z_ok[ok] = z[ok] <= zbuffer[row[ok], col[ok]] + style.depth_tolerance_mm
     return ok & z_ok
 
 
@@ -269,19 +274,16 @@ def render_layers(
     )
     shift = 4  # sub-pixel precision bits for cv2 drawing
     scale = float(1 << shift)
-    cross_vis = visible_points(
-        scene.crossing_points, scene.crossing_normals, T_proj_obj, projector.K, zbuffer, style.depth_tolerance_mm
-    )
-    lifted_cross = scene.crossing_points + style.offset_mm * scene.crossing_normals
-    cross_dev = transform_points(T_proj_obj, lifted_cross[cross_vis])
+    cross_vis = visible_points(scene.crossing_points, scene.crossing_normals, T_proj_obj, projector.K, zbuffer, style)
+    cross_dev = transform_points(T_proj_obj, scene.crossing_points[cross_vis])
     cross_uv = project_points(cross_dev, projector)
     f_px = float(projector.K[0, 0])
     images: dict[str, np.ndarray] = {}
     for i, name in enumerate(scene.layer_names):
         img = np.zeros((projector.height, projector.width, 3), np.uint8)
         pts, nrm, offs = scene.layer_points[i], scene.layer_normals[i], scene.layer_offsets[i]
-        vis = visible_points(pts, nrm, T_proj_obj, projector.K, zbuffer, style.depth_tolerance_mm)
-        uv = project_points(transform_points(T_proj_obj, pts + style.offset_mm * nrm), projector)
+        vis = visible_points(pts, nrm, T_proj_obj, projector.K, zbuffer, style)
+        uv = project_points(transform_points(T_proj_obj, pts), projector)
         runs = _visible_runs(uv, vis, offs)
         colour = style.layer_bgr[i % len(style.layer_bgr)]
         if runs:
@@ -297,3 +299,30 @@ def render_layers(
             cv2.circle(img, centre, r, style.crossing_bgr, max(1, style.line_px // 2), cv2.LINE_AA, shift)
         images[name] = img
     return images
+
+
+def landing_points(
+    pixels: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    T_proj_obj: np.ndarray,
+    projector: DeviceIntrinsics,
+) -> np.ndarray:
+    """Where light from projector ``pixels`` (n, 2) lands on the mesh: (n, 3) object-frame points, NaN on a miss.
+
+    Rays leave the projector centre through the undistorted pixels; the first hit counts. Used to
+    measure how far a projected landmark lands from where it belongs.
+    """
+    import trimesh
+
+    xy = cv2.undistortPoints(pixels.reshape(-1, 1, 2).astype(np.float64), projector.K, projector.dist).reshape(-1, 2)
+    T_obj_proj = invert_pose(T_proj_obj)
+    dirs = np.column_stack([xy, np.ones(len(xy))]) @ np.ascontiguousarray(T_obj_proj[:3, :3].T)
+    origins = np.tile(T_obj_proj[:3, 3], (len(xy), 1))
+    tm = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    hits, ray_idx, _ = tm.ray.intersects_location(origins, dirs, multiple_hits=True)
+    out = np.full((len(xy), 3), np.nan)
+    dist = np.linalg.norm(hits - origins[ray_idx], axis=1) if len(hits) else np.zeros(0)
+    order = np.argsort(-dist)  # nearest hit written last
+    out[ray_idx[order]] = hits[order]
+    return out
