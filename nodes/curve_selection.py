@@ -169,6 +169,138 @@ def greedy_selection(problem: SelectionProblem, n_drive: int, n_sense: int) -> t
     return np.array(sorted(tx_sel), dtype=np.int64), np.array(sorted(rx_sel), dtype=np.int64)
 
 
+def _score(nearest: np.ndarray, resolution_mm: float, secondary: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Lexicographic (quantised radius, summed distance) of nearest-distance columns (K, ...)."""
+    radius = np.ceil(nearest.max(axis=0) / resolution_mm - 1e-9)
+    total = nearest.sum(axis=0) if secondary else np.zeros_like(radius)
+    return radius, total
+
+
+def local_search(
+    problem: SelectionProblem,
+    tx: np.ndarray,
+    rx: np.ndarray,
+    n_drive: int,
+    n_sense: int,
+    secondary: bool,
+    resolution_mm: float,
+    max_moves: int = 200,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Best-improvement swap/add local search from a feasible selection, on the phase-1 objective.
+
+    A move replaces (or, below the channel limit, adds) one curve of either layer by a candidate that
+    keeps C1/C2; moves are scored lexicographically by (radius at ``resolution_mm``, summed sample
+    distance when ``secondary``). Returns (tx, rx, moves made).
+    """
+    ntx, nrx = len(problem.tx_usable), len(problem.rx_usable)
+    C = len(problem.cross_tx)
+    pair = np.full((ntx, nrx), C, dtype=np.int64)  # C = the +inf padding column
+    pair[problem.cross_tx, problem.cross_rx] = np.arange(C)
+    usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
+    Dpad = np.hstack([np.where(usable_c[None, :], problem.distance, np.inf), np.full((len(problem.distance), 1), np.inf)])
+    tx_conf = np.zeros((ntx, ntx), dtype=bool)
+    tx_conf[problem.tx_conflicts[:, 0], problem.tx_conflicts[:, 1]] = True
+    tx_conf |= tx_conf.T
+    rx_conf = np.zeros((nrx, nrx), dtype=bool)
+    rx_conf[problem.rx_conflicts[:, 0], problem.rx_conflicts[:, 1]] = True
+    rx_conf |= rx_conf.T
+    multi = np.zeros((ntx, nrx), dtype=bool)
+    multi[problem.multi_pairs[:, 0], problem.multi_pairs[:, 1]] = True
+
+    def nearest_of(T, R):
+        if len(T) == 0 or len(R) == 0:
+            return np.full(len(Dpad), np.inf)
+        return Dpad[:, pair[np.ix_(T, R)].ravel()].min(axis=1)
+
+    T, R = list(tx), list(rx)
+    current = _score(nearest_of(T, R)[:, None], resolution_mm, secondary)
+    current = (current[0][0], current[1][0])
+    moves = 0
+    while moves < max_moves:
+        best = (current, None)
+        for layer in ("tx", "rx"):
+            own, other = (T, R) if layer == "tx" else (R, T)
+            limit = n_drive if layer == "tx" else n_sense
+            usable = problem.tx_usable if layer == "tx" else problem.rx_usable
+            conf = tx_conf if layer == "tx" else rx_conf
+            removals = list(own) + ([None] if len(own) < limit else [])
+            for out in removals:
+                kept = [c for c in own if c != out]
+                ok = usable.copy()
+                ok[own] = False
+                if kept:
+                    ok &= ~conf[:, kept].any(axis=1)
+                if other:
+                    ok &= ~(multi[:, other] if layer == "tx" else multi[other, :].T).any(axis=1)
+                cands = np.flatnonzero(ok)
+                if len(cands) == 0 or not other:
+                    continue
+                base = nearest_of(kept, other) if layer == "tx" else nearest_of(other, kept)
+                cols = pair[np.ix_(cands, other)] if layer == "tx" else pair[np.ix_(other, cands)].T
+                new = np.minimum(base[:, None], Dpad[:, cols].min(axis=2))
+                radius, total = _score(new, resolution_mm, secondary)
+                i = np.lexsort((total, radius))[0]
+                if (radius[i], total[i]) < best[0]:
+                    best = ((radius[i], total[i]), (layer, out, int(cands[i])))
+        if best[1] is None:
+            break
+        layer, out, into = best[1]
+        own = T if layer == "tx" else R
+        if out is not None:
+            own.remove(out)
+        own.append(into)
+        current = best[0]
+        moves += 1
+    return np.array(sorted(T), dtype=np.int64), np.array(sorted(R), dtype=np.int64), moves
+
+
+def _repair(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop curves until C1/C2 hold: repeatedly remove the curve in the most violated constraints."""
+    T, R = set(int(a) for a in tx), set(int(b) for b in rx)
+    while True:
+        count: dict[tuple[str, int], int] = {}
+        for layer, pairs, left, right in (("tx", problem.tx_conflicts, T, T), ("rx", problem.rx_conflicts, R, R)):
+            for a, b in pairs:
+                if a in left and b in right:
+                    count[(layer, int(a))] = count.get((layer, int(a)), 0) + 1
+                    count[(layer, int(b))] = count.get((layer, int(b)), 0) + 1
+        for a, b in problem.multi_pairs:
+            if a in T and b in R:
+                count[("tx", int(a))] = count.get(("tx", int(a)), 0) + 1
+                count[("rx", int(b))] = count.get(("rx", int(b)), 0) + 1
+        if not count:
+            return np.array(sorted(T), dtype=np.int64), np.array(sorted(R), dtype=np.int64)
+        layer, curve = max(count, key=lambda key: (count[key], key))
+        (T if layer == "tx" else R).discard(curve)
+
+
+def heuristic_selection(
+    problem: SelectionProblem, n_drive: int, n_sense: int, secondary: bool, resolution_mm: float
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The better of two starts, improved by :func:`local_search`: the greedy construction and an evenly
+    spread pick over the candidate order (curves are traced in angular order, so evenly spaced indices
+    spread over the surface), repaired for C1/C2."""
+    usable_t, usable_r = np.flatnonzero(problem.tx_usable), np.flatnonzero(problem.rx_usable)
+    starts = {"greedy": greedy_selection(problem, n_drive, n_sense)}
+    if len(usable_t) and len(usable_r):
+        even_t = usable_t[np.unique(np.floor(np.arange(min(n_drive, len(usable_t))) * len(usable_t) / min(n_drive, len(usable_t))).astype(int))]
+        even_r = usable_r[np.unique(np.floor(np.arange(min(n_sense, len(usable_r))) * len(usable_r) / min(n_sense, len(usable_r))).astype(int))]
+        starts["even"] = _repair(problem, even_t, even_r)
+    report = {}
+    scored = []
+    for name, (tx, rx) in starts.items():
+        _, nearest = evaluate_selection(problem, tx, rx)
+        radius, total = _score(nearest[:, None], resolution_mm, secondary)
+        report[name] = {"radius_mm": float(nearest.max()), "mean_mm": float(nearest.mean())}
+        scored.append(((radius[0], total[0]), name))
+    name = min(scored)[1]
+    tx, rx, moves = local_search(problem, *starts[name], n_drive, n_sense, secondary, resolution_mm)
+    _, nearest = evaluate_selection(problem, tx, rx)
+    report["local_search"] = {"start": name, "moves": moves, "radius_mm": float(nearest.max()),
+                              "mean_mm": float(nearest.mean())}
+    return tx, rx, report
+
+
 def _stage_report(name: str, solver: cp_model.CpSolver, status: int, scale: float) -> dict:
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     objective = solver.objective_value * scale if has else None
@@ -192,23 +324,26 @@ def select_curves(
     n_drive: int,
     n_sense: int,
     secondary: bool = True,
-    resolution_mm: float = 0.25,
+    resolution_mm: float = 0.5,
     time_limit_s: float = 4.0,
     seed: int = 0,
     workers: int = 1,
+    max_memberships: int = 40000,
 ) -> SelectionResult:
     """Solve phase 1 (see the module docstring) and report every stage."""
     t0 = time.perf_counter()
-    g_tx, g_rx = greedy_selection(problem, n_drive, n_sense)
-    _, g_nearest = evaluate_selection(problem, g_tx, g_rx)
-    greedy = {"radius_mm": float(g_nearest.max()), "mean_mm": float(g_nearest.mean()),
-              "tx": len(g_tx), "rx": len(g_rx), "seconds": time.perf_counter() - t0}
+    # The start is the same with and without the secondary objective (the summed distance only breaks
+    # the radius plateaus of the local search), so the ablation differs in the secondary stage alone.
+    start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, True, resolution_mm)
+    _, h_nearest = evaluate_selection(problem, start_tx, start_rx)
+    heuristic["seconds"] = time.perf_counter() - t0
 
-    q = np.ceil(problem.distance / resolution_mm - 1e-9).astype(np.int64)  # (K, C)
-    q_greedy = np.ceil(g_nearest / resolution_mm - 1e-9).astype(np.int64)
-    cap = int(q_greedy.max())
     usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
-    within = (q <= cap) & usable_c[None, :]
+    q = np.ceil(problem.distance / resolution_mm - 1e-9).astype(np.int64)  # (K, C)
+    q[:, ~usable_c] = np.iinfo(np.int64).max // 4
+    q_start = np.ceil(h_nearest / resolution_mm - 1e-9).astype(np.int64)
+    cap = int(q_start.max())
+    order = np.argsort(q, axis=1, kind="stable")
 
     model = cp_model.CpModel()
     ntx, nrx = len(problem.tx_usable), len(problem.rx_usable)
@@ -227,25 +362,49 @@ def select_curves(
     for a, b in problem.multi_pairs:
         model.add_bool_or([x[a].Not(), y[b].Not()])
 
-    relevant = np.flatnonzero(within.any(axis=0))
-    act = {}
-    for c in relevant:
-        v = model.new_bool_var(f"act{c}")
-        model.add_implication(v, x[problem.cross_tx[c]])
-        model.add_implication(v, y[problem.cross_rx[c]])
-        act[int(c)] = v
+    act: dict[int, cp_model.IntVar] = {}
+
+    def active_var(c: int) -> cp_model.IntVar:
+        if c not in act:
+            v = model.new_bool_var(f"act{c}")
+            model.add_implication(v, x[problem.cross_tx[c]])
+            model.add_implication(v, y[problem.cross_rx[c]])
+            model.add_bool_or([x[problem.cross_tx[c]].Not(), y[problem.cross_rx[c]].Not(), v])
+            act[c] = v
+        return act[c]
 
     radius = model.new_int_var(int(q.min()), cap, "radius")
     sample_terms = []
     hint_u = []
+    sorted_q = np.take_along_axis(q, order, axis=1)
+
+    def caps_for(slack: int) -> tuple[np.ndarray, int]:
+        caps = np.minimum(cap, q_start + slack)
+        counts = [int(np.searchsorted(sorted_q[k], caps[k], side="right")) for k in range(len(q))]
+        return caps, int(sum(counts))
+
+    slack = cap  # no restriction unless the model would be too large
+    sample_cap, size_needed = caps_for(slack)
+    if size_needed > max_memberships:
+        low, high = 0, cap
+        while low < high:
+            mid = (low + high + 1) // 2
+            if caps_for(mid)[1] <= max_memberships:
+                low = mid
+            else:
+                high = mid - 1
+        slack = low
+        sample_cap, _ = caps_for(slack)
+    memberships = 0
     for k in range(q.shape[0]):
-        cs = np.flatnonzero(within[k])
-        levels, shell_of = np.unique(q[k, cs], return_inverse=True)
+        within = order[k, : int(np.searchsorted(q[k, order[k]], sample_cap[k], side="right"))]
+        memberships += len(within)
+        levels, shell_of = np.unique(q[k, within], return_inverse=True)
         model.add(radius >= int(levels[0]))
         prev = None
         terms = [int(levels[0])]
         for j, level in enumerate(levels):
-            shell = [act[int(c)] for c in cs[shell_of == j]]
+            shell = [active_var(int(c)) for c in within[shell_of == j]]
             if j == len(levels) - 1:
                 model.add(sum(shell) >= (1 if prev is None else prev))
                 break
@@ -255,25 +414,28 @@ def select_curves(
                 model.add_implication(u, prev)
             model.add(radius >= int(levels[j + 1])).only_enforce_if(u)
             terms.append(int(levels[j + 1] - level) * u)
-            hint_u.append((u, q_greedy[k] > level))
+            hint_u.append((u, k, int(level)))
             prev = u
         sample_terms.append(sum(terms))
 
-    def hint(tx_sel: np.ndarray, rx_sel: np.ndarray, u_values: list, radius_value: int) -> None:
+    def hint(tx_sel: np.ndarray, rx_sel: np.ndarray) -> None:
+        """Hint a selection with every derived literal at its tight value."""
         model.clear_hints()
         tx_mask = np.zeros(ntx, dtype=bool)
         tx_mask[tx_sel] = True
         rx_mask = np.zeros(nrx, dtype=bool)
         rx_mask[rx_sel] = True
+        _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
+        q_near = np.ceil(nearest / resolution_mm - 1e-9)
         for a in range(ntx):
             model.add_hint(x[a], bool(tx_mask[a]))
         for b in range(nrx):
             model.add_hint(y[b], bool(rx_mask[b]))
         for c, v in act.items():
             model.add_hint(v, bool(tx_mask[problem.cross_tx[c]] and rx_mask[problem.cross_rx[c]]))
-        for u, value in u_values:
-            model.add_hint(u, bool(value))
-        model.add_hint(radius, int(radius_value))
+        for u, k, level in hint_u:
+            model.add_hint(u, bool(q_near[k] > level))
+        model.add_hint(radius, int(min(q_near.max(), cap)))
 
     solver = cp_model.CpSolver()
     solver.parameters.num_workers = workers
@@ -282,28 +444,35 @@ def select_curves(
     solver.parameters.max_time_in_seconds = 4.0 * time_limit_s
 
     size = {"variables": len(model.proto.variables), "constraints": len(model.proto.constraints),
-            "candidate_crossings": int(usable_c.sum()), "crossings_in_model": len(act)}
+            "candidate_crossings": int(usable_c.sum()), "crossings_in_model": len(act),
+            "trust_region_slack_mm": None if slack >= cap else slack * resolution_mm,
+            "memberships": memberships}
     stages = []
-    hint(g_tx, g_rx, hint_u, cap)
+    if secondary:
+        hint(start_tx, start_rx)
+    # Without the secondary objective the radius stage gets no hint: the heuristic start is already
+    # tuned for the mean distance, and hinting it would smuggle the secondary objective into the
+    # ablation. Both variants solve the same model (same cap and trust region).
     model.minimize(radius)
     status = solver.solve(model)
     stages.append(_stage_report("coverage_radius", solver, status, resolution_mm))
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         # The greedy hint is feasible, so no incumbent means the solver could not even load it in
         # time: keep the greedy selection and say so in the report.
-        tx_sel, rx_sel, source = g_tx, g_rx, "greedy (CP-SAT found no incumbent)"
+        tx_sel, rx_sel, source = start_tx, start_rx, "heuristic (CP-SAT found no incumbent)"
     else:
         tx_sel = np.array([a for a in range(ntx) if solver.boolean_value(x[a])], dtype=np.int64)
         rx_sel = np.array([b for b in range(nrx) if solver.boolean_value(y[b])], dtype=np.int64)
         source = "cp-sat"
         if secondary:
             best_radius = int(solver.value(radius))
-            u_values = [(u, solver.boolean_value(u)) for u, _ in hint_u]
-            hint(tx_sel, rx_sel, u_values, best_radius)
+            tx_sel, rx_sel, moves = local_search(problem, tx_sel, rx_sel, n_drive, n_sense, True, resolution_mm)
+            hint(tx_sel, rx_sel)
             model.add(radius <= best_radius)
             model.minimize(sum(sample_terms))
             status = solver.solve(model)
             report = _stage_report("mean_distance", solver, status, resolution_mm / q.shape[0])
+            report["local_search_moves_before"] = moves
             stages.append(report)
             if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
                 tx_sel = np.array([a for a in range(ntx) if solver.boolean_value(x[a])], dtype=np.int64)
@@ -311,7 +480,7 @@ def select_curves(
             else:
                 report["note"] = "no incumbent within the limit: the coverage-radius stage's selection is kept"
     active, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-    report = {"greedy": greedy, "stages": stages, "model": size, "source": source,
+    report = {"heuristic": heuristic, "stages": stages, "model": size, "source": source,
               "seconds": time.perf_counter() - t0, "resolution_mm": resolution_mm}
     return SelectionResult(
         tx=tx_sel,

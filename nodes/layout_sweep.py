@@ -38,7 +38,7 @@ from retrotouch.nodes.curve_selection import (
 from retrotouch.nodes.datatypes import Crossings, CurveEnd, CurveSet, Layout, Mesh
 from retrotouch.nodes.layout_metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
 from retrotouch.nodes.pad_placement import PadResult, place_pads
-from retrotouch.nodes.surface_samples import SurfaceSamples, geodesics_for
+from retrotouch.nodes.surface_samples import HeatGeodesics, SurfaceSamples, geodesics_for
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ class OptimizeParams(NodeParams):
     n_drive: int = Field(21, ge=1, le=128, description="Tx channels available (N_drive; 21 on the Muca board)")
     n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the mean sample distance (off: ablation)")
-    resolution_mm: float = Field(0.25, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
+    resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
     time_limit_s: float = Field(4.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
     pad_time_limit_s: float = Field(2.0, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
@@ -105,6 +105,31 @@ def _usable(curves: CurveSet, require_base_end: bool) -> np.ndarray:
     return curves.end_reason == int(CurveEnd.BASE)
 
 
+def selection_problem(
+    geo: HeatGeodesics,
+    samples: SurfaceSamples,
+    tx: CurveSet,
+    rx: CurveSet,
+    tx_rx: Crossings,
+    tx_tx: Crossings,
+    rx_rx: Crossings,
+    require_base_end: bool,
+) -> SelectionProblem:
+    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts, sample distances."""
+    rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
+    return SelectionProblem(
+        tx_usable=_usable(tx, require_base_end),
+        rx_usable=_usable(rx, require_base_end),
+        cross_tx=tx_rx.curve_a[rows].astype(np.int64),
+        cross_rx=tx_rx.curve_b[rows].astype(np.int64),
+        cross_rows=rows,
+        distance=geo.evaluate(samples.distances, tx_rx.faces[rows], tx_rx.bary[rows]),
+        multi_pairs=multi,
+        tx_conflicts=same_layer_conflicts(tx_tx),
+        rx_conflicts=same_layer_conflicts(rx_rx),
+    )
+
+
 def _pads_with_ladder(
     params: OptimizeParams, distance: np.ndarray, ctx: np.ndarray, crx: np.ndarray
 ) -> tuple[PadResult, np.ndarray, float, list[dict]]:
@@ -150,18 +175,8 @@ def optimize_angle(
     t0 = time.perf_counter()
     angle_deg = float(np.rad2deg(rx.angle))
     geo = geodesics_for(mesh)
-    rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
-    problem = SelectionProblem(
-        tx_usable=_usable(tx, params.require_base_end),
-        rx_usable=_usable(rx, params.require_base_end),
-        cross_tx=tx_rx.curve_a[rows].astype(np.int64),
-        cross_rx=tx_rx.curve_b[rows].astype(np.int64),
-        cross_rows=rows,
-        distance=geo.evaluate(samples.distances, tx_rx.faces[rows], tx_rx.bary[rows]),
-        multi_pairs=multi,
-        tx_conflicts=same_layer_conflicts(tx_tx),
-        rx_conflicts=same_layer_conflicts(rx_rx),
-    )
+    problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end)
+    rows, multi = problem.cross_rows, problem.multi_pairs
     base = {
         "angle_deg": angle_deg,
         "secondary": params.secondary,

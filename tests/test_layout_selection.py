@@ -1,0 +1,80 @@
+"""Phase 1 (curve selection) on the synthetic sphere instance: constraints, limits, objectives."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_layout_fixtures import synthetic_instance
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.curve_selection import evaluate_selection, select_curves
+from retrotouch.nodes.layout_sweep import selection_problem
+from retrotouch.nodes.surface_samples import SamplesParams, geodesics_for, surface_samples
+
+
+@pytest.fixture(scope="module")
+def problem():
+    mesh, regions, tx, rx, tx_rx, tx_tx, rx_rx = synthetic_instance()
+    samples = surface_samples(SamplesParams(count=150), mesh, regions)
+    return selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, True)
+
+
+def assert_feasible(problem, result, n_drive, n_sense):
+    assert 0 < len(result.tx) <= n_drive and 0 < len(result.rx) <= n_sense
+    tx, rx = set(result.tx.tolist()), set(result.rx.tolist())
+    assert not any(a in tx and b in tx for a, b in problem.tx_conflicts)  # C1 Tx
+    assert not any(a in rx and b in rx for a, b in problem.rx_conflicts)  # C1 Rx
+    assert not any(a in tx and b in rx for a, b in problem.multi_pairs)  # C2
+    both = np.isin(problem.cross_tx, result.tx) & np.isin(problem.cross_rx, result.rx)
+    assert np.array_equal(np.flatnonzero(both), np.sort(result.active))
+
+
+def test_instance_exercises_every_constraint(problem):
+    assert len(problem.tx_conflicts) > 0 and len(problem.rx_conflicts) > 0 and len(problem.multi_pairs) > 0
+
+
+@pytest.mark.parametrize("n_drive,n_sense", [(21, 12), (8, 5), (3, 2)])
+def test_selection_respects_c1_c2_c3(problem, n_drive, n_sense):
+    result = select_curves(problem, n_drive, n_sense, time_limit_s=2.0)
+    assert_feasible(problem, result, n_drive, n_sense)
+    nearest = problem.distance[:, result.active].min(axis=1)
+    assert result.coverage_radius_mm == pytest.approx(nearest.max())
+    assert result.mean_distance_mm == pytest.approx(nearest.mean())
+    assert result.report["stages"][0]["status"] in ("OPTIMAL", "FEASIBLE")
+
+
+def test_radius_stage_beats_or_matches_the_heuristic(problem):
+    result = select_curves(problem, 8, 5, secondary=False, time_limit_s=2.0)
+    heuristic = result.report["heuristic"]["local_search"]["radius_mm"]
+    assert result.coverage_radius_mm <= heuristic + 1e-9
+    stage = result.report["stages"][0]
+    if stage["status"] == "OPTIMAL":
+        assert stage["gap"] == 0.0
+
+
+def test_secondary_objective_lowers_the_mean_distance(problem):
+    off = select_curves(problem, 8, 5, secondary=False, time_limit_s=2.0)
+    on = select_curves(problem, 8, 5, secondary=True, time_limit_s=2.0)
+    resolution = on.report["resolution_mm"]
+    assert np.ceil(on.coverage_radius_mm / resolution - 1e-9) <= np.ceil(off.coverage_radius_mm / resolution - 1e-9)
+    assert on.mean_distance_mm < off.mean_distance_mm
+    assert [s["stage"] for s in on.report["stages"]] == ["coverage_radius", "mean_distance"]
+
+
+def test_unusable_curves_are_never_selected(problem):
+    tx_usable = problem.tx_usable.copy()
+    tx_usable[::2] = False
+    result = select_curves(dataclasses.replace(problem, tx_usable=tx_usable), 21, 12, time_limit_s=2.0)
+    assert np.all(tx_usable[result.tx])
+
+
+def test_no_single_crossing_is_a_user_error(problem):
+    empty = dataclasses.replace(problem, rx_usable=np.zeros_like(problem.rx_usable))
+    with pytest.raises(UserError, match="crosses exactly once"):
+        select_curves(empty, 21, 12)
+
+
+def test_evaluate_selection_reports_uncovered_samples_as_inf(problem):
+    active, nearest = evaluate_selection(problem, np.array([], dtype=np.int64), problem.cross_rx[:1])
+    assert len(active) == 0 and np.all(np.isinf(nearest))
