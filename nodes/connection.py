@@ -120,14 +120,13 @@ def transport_field(tables: MeshTables, x: np.ndarray, rho: np.ndarray) -> np.nd
     sign = np.where(tables.edge_faces[edge, 0] == parent, 1.0, -1.0)
     step = np.zeros(m)
     step[child] = sign * (rho[edge] + x[edge])
-    parent_of = pred.copy()
-    alpha = np.zeros(m)
-    alpha_list = alpha.tolist()
+    # accumulate along the tree in BFS order (parents first); plain lists are fastest for this loop
+    alpha = [0.0] * m
     step_list = step.tolist()
-    parent_list = parent_of.tolist()
+    parent_list = pred.tolist()
     for f in child.tolist():
-        alpha_list[f] = alpha_list[parent_list[f]] + step_list[f]
-    return np.asarray(alpha_list)
+        alpha[f] = alpha[parent_list[f]] + step_list[f]
+    return np.asarray(alpha)
 
 
 def realized_indices(tables: MeshTables, alpha: np.ndarray, rho: np.ndarray) -> np.ndarray:

@@ -5,7 +5,8 @@ Tracing is barycentric and exact for the piecewise-constant field (like geometry
 barycentrics change at the constant rate ``dl = G_f u_f`` per mm (``G_f`` = gradients of the
 barycentrics). It leaves through the edge whose barycentric reaches 0 first, and the barycentrics of
 the exit point carry over to the neighbour. Exit points within ``1e-7`` (barycentric) of a vertex
-are nudged along the edge, so a curve never passes through a vertex. All curves of one family are
+are nudged along the edge, so a traced curve never passes through a vertex (only sink-edge slides
+and the Tx start do). All curves of one family are
 stepped together (numpy arrays over the active curves).
 
 Stops (``CurveEnd``):
@@ -26,14 +27,22 @@ Families:
   (``(k + 1/2) / n`` of the cone angle, measured in the unfolded one-ring). Each curve goes straight
   from the vertex across its first face and then follows the field, so Tx curves are field lines and
   do not cross each other. The part inside ``exclusion_far`` is trimmed off.
-* **Rx** (dipole field, pointing away from ``base_dipole[0]``): start points lie on the level set of
-  geodesic distance ``r`` from ``base_dipole[0]`` (a ring inside the base region), placed at equal
-  quantiles of the outward flux ``max(u . n, 0) ds`` of the traced direction across the ring, i.e.
-  at equal perpendicular spacing of the curves leaving the ring. The traced direction in every face
-  is the field rotated by ``angle_deg`` about the outward normal (counter-clockwise positive): the
-  offset is relative to the field direction, and transport by the trivial connection keeps it
-  constant along the curve, so the curves of one angle do not cross each other either. The part
-  inside the base region before the curve first leaves it is trimmed off.
+* **Rx** (dipole field, pointing away from ``base_dipole[0]``): its field lines are loops that leave
+  the base, run over the object and return to the base. Seeds lie on the loops' apex line, where the
+  field is tangent to the geodesic circles around the dipole (zero set of ``u . grad d``, ``d`` the
+  heat-method distance from ``base_dipole[0]``), inside the sensing faces, at equal arc length; the
+  same seeds serve every angle. (Seeding on a geodesic ring around the dipole, as the paper
+  describes, was measured on the bunny: the dipole's loops are nested, so ring seeds gave mostly
+  short loops near the base, mean 45 mm, and 30 % sink-edge stops.) The traced direction in every
+  face is the field rotated by ``angle_deg`` about the outward normal (counter-clockwise positive):
+  the offset is relative to the field direction, and transport by the trivial connection keeps it
+  constant along the curve, so the curves of one angle do not cross each other (except where
+  sink-edge slides merge them). Each seed is traced both ways to the base and the halves are joined;
+  the curve is oriented to start at the base, and ``end_reason`` tells how its other end stopped.
+
+Sink edges: with ``slide_sink_edges`` (default) a curve meeting a sink edge slides along it, and
+along further sink edges, to a vertex it can leave (Filippov sliding; such rows sit on vertices);
+without it the curve stops there, as in the paper.
 
 Curves that never leave their start region are dropped (counted in the stats).
 """
@@ -67,7 +76,7 @@ class TraceStats:
     sink_edge_rate: float  # sink_edges / traced (the paper reports about 3 %)
     sink_hits: int  # sink edges met, including those escaped by sliding
     sink_slides: int
-    reached_base_rate: float
+    reached_base_rate: float  # end_reason BASE / traced (Rx: both ends at the base)
     face_steps: int  # total face-to-face steps
     mean_length_mm: float  # over kept curves
 
@@ -312,7 +321,7 @@ def assemble(
     cur = traces.curve[idx]
     uniq, pos = np.unique(cur, return_index=True)
     first[uniq] = idx[pos]
-    keep_curve = (first >= 0) & (first < bounds[1:] - 1)
+    keep_curve = (first >= 0) & (first < bounds[1:] - 1)  # at least one segment left
     keep_row = np.zeros(len(traces.curve), dtype=bool)
     for c in np.flatnonzero(keep_curve):
         keep_row[first[c] : bounds[c + 1]] = True
@@ -582,6 +591,6 @@ def trace_tx(params: TraceTxParams, mesh: Mesh, regions, field: DirectionField) 
 
 @node("curves.trace_rx", params=TraceRxParams, inputs=("mesh", "regions", "field"), outputs=("curves", "stats"))
 def trace_rx(params: TraceRxParams, mesh: Mesh, regions, field: DirectionField) -> dict[str, object]:
-    """Rx curves of one angle offset: from a geodesic ring around the dipole, trimmed at the base, ending at the base."""
+    """Rx curves of one angle offset: dipole loops through seeds on their apex line, from the base to the base."""
     curves, stats = trace_rx_curves(params, build_tables(mesh.vertices, mesh.faces), regions, field)
     return {"curves": curves, "stats": stats}
