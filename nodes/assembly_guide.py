@@ -146,6 +146,9 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
                          f"{'end' if base_at_end else 'start'} of the curve, marked ●)", fontsize=13)
             grid = fig.add_gridspec(2, params.views_per_trace, height_ratios=[3, 2])
             base = points[-1] if base_at_end else points[0]
+            cells = layout.cells
+            mine = (cells.curve_a == step) if base_at_end else (cells.curve_b == step - layout.tx.count)
+            crossings = cells.points[mine].reshape(-1, 3)
             for col, v in enumerate(best):
                 ax = fig.add_subplot(grid[0, col])
                 view = views[v]
@@ -153,6 +156,9 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
                 for earlier, _, _ in traces[:step]:
                     _draw_curve(ax, view, earlier, tolerance, lw=0.8, color="0.25")
                 _draw_curve(ax, view, points, tolerance, lw=2.5, color="tab:red" if name.startswith("Rx") else "tab:blue")
+                seen = view.visible(crossings, tolerance)
+                cx, _ = view.project(crossings[seen])
+                ax.plot(cx[:, 0], cx[:, 1], "o", mfc="white", mec="black", ms=4, mew=0.8)
                 if view.visible(base[None], tolerance)[0]:
                     bx, _ = view.project(base[None])
                     ax.plot(bx[0, 0], bx[0, 1], "o", color="black", ms=7)
@@ -164,11 +170,16 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
                 ax.fill(ring[:, 0], ring[:, 1], color="#c87533", alpha=0.8, lw=0.5, ec="black")
                 for glyph in outlines.label_polylines(int(i)):
                     ax.plot(glyph[:, 0], glyph[:, 1], color="blue", lw=0.5)
+                for xy, other in zip(outlines.landmark_xy[outlines.landmark_part == i],
+                                     outlines.landmark_other[outlines.landmark_part == i]):
+                    ax.annotate(outlines.trace_names[other], xy, xytext=(0, -10), textcoords="offset points",
+                                ha="center", fontsize=6, color="0.3")
                 tab = outlines.tab[i]
                 ax.annotate(outlines.names[i], tab.mean(axis=0), xytext=(0, 14), textcoords="offset points",
                             ha="center", fontsize=10, arrowprops={"arrowstyle": "-"})
             ax.set_aspect("equal")
-            ax.set_title("flat cut outline (mm, seen from outside; ● landmarks are crossings with the other layer)", fontsize=9)
+            ax.set_title("flat cut outline (mm, seen from outside); small bulges = landmarks where the named trace "
+                         "of the other layer crosses (○ in the views)", fontsize=9)
             pdf.savefig(fig)
             plt.close(fig)
     return Files(contents={"assembly_guide.pdf": buffer.getvalue()})

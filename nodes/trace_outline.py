@@ -54,6 +54,7 @@ class TraceOutlines:
     """Cut outlines of all traces (parts), in their unfolded frames (mm, seen from outside)."""
 
     names: tuple[str, ...]  # (N,) part names: "Tx03", or "Tx03.1", "Tx03.2" for a split trace
+    trace_names: tuple[str, ...]  # names of the unfolded traces ("Tx03"), indexed by ``trace``
     trace: np.ndarray  # (N,) int64 index into UnfoldedTraces
     arc_range: np.ndarray  # (N, 2) float64 arc interval of the trace this part covers (mm)
     ring: np.ndarray  # (R, 2) float64 exterior rings, not repeating the first point
@@ -64,6 +65,7 @@ class TraceOutlines:
     pad_part: np.ndarray  # (M,) int64
     landmark_xy: np.ndarray  # (L, 2) landmark centres (crossings)
     landmark_part: np.ndarray  # (L,) int64
+    landmark_other: np.ndarray  # (L,) int64 trace of the other layer crossing there (index into trace_names)
     tab: np.ndarray  # (N, 4, 2) solder tab corners
     label: np.ndarray  # (S, 2) label glyph outline points
     label_offsets: np.ndarray  # (G + 1,) int64 closed glyph polylines
@@ -207,7 +209,7 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
             if params.landmark_radius_mm > 0:
                 for m in marks[(mark_u >= u0) & (mark_u < u1)]:
                     shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
-                    landmarks.append((part, unfolded.mark_xy[m]))
+                    landmarks.append((part, unfolded.mark_xy[m], int(unfolded.mark_other[m])))
             for m in pad_marks[(pad_u >= u0) & (pad_u < u1)]:
                 shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
                 pads.append((part, unfolded.pad_xy[m]))
@@ -239,6 +241,7 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
     label, label_offsets = flat([g for _, g in labels])
     return TraceOutlines(
         names=tuple(parts["name"]),
+        trace_names=unfolded.names,
         trace=np.asarray(parts["trace"], dtype=np.int64),
         arc_range=np.asarray(parts["arc"], dtype=np.float64).reshape(-1, 2),
         ring=ring,
@@ -247,8 +250,9 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
         centre_offsets=centre_offsets,
         pad_xy=np.asarray([p for _, p in pads], dtype=np.float64).reshape(-1, 2),
         pad_part=np.asarray([i for i, _ in pads], dtype=np.int64),
-        landmark_xy=np.asarray([p for _, p in landmarks], dtype=np.float64).reshape(-1, 2),
-        landmark_part=np.asarray([i for i, _ in landmarks], dtype=np.int64),
+        landmark_xy=np.asarray([p for _, p, _ in landmarks], dtype=np.float64).reshape(-1, 2),
+        landmark_part=np.asarray([i for i, _, _ in landmarks], dtype=np.int64),
+        landmark_other=np.asarray([o for _, _, o in landmarks], dtype=np.int64),
         tab=np.asarray(parts["tab"], dtype=np.float64).reshape(-1, 4, 2),
         label=label,
         label_offsets=label_offsets,

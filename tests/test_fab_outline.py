@@ -110,6 +110,8 @@ def test_outlines_of_a_sphere_layout_are_single_polygons():
     assert outlines.count == unfolded.count
     assert len(outlines.pad_xy) == 2 * int(layout.pad.sum())
     assert len(outlines.landmark_xy) == 2 * len(layout.cells.curve_a)
+    for part, other in zip(outlines.landmark_part, outlines.landmark_other):
+        assert outlines.names[part][:2] != outlines.trace_names[other][:2]  # crossed by the other layer
     for i in range(outlines.count):
         polygon = outlines.polygon(i)
         assert polygon.is_valid and len(polygon.interiors) == 0
