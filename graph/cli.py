@@ -71,7 +71,7 @@ def plan_command(
 
     table = Table("node", "branch", "type", "key", "status", "why")
     for inst in plan.instances:
-        table.add_row(inst.node, inst.label, inst.decl.spec.name, inst.key[:12],
+        table.add_row(inst.node, inst.label, inst.type_name, inst.key[:12],
                       "run" if inst.runs else ("cached" if inst.cached else "skip"), inst.reason)
     Console().print(table)
     print(f"{len(plan.to_run)} of {len(plan.instances)} node instances would run")

@@ -19,7 +19,6 @@ from typing import Any
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import Files
-from retrotouch.graph.plan import Instance, Plan
 from retrotouch.graph.store import ArtifactRef
 
 MANIFEST = "manifest.json"
@@ -44,7 +43,7 @@ def _safe_relpath(path: str, node: str) -> str:
     return norm
 
 
-def write_outputs(plan: Plan, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
+def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
     """Write every sink's files and the manifest into ``out_dir``; return the manifest.
 
     ``refs`` maps ``id(instance)`` to the reference of its output; ``run`` holds per-run facts
@@ -61,7 +60,7 @@ def write_outputs(plan: Plan, refs: dict[int, ArtifactRef], out_dir: str, run: d
     try:
         files: dict[str, dict[str, Any]] = {}
         for inst in plan.instances:
-            if not inst.decl.spec.sink:
+            if not inst.is_sink:
                 continue
             value = plan.store.load(refs[id(inst)])
             assert isinstance(value, Files)
@@ -83,7 +82,7 @@ def write_outputs(plan: Plan, refs: dict[int, ArtifactRef], out_dir: str, run: d
     return manifest
 
 
-def _branch_dir(inst: Instance) -> str:
+def _branch_dir(inst: Any) -> str:
     return "".join(c if c.isalnum() or c in "=,.-_" else "_" for c in inst.label) if inst.label else ""
 
 
@@ -97,22 +96,22 @@ def _swap(tmp: str, out_dir: str) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _manifest(plan: Plan, refs: dict[int, ArtifactRef], files: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
     nodes = []
     for inst in plan.instances:
         status = run["status"].get(id(inst), {})
         ref = refs.get(id(inst))
         nodes.append({
             "node": inst.node, "branch": inst.branch and {k: v for k, v in inst.branch.items()}, "label": inst.label,
-            "type": inst.decl.spec.name, "params": inst.params.model_dump(mode="json"), "key": inst.key,
+            "type": inst.type_name, "params": inst.params_dump, "key": inst.key,
             "code_version": inst.code_version, "status": status.get("status", "cached"),
             "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
         })
     return {
         "format": MANIFEST_FORMAT,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "pipeline": {"path": os.path.abspath(plan.pipeline.file), "sha256": plan.pipeline.doc.text_sha256},
-        "overrides": plan.pipeline.overrides,
+        "pipeline": {"path": os.path.abspath(plan.file), "sha256": plan.text_sha256},
+        "overrides": plan.overrides,
         "scheduler": run["scheduler"],
         "cache_dir": plan.store.root,
         "files": dict(sorted(files.items())),

@@ -62,8 +62,17 @@ class Instance:
         return f"{self.node}[{self.label}]" if self.label else self.node
 
     @property
-    def params_json(self) -> str:
-        return canonical_json(self.params.model_dump(mode="json"))
+    def type_name(self) -> str:
+        return self.decl.spec.name
+
+    @property
+    def is_sink(self) -> bool:
+        return self.decl.spec.sink
+
+    @property
+    def params_dump(self) -> dict[str, Any]:
+        """The validated params as JSON data."""
+        return self.params.model_dump(mode="json")
 
 
 @dataclasses.dataclass
@@ -75,6 +84,18 @@ class Plan:
     @property
     def to_run(self) -> list[Instance]:
         return [i for i in self.instances if i.runs]
+
+    @property
+    def file(self) -> str:
+        return self.pipeline.file
+
+    @property
+    def text_sha256(self) -> str:
+        return self.pipeline.doc.text_sha256
+
+    @property
+    def overrides(self) -> list[str]:
+        return self.pipeline.overrides
 
 
 def _format_value(v: Any) -> str:
@@ -186,8 +207,8 @@ def _decide(plan: Plan) -> None:
 
 # -- explain -----------------------------------------------------------------------------------
 def _index_path(plan: Plan) -> str:
-    ident = hashlib.sha256(os.path.abspath(plan.pipeline.file).encode()).hexdigest()[:16]
-    stem = os.path.splitext(os.path.basename(plan.pipeline.file))[0]
+    ident = hashlib.sha256(os.path.abspath(plan.file).encode()).hexdigest()[:16]
+    stem = os.path.splitext(os.path.basename(plan.file))[0]
     return os.path.join(plan.store.root, "runs", f"{stem}-{ident}.json")
 
 

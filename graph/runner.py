@@ -14,7 +14,7 @@ from retrotouch.graph.store import Store, default_cache_dir
 
 @dataclasses.dataclass
 class RunResult:
-    plan: planning.Plan
+    plan: Any  # planning.Plan, or snapshot.SnapshotPlan when nothing changed since the last run
     status: dict[int, dict[str, Any]]  # id(instance) -> {"status": "ran"|"cached", "seconds": s} for those sent to run
     manifest: dict[str, Any]
     out_dir: str
@@ -61,11 +61,17 @@ def run_pipeline(
     from retrotouch.graph.execute import execute, task_name
     from retrotouch.graph.outputs import write_outputs
 
+    from retrotouch.graph import snapshot
+
     check_scheduler(scheduler)
     start = time.perf_counter()
-    plan = make_plan(pipeline, overrides, cache_dir)
+    overrides = list(overrides or [])
+    store = Store(cache_dir or default_cache_dir())
+    plan = snapshot.load(pipeline, overrides, store)
+    if plan is None:
+        plan = make_plan(pipeline, overrides, store.root)
     out_dir = out_dir or default_out_dir(pipeline)
-    if explain:
+    if explain and isinstance(plan, planning.Plan):
         planning.explain(plan)
     if on_plan:
         on_plan(plan)
@@ -88,7 +94,9 @@ def run_pipeline(
         manifest = write_outputs(plan, refs, out_dir, {"status": status, "scheduler": scheduler})
     finally:
         plan.store.drop_scratch(run_id)
-    planning.record_run(plan)
+    if isinstance(plan, planning.Plan):
+        planning.record_run(plan)
+        snapshot.save(plan, overrides)
     for inst in plan.instances:
         if inst.cached is not None:
             plan.store.touch(inst.cached)

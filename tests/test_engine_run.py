@@ -214,3 +214,26 @@ def test_run_on_a_dask_distributed_cluster(tmp_path, cli, test_nodes):
     assert sum(n["status"] == "ran" for n in manifest["nodes"]) == 14
     bad = cli("run", "p.yaml", "--scheduler", "tcp://127.0.0.1:9", "-S", "plus.delta=99")
     assert bad.returncode == 2 and "cannot connect" in bad.stderr and bad.stderr.count("\n") == 1
+
+
+def test_unchanged_rerun_skips_planning_but_notices_changes(tmp_path, test_nodes):
+    from retrotouch.graph.plan import Plan
+    from retrotouch.graph.snapshot import SnapshotPlan
+
+    first = run(tmp_path)
+    assert isinstance(first.plan, Plan)
+    again = run(tmp_path)
+    assert isinstance(again.plan, SnapshotPlan) and again.ran() == []
+    assert [n["key"] for n in again.manifest["nodes"]] == [n["key"] for n in first.manifest["nodes"]]
+    assert again.manifest["nodes"][1]["params"] == first.manifest["nodes"][1]["params"]
+    assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL
+    # an override, an edited pipeline and a deleted entry all fall back to full planning
+    assert isinstance(run(tmp_path, ["plus.delta=11"]).plan, Plan)
+    victim = first.plan.instances[-1]
+    Store(str(tmp_path / "cache")).discard(Store(str(tmp_path / "cache")).entry_dir(victim.key))
+    rerun = run(tmp_path)
+    assert isinstance(rerun.plan, Plan) and rerun.ran() == [victim.id]
+    (tmp_path / "sweep.yaml").write_text(SWEEP.replace("delta: 10", "delta: 12"))
+    edited = run_pipeline(str(tmp_path / "sweep.yaml"), out_dir=str(tmp_path / "out"),
+                          cache_dir=str(tmp_path / "cache"), scheduler="sync")
+    assert isinstance(edited.plan, Plan) and "tot" in edited.ran()
