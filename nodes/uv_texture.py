@@ -72,8 +72,8 @@ def _bgr(hex_colour: str) -> tuple[int, int, int]:
 
 
 def name_from_source(source: str) -> str:
-    """A file-name stem from ``Mesh.source`` ('builtin:bunny ...' -> 'bunny', '/x/duck.ply ...' -> 'duck')."""
-    first = source.split()[0] if source.strip() else "mesh"
+    """A file-name stem from ``Mesh.source`` ('builtin:bunny ...' -> 'bunny', '/x/my duck.ply sha256:..' -> 'my_duck')."""
+    first = re.sub(r"\s+sha256:[0-9a-fA-F]*$", "", source.strip()) or "mesh"
     stem = first.split(":", 1)[1] if first.startswith("builtin:") else Path(first).stem
     return re.sub(r"[^A-Za-z0-9_-]+", "_", stem) or "mesh"
 

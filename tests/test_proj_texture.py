@@ -1,0 +1,90 @@
+"""The projection.textures sink: atlas baking, file names, GLB/OBJ readability."""
+from __future__ import annotations
+
+import io
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from proj_fixtures import bunny_layout, bunny_mm
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.datatypes import Layout
+from retrotouch.nodes.projector_render import load_scene
+from retrotouch.nodes.uv_texture import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    mesh = bunny_mm(3000)
+    layout = bunny_layout(mesh, 8, 6)
+    params = TextureParams(texture_px=1024)
+    files = projection_textures(params, mesh, layout)
+    out = tmp_path_factory.mktemp("run")
+    for rel, data in files.contents.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(data)
+    return mesh, layout, params, files, out
+
+
+def test_file_names_do_not_collide(baked):
+    *_, files, _ = baked
+    assert sorted(files.contents) == [
+        "projection/bunny_layout.glb",
+        "projection/bunny_layout.mtl",
+        "projection/bunny_layout.obj",
+        "projection/bunny_scene.npz",
+        "projection/bunny_texture.png",
+    ]
+    obj = files.contents["projection/bunny_layout.obj"].decode()
+    assert "mtllib bunny_layout.mtl" in obj
+    assert "map_Kd bunny_texture.png" in files.contents["projection/bunny_layout.mtl"].decode()
+
+
+def test_exports_load_with_the_texture(baked):
+    mesh, _, params, files, out = baked
+    glb = trimesh.load(io.BytesIO(files.contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh")
+    assert glb.visual.material.baseColorTexture.size == (params.texture_px, params.texture_px)
+    assert np.isclose(glb.area, trimesh.Trimesh(mesh.vertices, mesh.faces).area)
+    obj = trimesh.load(out / "projection/bunny_layout.obj", force="mesh")
+    assert obj.visual.material.image.size == (params.texture_px, params.texture_px)
+    assert len(obj.faces) == len(mesh.faces)
+
+
+def test_crossings_and_curves_are_baked_where_they_map(baked):
+    mesh, layout, params, files, _ = baked
+    tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
+    atlas = build_atlas(mesh, params.texture_px, params.padding_px)
+    px = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, params.texture_px)).astype(int)
+    background = np.array([0xD8, 0xD8, 0xD8])
+    at_crossings = tex[px[:, 1], px[:, 0]].astype(int)
+    assert (np.abs(at_crossings - background).sum(axis=1) > 60).all()  # something is drawn on every crossing
+    pads = tex[px[layout.pad, 1], px[layout.pad, 0]].astype(int)
+    assert (np.abs(pads - [0x00, 0xA0, 0xE0]).sum(axis=1) < 60).all()  # pad colour (BGR)
+    tx_rows = np.arange(layout.tx.offsets[0], layout.tx.offsets[1] - 1)
+    mid = np.rint(face_uv_pixels(atlas, layout.tx.faces[tx_rows], layout.tx.bary[tx_rows], params.texture_px)).astype(int)
+    tx_colour = tex[mid[:, 1], mid[:, 0]].astype(int)
+    assert (np.abs(tx_colour - [0x20, 0x30, 0xD0]).sum(axis=1) < 90).mean() > 0.8
+
+
+def test_scene_file_round_trips(baked):
+    mesh, layout, _, _, out = baked
+    scene = load_scene(out / "projection/bunny_scene.npz")
+    assert scene.layer_names == ("tx", "rx")
+    np.testing.assert_array_equal(scene.layer_points[0], layout.tx.points)
+    np.testing.assert_array_equal(scene.faces, mesh.faces)
+    assert np.allclose(np.linalg.norm(scene.layer_normals[1], axis=1), 1.0)
+
+
+def test_layout_from_another_mesh_is_rejected(baked):
+    mesh, layout, *_ = baked
+    small = type(mesh)(mesh.vertices, mesh.faces[:100], mesh.source)
+    with pytest.raises(UserError, match="faces"):
+        projection_textures(TextureParams(texture_px=256), small, layout)
+
+
+def test_name_from_source():
+    assert name_from_source("builtin:bunny sha256:ab12") == "bunny"
+    assert name_from_source("/data/my duck.ply sha256:00") == "my_duck"
+    assert name_from_source("/data/duck_gao.ply") == "duck_gao"
