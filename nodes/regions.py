@@ -8,16 +8,21 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
 Base detection:
 
 1. Resting direction. With ``up_axis`` given, ``down = -up_axis``. With only a seed, ``down`` is the
-   seed face's outward normal. Otherwise the stable resting poses of the convex hull (trimesh
-   ``compute_stable_poses``, most probable first) are tried and the pose whose flat contact region
-   (below) is largest wins: a flat base, not the most probable tumble, is what the object stands on.
+   seed face's outward normal. Otherwise convex-hull triangle planes (per direction cell, the
+   largest triangle's) are candidate floors, scored
+   by the area of faces facing it within ``angle_threshold_deg`` and lying within
+   ``plane_tolerance_mm`` of it; of the best few, the largest connected contact region on which the
+   centre of mass rests stably wins (a flat base, not the most probable tumble, is what the object
+   stands on).
 2. Contact region: faces whose normal deviates less than ``angle_threshold_deg`` from ``down`` and
    whose three vertices lie within ``plane_tolerance_mm`` of the support plane (of the seed's height
    when a seed is given), connected across edges; the component holding the seed, or the largest
    by area. Without overrides it must cover at least ``min_base_area_fraction`` of the surface
    (a sphere's best contact cap is < 1.8 % at 15 degrees), otherwise the node fails and asks for
-   ``up_axis`` or a seed. With ``up_axis`` on a round bottom (a sphere) the base is therefore the
-   lowest point's neighbourhood: the cap within the angle and plane tolerances.
+   ``up_axis`` or a seed. With ``up_axis`` or a seed the base is the component at the lowest point
+   (or the seed) and always found: when it is too small to have an interior vertex (a round
+   bottom, e.g. a sphere), the plane tolerance doubles until it has one, so a sphere gets the
+   lowest point's neighbourhood, a polar cap bounded by the angle threshold.
 3. Islands of non-base faces enclosed by the base join the base, so the rest is one piece.
 
 Then, with heat-method geodesic distances (potpourri3d):
@@ -39,10 +44,14 @@ import trimesh
 from pydantic import Field, field_validator, model_validator
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams, node
 from retrotouch.nodes.datatypes import Mesh, SurfaceRegions
+
+MAX_TOLERANCE_DOUBLINGS = 8
+"""With an explicit up axis or seed, how often the plane tolerance may double to find a base."""
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -85,7 +94,8 @@ class RegionParams(NodeParams):
         60.0, gt=0, le=180, description="first exclusion: max normal deviation from resting direction"
     )
     exclusion_far_mm: float = Field(10.0, ge=0, description="second exclusion: geodesic radius at far point")
-    stable_poses: int = Field(10, ge=1, description="automatic detection: resting poses tried")
+    direction_cells: int = Field(2000, ge=20, description="automatic detection: direction cells (one hull plane each)")
+    candidate_directions: int = Field(6, ge=1, description="automatic detection: best directions refined")
 
     @field_validator("up_axis")
     @classmethod
@@ -145,11 +155,14 @@ def contact_region(
     down: np.ndarray,
     params: RegionParams,
     seed: int | None,
+    tolerance_mm: float | None = None,
 ) -> np.ndarray:
-    """Face mask of the flat region resting on the plane normal to ``down`` (module docstring)."""
+    """Face mask of the flat region resting on the plane normal to ``down`` (module docstring);
+    ``tolerance_mm`` replaces ``params.plane_tolerance_mm`` when given."""
+    tolerance = params.plane_tolerance_mm if tolerance_mm is None else tolerance_mm
     height = vertices @ down
     reference = height[graph.faces[seed]].mean() if seed is not None else height.max()
-    near = (np.abs(reference - height[graph.faces]) <= params.plane_tolerance_mm).all(axis=1)
+    near = (np.abs(reference - height[graph.faces]) <= tolerance).all(axis=1)
     flat = normals @ down >= np.cos(np.radians(params.angle_threshold_deg))
     candidates = near & flat
     if seed is not None:
@@ -163,15 +176,99 @@ def contact_region(
     return labels == int(np.argmax(area_per_label))
 
 
-def resting_directions(vertices: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
-    """Down directions (k, 3) of the ``count`` most probable stable resting poses."""
+def fibonacci_directions(count: int) -> np.ndarray:
+    """``count`` unit vectors spread evenly over the sphere (Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    azimuth = np.pi * (1.0 + 5.0**0.5) * k
+    ring = np.sqrt(1.0 - z * z)
+    return np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+
+
+def hull_plane_contact(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, areas: np.ndarray, params: RegionParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(outward normals (h, 3), contact area (h,) mm^2)`` of candidate floor planes: per cell of
+    ``direction_cells`` directions, the plane of the largest convex-hull triangle facing into it.
+
+    The contact area of a plane sums the faces whose normal is within ``angle_threshold_deg`` of it
+    and whose corners all lie within ``plane_tolerance_mm`` of it: the flat part of the surface the
+    object would stand on if that plane were the floor (connectivity not yet applied).
+    """
+    hull = ConvexHull(vertices)
+    corners = hull.points[hull.simplices]
+    hull_areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    # one plane per direction cell: the largest hull triangle whose normal falls in it
+    cell = cKDTree(fibonacci_directions(params.direction_cells)).query(hull.equations[:, :3])[1]
+    order = np.lexsort((-hull_areas, cell))
+    keep = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
+    plane_normals, offsets = hull.equations[keep, :3], hull.equations[keep, 3]
+    chord = 2.0 * np.sin(np.radians(params.angle_threshold_deg) / 2.0)
+    pairs = cKDTree(normals).sparse_distance_matrix(cKDTree(plane_normals), chord, output_type="ndarray")
+    face, plane = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    depth = -(np.einsum("kcj,kj->kc", vertices[faces[face]], plane_normals[plane]) + offsets[plane, None])
+    touching = depth.max(axis=1) <= params.plane_tolerance_mm
+    contact = np.bincount(plane[touching], weights=areas[face[touching]], minlength=len(plane_normals))
+    return plane_normals, contact
+
+
+def centre_of_mass(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Centre of mass (mm) of the solid bounded by a closed, outward-oriented mesh."""
+    p0, p1, p2 = (vertices[faces[:, k]] for k in range(3))
+    volume = np.einsum("ij,ij->i", p0, np.cross(p1, p2))
+    return ((p0 + p1 + p2) * volume[:, None]).sum(axis=0) / (4.0 * volume.sum())
+
+
+def rests_stably(vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, down: np.ndarray, centre: np.ndarray) -> bool:
+    """Whether ``centre`` projects along ``down`` inside the convex hull of the region's vertices."""
+    axis_u = np.cross(down, np.eye(3)[int(np.argmin(np.abs(down)))])
+    axis_u /= np.linalg.norm(axis_u)
+    axis_v = np.cross(down, axis_u)
+    basis = np.stack([axis_u, axis_v], axis=1)
+    footprint = vertices[np.unique(faces[region])] @ basis
     try:
-        transforms, _ = trimesh.poses.compute_stable_poses(
-            trimesh.Trimesh(vertices, faces, process=False)
+        hull = ConvexHull(footprint)
+    except QhullError:
+        return False
+    return bool((hull.equations[:, :2] @ (centre @ basis) + hull.equations[:, 2] <= 1e-9).all())
+
+
+def automatic_base(
+    vertices: np.ndarray, graph: FaceGraph, normals: np.ndarray, areas: np.ndarray, params: RegionParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(base mask, down)``: the largest stable flat contact region over all resting directions.
+
+    Convex-hull triangle planes are possible floors; the few with the largest flat contact area
+    (at least ``angle_threshold_deg`` apart) are tried, and the largest connected contact region on
+    which the centre of mass rests stably wins (the largest one if none does).
+    """
+    faces = graph.faces
+    plane_normals, contact = hull_plane_contact(vertices, faces, normals, areas, params)
+    cos_limit = np.cos(np.radians(params.angle_threshold_deg))
+    picked: list[np.ndarray] = []
+    for index in np.argsort(-contact):
+        if contact[index] <= 0 or len(picked) == params.candidate_directions:
+            break
+        if all(plane_normals[index] @ other < cos_limit for other in picked):
+            picked.append(plane_normals[index])
+    centre = centre_of_mass(vertices, graph.faces)
+    results = []
+    for down in picked:
+        region = contact_region(vertices, graph, normals, areas, down, params, None)
+        if region.any():
+            stable = rests_stably(vertices, faces, region, down, centre)
+            results.append((stable, float(areas[region].sum()), region, down))
+    total = float(areas.sum())
+    best_area = max((r[1] for r in results), default=0.0)
+    if best_area < params.min_base_area_fraction * total:
+        raise UserError(
+            f"no flat resting region found (largest {100 * best_area / total:.1f}% of the surface, "
+            f"need {100 * params.min_base_area_fraction:.1f}%): set up_axis (e.g. \"+z\") or "
+            "seed_point/seed_face on the base, or raise angle_threshold_deg/plane_tolerance_mm"
         )
-    except Exception as exc:  # qhull or mass-property failures on degenerate input
-        raise UserError(f"cannot compute resting poses ({exc}): set up_axis or seed_point") from None
-    return np.array([-t[2, :3] for t in transforms[:count]])
+    large = [r for r in results if r[1] >= params.min_base_area_fraction * total]
+    _, _, region, down = max(large, key=lambda r: (r[0], r[1]))
+    return region, down
 
 
 def nearest_face(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> int:
@@ -194,20 +291,16 @@ def detect_base(
     elif seed is not None:
         down = normals[seed].copy()
     else:
-        total = areas.sum()
-        best_area, best = -1.0, None
-        for candidate in resting_directions(vertices, graph.faces, params.stable_poses):
-            region = contact_region(vertices, graph, normals, areas, candidate, params, None)
-            if areas[region].sum() > best_area:
-                best_area, best = float(areas[region].sum()), (region, candidate)
-        if best is None or best_area < params.min_base_area_fraction * total:
-            raise UserError(
-                f"no flat resting region found (largest {100 * max(best_area, 0) / total:.1f}% of the "
-                f"surface, need {100 * params.min_base_area_fraction:.1f}%): set up_axis (e.g. \"+z\") "
-                "or seed_point/seed_face on the base, or raise angle_threshold_deg/plane_tolerance_mm"
-            )
-        return best[0], best[1]
-    base = contact_region(vertices, graph, normals, areas, down, params, seed)
+        return automatic_base(vertices, graph, normals, areas, params)
+    # an explicit override always yields a base: on a round bottom the plane tolerance doubles
+    # until the region around the lowest point (or the seed) has an interior vertex
+    tolerance = params.plane_tolerance_mm
+    for _ in range(MAX_TOLERANCE_DOUBLINGS):
+        base = contact_region(vertices, graph, normals, areas, down, params, seed, tolerance)
+        on_base, off_base = vertex_masks(graph.faces, base, len(vertices))
+        if (on_base & ~off_base).any():
+            break
+        tolerance *= 2.0
     if not base.any():
         raise UserError(
             f"no base faces face the resting direction {np.round(-down, 3).tolist()} within "
@@ -281,7 +374,9 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         raise UserError("the base is too narrow for the Rx dipole: raise angle_threshold_deg or remesh finer")
     partner = int(neighbours[np.argmax(from_boundary[neighbours])])
 
-    from_base = solver.compute_distance_multisource(np.flatnonzero(on_base))
+    # distance from the base = distance from its boundary outside it, 0 on it (the heat method
+    # smooths many-source distances, so the boundary is the better source set)
+    from_base = np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
     exclusion_base = grow_exclusion(graph, base, from_base[faces].mean(axis=1), normals, down, params)
     blocked = base | exclusion_base
     touches_blocked, _ = vertex_masks(faces, blocked, n)

@@ -1,0 +1,149 @@
+"""regions.detect on the bunny (170 mm diagonal) and a sphere, called directly."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.datatypes import Mesh, SurfaceRegions
+from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.regions import RegionParams, detect_regions, face_normals_areas, parse_axis
+
+
+@pytest.fixture(scope="module")
+def bunny() -> Mesh:
+    return scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams()))
+
+
+@pytest.fixture(scope="module")
+def bunny_regions(bunny: Mesh) -> SurfaceRegions:
+    return detect_regions(RegionParams(), bunny)
+
+
+@pytest.fixture(scope="module")
+def sphere() -> Mesh:
+    tm = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    return Mesh(np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64), "sphere")
+
+
+def vertex_faces(mesh: Mesh, vertex: int) -> np.ndarray:
+    return np.flatnonzero((mesh.faces == vertex).any(axis=1))
+
+
+def test_bunny_rests_on_its_bottom(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    assert abs(np.linalg.norm(r.up) - 1.0) < 1e-12
+    assert r.up[1] > 0.99  # pymeshlab's bunny stands on -y
+    normals, areas = face_normals_areas(bunny.vertices, bunny.faces)
+    mean_normal = (normals[r.base_faces] * areas[r.base_faces, None]).sum(0)
+    assert mean_normal @ r.up / np.linalg.norm(mean_normal) < -0.95  # base faces point down
+    share = areas[r.base_faces].sum() / areas.sum()
+    assert 0.03 < share < 0.2, share
+    height = bunny.vertices @ r.up
+    base_height = height[np.unique(bunny.faces[r.base_faces])]
+    assert base_height.max() - height.min() < 0.05 * np.ptp(height)  # on the support plane
+
+
+def test_masks_partition_the_faces(bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    stacked = np.stack([r.base_faces, r.exclusion_base, r.exclusion_far, r.sensing_faces]).astype(int)
+    assert (stacked.sum(axis=0) == 1).all()
+    assert r.exclusion_base.any() and r.exclusion_far.any() and r.sensing_faces.sum() > 0.7 * len(r.sensing_faces)
+
+
+def test_base_centre_and_dipole(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    assert r.base_faces[vertex_faces(bunny, r.base_centre)].all()  # interior base vertex
+    a, b = (int(v) for v in r.base_dipole)
+    assert a == r.base_centre and a != b
+    edges = {tuple(e) for e in np.sort(np.stack([bunny.faces, np.roll(bunny.faces, -1, 1)], 2).reshape(-1, 2), 1)}
+    assert (min(a, b), max(a, b)) in edges
+    assert r.base_faces[vertex_faces(bunny, b)].all()
+    assert r.base_dipole.dtype == np.int64 and r.base_dipole.shape == (2,)
+    # the centre is deep inside: farther from the non-base surface than most base vertices
+    base_vertices = np.unique(bunny.faces[r.base_faces])
+    gap = np.linalg.norm(bunny.vertices[np.unique(bunny.faces[~r.base_faces])][:, None] - bunny.vertices[a], axis=2).min()
+    assert gap > 10.0, gap
+    assert len(base_vertices) > 1000
+
+
+def test_far_vertex_is_the_ear_or_head(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    height = bunny.vertices @ r.up
+    assert height[r.far_vertex] > height.min() + 0.85 * np.ptp(height)
+    assert r.base_distance_mm[r.far_vertex] > 110.0
+    assert r.exclusion_far[vertex_faces(bunny, r.far_vertex)].all()
+    assert r.base_distance_mm[np.unique(bunny.faces[r.base_faces])].max() < 1e-6
+
+
+def test_exclusion_regions_respect_their_radii(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    params = RegionParams()
+    assert r.base_distance_mm[bunny.faces[r.exclusion_base]].mean(axis=1).max() < params.exclusion_base_mm
+    far_point = bunny.vertices[r.far_vertex]
+    chord = np.linalg.norm(bunny.vertices[bunny.faces[r.exclusion_far]] - far_point, axis=2).mean(axis=1)
+    assert chord.max() < params.exclusion_far_mm + 2.0  # geodesic radius bounds the chord (+ one edge)
+
+
+def test_base_boundary_edges_separate_sensing_from_base(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    r = bunny_regions
+    edges = r.base_boundary_edges
+    assert edges.dtype == np.int64 and edges.shape[1] == 2 and len(edges) > 50
+    halfedges = np.stack([bunny.faces, np.roll(bunny.faces, -1, 1)], 2).reshape(-1, 2)
+    lookup = {tuple(h): i // 3 for i, h in enumerate(halfedges)}
+    blocked = r.base_faces | r.exclusion_base
+    for a, b in edges:
+        assert r.sensing_faces[lookup[(a, b)]] and blocked[lookup[(b, a)]]
+    # closed loops: every vertex is entered as often as it is left
+    assert np.array_equal(np.bincount(edges[:, 0], minlength=len(bunny.vertices)),
+                          np.bincount(edges[:, 1], minlength=len(bunny.vertices)))
+
+
+def test_up_axis_override(bunny: Mesh) -> None:
+    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0), bunny)
+    np.testing.assert_allclose(r.up, [0.0, 0.0, 1.0])
+    normals, _ = face_normals_areas(bunny.vertices, bunny.faces)
+    assert (normals[r.base_faces] @ r.up < -np.cos(np.radians(15.0)) + 1e-12).all()
+    z = bunny.vertices[:, 2]
+    assert z[np.unique(bunny.faces[r.base_faces])].max() <= z.min() + 0.25 * np.ptp(z)  # low side
+    assert r.base_faces[vertex_faces(bunny, r.base_centre)].all()
+    assert not r.exclusion_base.any()
+
+
+def test_seed_point_and_angle_overrides(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    seed_face = int(np.flatnonzero(bunny_regions.base_faces)[0])
+    seed_point = tuple(bunny.vertices[bunny.faces[seed_face]].mean(axis=0))
+    by_point = detect_regions(RegionParams(seed_point=seed_point, up_axis=tuple(bunny_regions.up)), bunny)
+    assert by_point.base_faces[seed_face]
+    by_face = detect_regions(RegionParams(seed_face=seed_face, up_axis=tuple(bunny_regions.up)), bunny)
+    assert np.array_equal(by_face.base_faces, by_point.base_faces)
+    narrow = detect_regions(RegionParams(angle_threshold_deg=8.0), bunny)
+    assert narrow.base_faces.sum() < bunny_regions.base_faces.sum()
+
+
+def test_sphere_has_no_flat_base(sphere: Mesh) -> None:
+    with pytest.raises(UserError, match=r"no flat resting region found .*set up_axis"):
+        detect_regions(RegionParams(), sphere)
+
+
+def test_sphere_with_up_axis_gets_a_polar_cap(sphere: Mesh) -> None:
+    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere)
+    cap = sphere.vertices[np.unique(sphere.faces[r.base_faces])]
+    assert cap[:, 2].max() <= -50.0 + 1.0 + 1e-9  # within the plane tolerance of the lowest point
+    assert sphere.vertices[r.base_centre][2] < -49.9
+    assert sphere.vertices[r.far_vertex][2] > 49.0  # the north pole is farthest from the base
+
+
+def test_bad_overrides() -> None:
+    with pytest.raises(ValueError, match="up_axis"):
+        RegionParams(up_axis="w")
+    with pytest.raises(ValueError, match="not both"):
+        RegionParams(seed_face=1, seed_point=(0.0, 0.0, 0.0))
+    np.testing.assert_allclose(parse_axis("-y"), [0.0, -1.0, 0.0])
+    np.testing.assert_allclose(parse_axis((0.0, 3.0, 4.0)), [0.0, 0.6, 0.8])
+
+
+def test_seed_face_out_of_range(sphere: Mesh) -> None:
+    with pytest.raises(UserError, match="seed_face 99999 does not exist"):
+        detect_regions(RegionParams(seed_face=99999), sphere)
