@@ -154,12 +154,11 @@ def project(
     noise_mm: float = typer.Option(0.5, "--noise-mm", help="synthetic depth noise (mm)"),
     distance_mm: float = typer.Option(550.0, "--distance-mm", help="synthetic object distance from the camera (mm)"),
 ) -> None:
-    """Track the object in depth frames and write the projector image per layer (Tx first)."""
-    try:
-        summary = run_projection(layout, calibration, out, frames, synthetic, video, fps, noise_mm, distance_mm)
-    except UserError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    """Track the object in depth frames and write the projector image per layer (Tx first).
+
+    Operator errors are raised as UserError; the retrotouch CLI prints them as one line, exit code 2.
+    """
+    summary = run_projection(layout, calibration, out, frames, synthetic, video, fps, noise_mm, distance_mm)
     typer.echo(
         f"{summary['frames']} frames ({summary['tracked']} tracked), layers {', '.join(summary['layers'])}, "
         f"median {summary['median_latency_ms']} ms/frame -> {out}"
