@@ -17,18 +17,12 @@ from __future__ import annotations
 import dataclasses
 import io
 
-import cv2
-import matplotlib
+import numpy as np
+from pydantic import Field
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.backends.backend_pdf import PdfPages  # noqa: E402
-from pydantic import Field  # noqa: E402
-
-from retrotouch.graph.node import Files, NodeParams, node  # noqa: E402
-from retrotouch.nodes.datatypes import Layout, Mesh  # noqa: E402
-from retrotouch.nodes.trace_outline import TraceOutlines  # noqa: E402
+from retrotouch.graph.node import Files, NodeParams, node
+from retrotouch.nodes.datatypes import Layout, Mesh
+from retrotouch.nodes.trace_outline import TraceOutlines
 
 
 class Params(NodeParams):
@@ -67,6 +61,8 @@ def candidate_directions() -> np.ndarray:
 
 def render(mesh: Mesh, direction: np.ndarray, size: int) -> View:
     """Shaded orthographic render of the mesh seen from ``direction`` (painter's algorithm)."""
+    import cv2  # heavy: imported when used
+
     up_hint = np.array([0.0, 1.0, 0.0]) if abs(direction[2]) > 0.99 else np.array([0.0, 0.0, 1.0])
     right = np.cross(up_hint, direction)
     right /= np.linalg.norm(right)
@@ -122,12 +118,16 @@ def _draw_curve(ax, view: View, points: np.ndarray, tolerance: float, **style) -
 def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOutlines) -> Files:
     """Write ``assembly_guide.pdf``: per trace in attachment order (Tx then Rx), the trace on the
     object from the views that show it best, and its flat outline with the channel name."""
+    from matplotlib.backends.backend_pdf import PdfPages  # heavy: imported when used
+    from matplotlib.figure import Figure  # no pyplot: no global state, safe in worker threads
+
     views = [render(mesh, d, params.image_px) for d in candidate_directions()]
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
     buffer = io.BytesIO()
     with PdfPages(buffer, metadata={"Title": "retrotouch assembly guide", "Creator": "retrotouch"}) as pdf:
-        fig, axes = plt.subplots(1, 3, figsize=(11.69, 8.27))
+        fig = Figure(figsize=(11.69, 8.27))
+        axes = fig.subplots(1, 3)
         fig.suptitle(f"retrotouch assembly guide: {mesh.source} — {layout.tx.count} Tx (blue) then "
                      f"{layout.rx.count} Rx (red), attach in page order")
         for ax, view in zip(axes, views[:3]):
@@ -136,11 +136,10 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
                 _draw_curve(ax, view, points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
             ax.set_axis_off()
         pdf.savefig(fig)
-        plt.close(fig)
         for step, (points, name, base_at_end) in enumerate(traces):
             scores = [np.count_nonzero(v.visible(points, tolerance)) for v in views]
             best = np.argsort(scores, kind="stable")[::-1][: params.views_per_trace]
-            fig = plt.figure(figsize=(11.69, 8.27))
+            fig = Figure(figsize=(11.69, 8.27))
             length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
             fig.suptitle(f"Step {step + 1}/{len(traces)}: {name}   ({length:.1f} mm; solder tab at the "
                          f"{'end' if base_at_end else 'start'} of the curve, marked ●)", fontsize=13)
@@ -181,5 +180,4 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
             ax.set_title("flat cut outline (mm, seen from outside); small bulges = landmarks where the named trace "
                          "of the other layer crosses (○ in the views)", fontsize=9)
             pdf.savefig(fig)
-            plt.close(fig)
     return Files(contents={"assembly_guide.pdf": buffer.getvalue()})

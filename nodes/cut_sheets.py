@@ -22,9 +22,6 @@ from __future__ import annotations
 import io
 import json
 
-import cairosvg
-import cv2
-import ezdxf
 import numpy as np
 from pydantic import Field
 
@@ -85,6 +82,8 @@ def sheet_svg(rings, labels, names, width: float, height: float, number: int, de
 
 def sheet_dxf(rings, labels, decimals: int) -> bytes:
     """One sheet as DXF R2010 in mm: closed LWPOLYLINEs on layers CUT and LABELS."""
+    import ezdxf  # heavy: imported when used
+
     doc = ezdxf.new("R2010", setup=False)
     doc.units = ezdxf.units.MM
     doc.header["$MEASUREMENT"] = 1
@@ -101,6 +100,9 @@ def sheet_dxf(rings, labels, decimals: int) -> bytes:
 
 def preview_png(svgs: list[str], width: float, height: float, px_per_mm: float) -> bytes:
     """All sheets side by side (grey border = cut area), white background."""
+    import cairosvg
+    import cv2
+
     w, h = int(round(width * px_per_mm)), int(round(height * px_per_mm))
     gap = max(4, int(round(5 * px_per_mm)))
     canvas = np.full((h + 2 * gap, len(svgs) * (w + gap) + gap, 3), 255, dtype=np.uint8)
@@ -118,6 +120,8 @@ def preview_png(svgs: list[str], width: float, height: float, px_per_mm: float) 
 def cut_sheets(params: Params, outlines: TraceOutlines, nesting: NestedSheets) -> Files:
     """Write every nested sheet as SVG (one compound cut path + pen labels), PDF and DXF at exact
     physical size, a PNG preview and a JSON report."""
+    import cairosvg  # heavy: imported when used
+
     width, height = nesting.sheet_width_mm, nesting.sheet_height_mm
     contents: dict[str, bytes] = {}
     svgs = []

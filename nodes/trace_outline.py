@@ -25,10 +25,7 @@ from typing import Literal
 
 import numpy as np
 import shapely
-from matplotlib.font_manager import FontProperties
-from matplotlib.textpath import TextPath
 from pydantic import Field
-from scipy.spatial import cKDTree
 from shapely.geometry import LineString, Point, Polygon
 
 from retrotouch.graph.errors import UserError
@@ -93,6 +90,9 @@ def label_glyphs(text: str, origin: np.ndarray, direction: np.ndarray, box_lengt
                  max_height: float) -> list[np.ndarray]:
     """Closed glyph outlines of ``text`` centred at ``origin``, reading along ``direction``, scaled to
     fit a ``box_length`` x ``box_height`` box with cap height at most ``max_height`` (mm)."""
+    from matplotlib.font_manager import FontProperties  # heavy: imported when used
+    from matplotlib.textpath import TextPath
+
     path = TextPath((0, 0), text, size=1.0, prop=FontProperties(family="DejaVu Sans"))
     polygons = [np.asarray(p) for p in path.to_polygons(closed_only=True) if len(p) >= 3]
     allpts = np.concatenate(polygons)
@@ -111,6 +111,8 @@ def _first_conflict(samples: np.ndarray, radius: np.ndarray, u: np.ndarray, clea
     Two samples conflict when their discs come closer than ``clearance`` (distance < r_i + r_j +
     clearance) while they are more than pi/2 times that contact distance apart along the trace.
     """
+    from scipy.spatial import cKDTree  # heavy: imported when used
+
     pairs = cKDTree(samples).query_pairs(2 * radius.max() + clearance, output_type="ndarray")
     if len(pairs) == 0:
         return None
