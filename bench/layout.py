@@ -1,0 +1,114 @@
+"""Layout benchmark: the 11-angle sweep of both optimisation phases on a ~20k-vertex mesh.
+
+Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
+diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
+(both layers) -> ``curves.trace_tx`` -> per angle -50..50 step 10 ``curves.trace_rx`` +
+``curves.crossings``, all called as plain functions.
+
+Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
+fields, shared by all branches) + ``layout.optimize`` for the 11 angles on ``--jobs`` processes
+(joblib/loky; each process factorises the heat operators once) + ``layout.pick_best``. The sweep is
+run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``).
+
+Prints the per-angle table; the LAST line is one JSON object. Usage:
+``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from joblib import Parallel, delayed
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.connection import ConnectionParams, connection
+from retrotouch.nodes.crossings import CrossingsParams, crossings
+from retrotouch.nodes.layout_sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.mesh_repair import RemeshParams, RepairParams, remesh, repair_mesh
+from retrotouch.nodes.regions import RegionParams, detect_regions
+from retrotouch.nodes.surface_samples import SamplesParams, surface_samples
+from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+
+ANGLES = tuple(range(-50, 51, 10))
+
+
+def prepare(mesh_path: str, vertices: int, up_axis: str | None):
+    mesh = load_mesh(LoadParams(path=mesh_path))
+    mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
+    mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
+    mesh = remesh(RemeshParams(target_vertices=vertices), mesh)
+    try:
+        regions = detect_regions(RegionParams(up_axis=up_axis), mesh)
+    except UserError as exc:
+        if up_axis is not None:
+            raise
+        print(f"regions.detect: {exc}; retrying with min_base_area_fraction 0.005")
+        regions = detect_regions(RegionParams(min_base_area_fraction=0.005), mesh)
+    tx_field = connection(ConnectionParams(layer="tx"), mesh, regions)
+    rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
+    tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
+    branches = []
+    for angle in ANGLES:
+        rx = trace_rx(TraceRxParams(angle_deg=angle), mesh, regions, rx_field)["curves"]
+        cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
+        branches.append((rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"]))
+    return mesh, regions, tx, branches
+
+
+def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int):
+    start = time.perf_counter()
+    samples = surface_samples(SamplesParams(), mesh, regions)
+    samples_s = time.perf_counter() - start
+    candidates = Parallel(n_jobs=jobs)(
+        delayed(optimize)(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx) for rx, tx_rx, tx_tx, rx_rx in branches
+    )
+    picked = pick_best(PickParams(), candidates)
+    return picked, time.perf_counter() - start, samples_s
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default="builtin:bunny", help="mesh file (default: pymeshlab's bunny)")
+    parser.add_argument("--vertices", type=int, default=20000, help="remesh target vertex count")
+    parser.add_argument("--jobs", type=int, default=2, help="processes for the angle branches")
+    parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
+    args = parser.parse_args()
+
+    start = time.perf_counter()
+    mesh, regions, tx, branches = prepare(args.mesh, args.vertices, args.up_axis)
+    curves_s = time.perf_counter() - start
+
+    with_secondary, sweep_s, samples_s = sweep(OptimizeParams(), mesh, regions, tx, branches, args.jobs)
+    without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
+    m, m_off = with_secondary["metrics"], without["metrics"]
+    print(f"curves (prep) {curves_s:.1f} s; samples {samples_s:.1f} s; sweep {sweep_s:.1f} s; "
+          f"sweep without secondary {sweep_off_s:.1f} s")
+    print(f"chosen angle {m['chosen_angle_deg']:+.0f} deg: Voronoi CV {m['voronoi_cv']:.3f} "
+          f"(without secondary {m_off['voronoi_cv']:.3f}, angle {m_off['chosen_angle_deg']:+.0f}), "
+          f"{m['pads']} pads of {m['cells']} cells, radius {m['coverage_radius_mm']:.1f} mm, "
+          f"mean {m['mean_distance_mm']:.2f} mm, min pad spacing {m['min_pad_spacing_mm']:.1f} mm")
+    print(json.dumps({
+        "mesh": args.mesh,
+        "vertices": int(len(mesh.vertices)),
+        "sweep_seconds": round(sweep_s, 2),
+        "samples_seconds": round(samples_s, 2),
+        "curves_seconds": round(curves_s, 2),
+        "jobs": args.jobs,
+        "chosen_angle_deg": m["chosen_angle_deg"],
+        "voronoi_cv": m["voronoi_cv"],
+        "voronoi_cv_without_secondary": m_off["voronoi_cv"],
+        "pads": m["pads"],
+        "cells": m["cells"],
+        "channels": [m["tx_channels"], m["rx_channels"]],
+        "coverage_radius_mm": m["coverage_radius_mm"],
+        "mean_distance_mm": m["mean_distance_mm"],
+        "mean_distance_mm_without_secondary": m_off["mean_distance_mm"],
+        "min_pad_spacing_mm": m["min_pad_spacing_mm"],
+        "paper_voronoi_cv_bunny": 0.374,
+    }))
+
+
+if __name__ == "__main__":
+    main()

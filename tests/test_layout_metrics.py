@@ -1,0 +1,85 @@
+"""Heat-method geodesics, surface samples and the Voronoi uniformity metric."""
+from __future__ import annotations
+
+import numpy as np
+import potpourri3d as pp3d
+import pytest
+from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
+
+from retrotouch.nodes.layout_metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
+from retrotouch.nodes.surface_samples import SamplesParams, face_areas, geodesics_for, surface_samples
+
+
+def locate(mesh, directions):
+    """(faces, bary) of the mesh points hit by rays from the centre (the icosphere is star-shaped)."""
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    P = mesh.vertices[mesh.faces]
+    faces, bary = [], []
+    np.seterr(divide="ignore", invalid="ignore")
+    for u in d:
+        # Moller-Trumbore against every face (rays parallel to a face give inf/nan, never a hit)
+        e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+        h = np.cross(u, e2)
+        a = np.einsum("fi,fi->f", e1, h)
+        s = -P[:, 0]
+        b1 = np.einsum("fi,fi->f", s, h) / a
+        q = np.cross(s, e1)
+        b2 = (q @ u) / a
+        t = np.einsum("fi,fi->f", e2, q) / a
+        ok = (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1) & (t > 0)
+        f = int(np.flatnonzero(ok)[0])
+        faces.append(f)
+        bary.append([1 - b1[f] - b2[f], b1[f], b2[f]])
+    return np.array(faces), np.array(bary)
+
+
+def test_heat_geodesics_match_the_sphere_and_potpourri3d():
+    mesh = sphere_mesh(5)
+    geo = geodesics_for(mesh)
+    faces, bary = locate(mesh, np.array([[0.3, 0.2, 1.0], [1.0, -0.4, 0.1], [-0.2, -1.0, -0.5]]))
+    fields = geo.fields(faces, bary)
+    src = np.einsum("kc,kcd->kd", bary, mesh.vertices[mesh.faces[faces]])
+    cosine = (mesh.vertices / RADIUS_MM) @ (src / np.linalg.norm(src, axis=1, keepdims=True)).T
+    exact = RADIUS_MM * np.arccos(np.clip(cosine, -1, 1))
+    far = exact > 10.0
+    assert np.median(np.abs(fields - exact)[far] / exact[far]) < 0.015  # heat method: ~1 % on this mesh
+    # a vertex source agrees with potpourri3d's heat solver
+    v = int(mesh.faces[faces[0], 0])
+    vf = int(np.flatnonzero((mesh.faces == v).any(axis=1))[0])
+    ours = geo.fields(np.array([vf]), (mesh.faces[vf] == v).astype(float)[None, :])[:, 0]
+    theirs = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces).compute_distance(v)
+    assert np.median(np.abs(ours - theirs)[theirs > 10] / theirs[theirs > 10]) < 0.01
+
+
+def test_samples_are_on_sensing_faces_and_spread():
+    mesh = sphere_mesh(4)
+    regions = Regions(mesh)
+    samples = surface_samples(SamplesParams(count=120, seed=3), mesh, regions)
+    assert samples.points.shape == (120, 3)
+    assert np.all(regions.sensing_faces[samples.faces])
+    assert np.allclose(np.einsum("kc,kcd->kd", samples.bary, mesh.vertices[mesh.faces[samples.faces]]), samples.points)
+    d = np.linalg.norm(samples.points[:, None] - samples.points[None], axis=2)
+    assert min_pairwise(d) >= samples.spacing_mm - 1e-9
+    assert samples.spacing_mm > 0.5 * np.sqrt(samples.sensing_area_mm2 / 120)
+    assert samples.sensing_area_mm2 == pytest.approx(face_areas(mesh.vertices, mesh.faces)[regions.sensing_faces].sum())
+    # the sample's own distance field is ~0 at the sample (within the heat method's O(h) smoothing)
+    geo = geodesics_for(mesh)
+    own = geo.evaluate(samples.distances, samples.faces, samples.bary)
+    assert np.abs(np.diag(own)).max() < 0.2 * geo.mean_edge_mm
+    again = surface_samples(SamplesParams(count=120, seed=3), mesh, regions)
+    assert np.array_equal(again.points, samples.points)
+
+
+def test_voronoi_cv_is_near_zero_for_octahedron_pads_and_high_for_clusters():
+    mesh = sphere_mesh(4)
+    geo = geodesics_for(mesh)
+    everything = np.ones(len(mesh.faces), dtype=bool)
+    octahedron = np.vstack([np.eye(3), -np.eye(3)]) + 1e-3  # off-vertex directions
+    faces, bary = locate(mesh, octahedron)
+    areas = voronoi_cell_areas(geo.fields(faces, bary), mesh.vertices, mesh.faces, everything)
+    assert areas.sum() == pytest.approx(face_areas(mesh.vertices, mesh.faces).sum())
+    assert coefficient_of_variation(areas) < 0.05
+    clustered = np.array([[0, 0, 1], [0.2, 0, 1], [0, 0.2, 1], [-0.2, 0, 1], [0, -0.2, 1], [0, 0, -1]], dtype=float)
+    faces, bary = locate(mesh, clustered)
+    cv = coefficient_of_variation(voronoi_cell_areas(geo.fields(faces, bary), mesh.vertices, mesh.faces, everything))
+    assert cv > 0.8
