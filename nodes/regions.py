@@ -20,8 +20,8 @@ Base detection:
    by area. Without overrides it must cover at least ``min_base_area_fraction`` of the surface
    (a sphere's best contact cap is < 1.8 % at 15 degrees), otherwise the node fails and asks for
    ``up_axis`` or a seed. With ``up_axis`` or a seed the base is the component at the lowest point
-   (or the seed) and always found: when it is too small to have an interior vertex (a round
-   bottom, e.g. a sphere), the plane tolerance doubles until it has one, so a sphere gets the
+   (or the seed) and always found: when it is too small to hold two adjacent interior vertices
+   (the Rx dipole; a round bottom, e.g. a sphere), the plane tolerance doubles until it does, so a sphere gets the
    lowest point's neighbourhood, a polar cap bounded by the angle threshold.
 3. Islands of non-base faces enclosed by the base join the base, so the rest is one piece.
 
@@ -293,12 +293,13 @@ def detect_base(
     else:
         return automatic_base(vertices, graph, normals, areas, params)
     # an explicit override always yields a base: on a round bottom the plane tolerance doubles
-    # until the region around the lowest point (or the seed) has an interior vertex
+    # until the region around the lowest point (or the seed) has an interior edge
     tolerance = params.plane_tolerance_mm
     for _ in range(MAX_TOLERANCE_DOUBLINGS):
         base = contact_region(vertices, graph, normals, areas, down, params, seed, tolerance)
         on_base, off_base = vertex_masks(graph.faces, base, len(vertices))
-        if (on_base & ~off_base).any():
+        interior = on_base & ~off_base
+        if interior[graph.halfedges].all(axis=1).any():  # room for the Rx dipole
             break
         tolerance *= 2.0
     if not base.any():

@@ -1,0 +1,138 @@
+"""preview.render: PNG views with both layers depth-tested, self-contained HTML viewer."""
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from retrotouch.nodes.datatypes import Crossings, CurveSet, CurveEnd, Mesh, SurfaceRegions
+from retrotouch.nodes.preview import (
+    RX_RGB,
+    TX_RGB,
+    CROSSING_RGB,
+    PreviewParams,
+    camera,
+    face_colours,
+    render_preview,
+    render_preview_with_crossings,
+    render_view,
+    segments,
+)
+from retrotouch.nodes.regions import RegionParams, detect_regions
+
+RADIUS = 40.0
+
+
+@pytest.fixture(scope="module")
+def sphere() -> Mesh:
+    tm = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
+    return Mesh(np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64), "sphere")
+
+
+@pytest.fixture(scope="module")
+def regions(sphere: Mesh) -> SurfaceRegions:
+    return detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere)
+
+
+def curve_set(mesh: Mesh, polylines: list[np.ndarray], layer: str) -> CurveSet:
+    """A CurveSet whose points are the polylines snapped onto the mesh, with faces and barycentrics."""
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    points = np.vstack(polylines)
+    on_surface, _, faces = trimesh.proximity.closest_point(tm, points)
+    bary = trimesh.triangles.points_to_barycentric(tm.triangles[faces], on_surface)
+    offsets = np.r_[0, np.cumsum([len(p) for p in polylines])].astype(np.int64)
+    lengths = np.array([np.linalg.norm(np.diff(on_surface[a:b], axis=0), axis=1).sum() for a, b in zip(offsets[:-1], offsets[1:])])
+    return CurveSet(
+        layer=layer,
+        points=on_surface,
+        faces=faces.astype(np.int64),
+        bary=bary,
+        offsets=offsets,
+        lengths_mm=lengths,
+        end_reason=np.full(len(polylines), CurveEnd.BASE, dtype=np.int8),
+        angle=0.0,
+    )
+
+
+def circle(axis_a: np.ndarray, axis_b: np.ndarray, count: int = 200, start: float = 0.0, stop: float = 2 * np.pi) -> np.ndarray:
+    t = np.linspace(start, stop, count)
+    return RADIUS * (np.cos(t)[:, None] * axis_a + np.sin(t)[:, None] * axis_b)
+
+
+@pytest.fixture(scope="module")
+def layers(sphere: Mesh) -> tuple[CurveSet, CurveSet]:
+    x, y, z = np.eye(3)
+    tx = curve_set(sphere, [circle(x, z), circle(y, z)], "tx")  # two meridian great circles
+    rx = curve_set(sphere, [circle(x, y) * [1, 1, 0] + [0, 0, 10.0]], "rx")  # a latitude ring
+    return tx, rx
+
+
+def colour_pixels(image_rgb: np.ndarray, rgb: tuple[int, int, int]) -> int:
+    return int(np.all(image_rgb == np.asarray(rgb, dtype=np.uint8), axis=2).sum())
+
+
+def test_segments_skip_curve_joins(layers: tuple[CurveSet, CurveSet]) -> None:
+    tx, _ = layers
+    start, end = segments(tx)
+    assert len(start) == len(tx.points) - tx.count
+    assert 199 not in start  # the last row of curve 0 does not connect to curve 1
+
+
+def test_png_has_expected_size_and_both_layers(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
+    tx, rx = layers
+    files = render_preview(PreviewParams(view_px=200), sphere, regions, tx, rx)
+    assert set(files.contents) == {"preview.png", "preview.html"}
+    image = cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (400, 400, 3)
+    rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    assert colour_pixels(rgb, TX_RGB) > 200 and colour_pixels(rgb, RX_RGB) > 100
+
+
+def test_curves_behind_the_object_are_hidden(sphere: Mesh, regions: SurfaceRegions) -> None:
+    view = camera(np.zeros(3), RADIUS, np.array([0.0, 0.0, 1.0]), np.radians(30.0), np.radians(10.0))
+    eye = -view[:3, :3].T @ view[:3, 3]
+    towards = eye / np.linalg.norm(eye)
+    across = np.cross(towards, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    near_arc = curve_set(sphere, [circle(towards, across, start=-0.6, stop=0.6)], "rx")
+    far_arc = curve_set(sphere, [circle(-towards, across, start=-0.6, stop=0.6)], "rx")
+    colours = face_colours(len(sphere.faces), regions)
+    seen = render_view(sphere, colours, [(near_arc, RX_RGB)], None, view, 200, 2)
+    hidden = render_view(sphere, colours, [(far_arc, RX_RGB)], None, view, 200, 2)
+    assert colour_pixels(seen, RX_RGB) > 50
+    assert colour_pixels(hidden, RX_RGB) == 0
+
+
+def test_crossings_are_marked(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
+    tx, rx = layers
+    point = np.array([[RADIUS * np.sqrt(1 - (10 / RADIUS) ** 2), 0.0, 10.0]])
+    crossings = Crossings(
+        "tx", "rx", np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
+        np.zeros(1), np.zeros(1), point, np.zeros(1, np.int64), np.full((1, 3), 1 / 3),
+    )
+    files = render_preview_with_crossings(PreviewParams(view_px=200), sphere, regions, tx, rx, crossings)
+    rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert colour_pixels(rgb, CROSSING_RGB) > 5
+
+
+def test_html_is_self_contained_and_embeds_the_data(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
+    tx, rx = layers
+    html = render_preview(PreviewParams(view_px=64), sphere, regions, tx, rx).contents["preview.html"].decode("utf-8")
+    assert not re.search(r"(https?:|ftp:|//[a-z0-9.-]+\.[a-z]{2,}/)", html, re.IGNORECASE)
+    assert not re.search(r"<(script|link|img|iframe)[^>]*\s(src|href)\s*=", html, re.IGNORECASE)
+    block = re.search(r'<script type="application/json" id="retrotouch-data">(.*?)</script>', html, re.S)
+    data = json.loads(block.group(1))
+    vertices = np.frombuffer(base64.b64decode(data["vertices"]), "<f4").reshape(-1, 3)
+    np.testing.assert_allclose(vertices, sphere.vertices, atol=1e-4)
+    faces = np.frombuffer(base64.b64decode(data["faces"]), "<u4").reshape(-1, 3)
+    assert np.array_equal(faces, sphere.faces)
+    region = np.frombuffer(base64.b64decode(data["region"]), "u1")
+    assert set(np.unique(region)) == {0, 1, 2} and (region[np.unique(sphere.faces[regions.base_faces])] == 2).all()
+    tx_lines = np.frombuffer(base64.b64decode(data["tx"]["lines"]), "<f4").reshape(-1, 3)
+    assert len(tx_lines) == 2 * (len(tx.points) - tx.count) and data["tx"]["count"] == 2
+    assert np.abs(np.linalg.norm(tx_lines, axis=1) - RADIUS).max() < 1.5  # on (just above) the surface
