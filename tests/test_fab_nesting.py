@@ -96,3 +96,21 @@ def test_part_fitting_only_diagonally_gets_its_own_sheet():
     check_layout(outlines, nested, params)
     shelf = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester="shelf")
     check_layout(outlines, nest(shelf, outlines), shelf)
+
+
+def test_spyrrow_failure_falls_back_to_shelves(monkeypatch):
+    import spyrrow
+
+    class Crashing:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def solve(self, config, progress=None):
+            raise RuntimeError("solver crashed")
+
+    monkeypatch.setattr(spyrrow, "StripPackingInstance", Crashing)
+    outlines = traces([150, 100, 80])
+    params = Params(seconds=1)
+    nested = nest(params, outlines)
+    assert nested.nester == "shelf" and "solver crashed" in nested.fallback_reason
+    check_layout(outlines, nested, params)
