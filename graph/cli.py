@@ -16,8 +16,12 @@ import os
 import sys
 from typing import Any, Optional
 
-import click
 import typer
+
+try:  # typer >= 0.20 vendors click as typer._click; older versions use click itself
+    from typer import _click as click
+except ImportError:  # pragma: no cover - depends on the installed typer
+    import click  # type: ignore[no-redef]
 
 from retrotouch.graph.errors import NodeFailed, UserError
 
@@ -213,11 +217,14 @@ def main(argv: list[str] | None = None) -> None:
         _fail(str(exc), 2)
     except NodeFailed as exc:
         _fail(str(exc), 1)
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except click.ClickException as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":  # bare `retrotouch` or `retrotouch cache`: show help
+            print(exc.format_message())
+            sys.exit(0)
         _fail(exc.format_message() + "  (see retrotouch --help)", 2)
-    except (click.exceptions.Abort, KeyboardInterrupt):
+    except (typer.Abort, KeyboardInterrupt):
         _fail("interrupted", 130)
     except Exception as exc:  # an engine bug: keep the traceback, show one line
         _fail(f"unexpected {type(exc).__name__}: {exc} (traceback: {_crash_log()})", 1)

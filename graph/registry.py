@@ -82,8 +82,10 @@ def load(types: Iterable[str] | None = None, modules: Iterable[str] = ()) -> dic
     """
     for name in modules:
         _import(name)
-    sources = node_module_sources()
     wanted = set(types) if types is not None else None
+    if wanted is not None and all(t in REGISTRY for t in wanted):
+        return REGISTRY
+    sources = node_module_sources()
     if wanted is not None:
         pending = {t for t in wanted if t not in REGISTRY}
         chosen = [m for m, src in sources.items() if pending & _declared_types(src)]
