@@ -34,7 +34,7 @@ class GestureParams(NodeParams):
     double_tap_max_distance_mm: float = Field(15.0, gt=0, description="largest distance between two taps of a double tap")
     long_press_ms: float = Field(600.0, gt=0, description="hold this long (without moving) for a long press")
     long_press_max_move_mm: float = Field(6.0, gt=0, description="largest drift of a long press")
-    swipe_min_mm: float = Field(20.0, gt=0, description="shortest start-to-end distance of a swipe")
+    swipe_min_mm: float = Field(20.0, gt=0, description="shortest path of a swipe over the surface (its chord must reach half)")
     swipe_max_ms: float = Field(1500.0, gt=0, description="longest duration of a swipe")
     pinch_min_change_mm: float = Field(12.0, gt=0, description="smallest change of the finger distance for a pinch/spread")
 
@@ -123,7 +123,9 @@ class GestureRecognizer:
             return events
         displacement = track.last - track.start
         distance = float(np.linalg.norm(displacement))
-        if distance >= p.swipe_min_mm and duration_ms <= p.swipe_max_ms:
+        # Along a curved surface the chord is shorter than the path: the path decides, the chord
+        # only has to show the finger went somewhere (not a wiggle in place).
+        if track.path_mm >= p.swipe_min_mm and distance >= 0.5 * p.swipe_min_mm and duration_ms <= p.swipe_max_ms:
             events.append({"type": "swipe", "t": round(t, 4), "id": track_id, "from": _point(track.start),
                            "to": _point(track.last), "direction": _point(displacement / distance),
                            "distance_mm": round(track.path_mm, 2), "duration_ms": round(duration_ms, 1),

@@ -20,8 +20,8 @@ Scripts (``--simulate script.json``) are JSON lists of steps, times in ms, lengt
     [{"gesture": "tap", "at": "random"}, {"gesture": "wait", "ms": 500},
      {"gesture": "double_tap", "at": {"cell": 40}}, {"gesture": "long_press", "at": [x, y, z], "ms": 1200},
      {"gesture": "swipe", "at": "random", "length_mm": 40, "ms": 600},
-     {"gesture": "pinch", "at": "random", "from_mm": 60, "to_mm": 25, "ms": 800},
-     {"gesture": "spread", "at": "random", "from_mm": 25, "to_mm": 60, "ms": 800},
+     {"gesture": "pinch", "at": "random", "from_mm": 45, "to_mm": 20, "ms": 800},
+     {"gesture": "spread", "at": "random", "from_mm": 20, "to_mm": 45, "ms": 800},
      {"gesture": "press", "at": "random", "ms": 500}]
 
 ``at`` is a point (projected on the surface), ``{"cell": k}`` (a crossing) or ``"random"`` (inside
@@ -294,7 +294,8 @@ class ScriptBuilder:
         raise UserError(f"bad touch location {spec!r}: use [x, y, z], {{\"cell\": k}} or \"random\"")
 
     def march(self, start: np.ndarray, direction: np.ndarray, length: float, step: float = 1.0) -> np.ndarray:
-        """Polyline from ``start`` along the surface, keeping the tangent direction (mm)."""
+        """Polyline from ``start`` along the surface, keeping the tangent direction (mm). Stops early
+        where a step makes no headway (a ridge or a sharp fold): callers check the length reached."""
         points = [start]
         point, face = start, self.projector.project(start)[1][0]
         for _ in range(int(np.ceil(length / step))):
@@ -302,9 +303,20 @@ class ScriptBuilder:
             direction = direction - (direction @ normal) * normal
             direction /= max(np.linalg.norm(direction), 1e-12)
             projected, faces, _ = self.projector.project(point + step * direction)
+            moved = projected[0] - point
+            if moved @ direction < 0.5 * step:
+                break
+            direction = moved / np.linalg.norm(moved)
             point, face = projected[0], faces[0]
             points.append(point)
         return np.array(points)
+
+    def fits(self, path: np.ndarray, length: float) -> bool:
+        """Whether a marched path reached ``length`` (mm), stays inside the sensed region and runs over a
+        broad patch (its chord is at least 80 % of its length: no wrapping around an ear or a rim)."""
+        reached = np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) >= length - 1.0
+        broad = np.linalg.norm(path[-1] - path[0]) >= 0.8 * length
+        return bool(reached and broad) and self.inside(path)
 
     def _tangent(self, point: np.ndarray, direction: Any) -> np.ndarray:
         normal = self.projector.face_normals[self.projector.project(point)[1][0]]
@@ -349,8 +361,8 @@ class ScriptBuilder:
                 t += duration
             elif kind in ("pinch", "spread"):
                 duration = ms or 0.8
-                start_mm = float(step.get("from_mm", 60.0 if kind == "pinch" else 25.0))
-                end_mm = float(step.get("to_mm", 25.0 if kind == "pinch" else 60.0))
+                start_mm = float(step.get("from_mm", 45.0 if kind == "pinch" else 20.0))
+                end_mm = float(step.get("to_mm", 20.0 if kind == "pinch" else 45.0))
                 half = max(start_mm, end_mm) / 2
                 centre, direction = self._pinch_centre(step.get("at"), step.get("direction"), half)
                 for sign in (1.0, -1.0):
@@ -369,7 +381,7 @@ class ScriptBuilder:
         for _ in range(50):
             start = self.location(at)
             path = self.march(start, self._tangent(start, direction), length)
-            if self.inside(path):
+            if self.fits(path, length):
                 return path
         raise UserError(f"no {length:g} mm swipe fits inside the sensed region from {at!r}: shorten length_mm")
 
@@ -377,7 +389,8 @@ class ScriptBuilder:
         for _ in range(50):
             centre = self.location(at)
             d = self._tangent(centre, direction)
-            if self.inside(self.march(centre, d, half)) and self.inside(self.march(centre, -d, half)):
+            ahead, behind = self.march(centre, d, half), self.march(centre, -d, half)
+            if self.fits(np.concatenate([behind[::-1], ahead[1:]]), 2 * half):
                 return centre, d
         raise UserError(f"no pinch of {2 * half:g} mm fits inside the sensed region at {at!r}: use smaller distances")
 
@@ -401,8 +414,8 @@ DEMO_SCRIPT = [
     {"gesture": "double_tap", "at": "random"},
     {"gesture": "long_press", "at": "random"},
     {"gesture": "swipe", "at": "random", "length_mm": 40},
-    {"gesture": "pinch", "at": "random", "from_mm": 60, "to_mm": 25},
-    {"gesture": "spread", "at": "random", "from_mm": 25, "to_mm": 60},
+    {"gesture": "pinch", "at": "random", "from_mm": 45, "to_mm": 20},
+    {"gesture": "spread", "at": "random", "from_mm": 20, "to_mm": 45},
 ]
 
 
@@ -527,10 +540,11 @@ def frames_through_pty(
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
                          garbage_every=garbage_every)
     options = FrameOptions(board.map.num_tx, board.map.num_rx, board.params.flip_tx, board.params.flip_rx)
-    simulator.start()
+    # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
                         reconnect_timeout_s=0.0,
                         record_header={"timebase": "board", "rate_hz": board.params.rate_hz, "simulated": True})
+    simulator.start()
     if reader.recorder is not None and script is not None:
         for t, label in script.labels:
             reader.recorder.label(label, t=t)
