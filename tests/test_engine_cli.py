@@ -83,3 +83,20 @@ def test_extension_modules_add_commands_and_missing_ones_are_skipped(tmp_path, m
     monkeypatch.setattr(cli, "EXTENSIONS", ("rt_ext_not_written_yet", "rt_ext_hello"))
     command = typer.main.get_command(cli.build_app())
     assert {"run", "plan", "nodes", "cache", "hello"} <= set(command.commands)
+
+
+def test_discovery_finds_package_nodes_and_names_a_broken_module(tmp_path, monkeypatch):
+    from retrotouch.graph import registry
+    from retrotouch.graph.errors import UserError
+
+    specs = registry.load()
+    assert {"mesh.load", "mesh.scale", "mesh.export"} <= set(specs)
+    assert specs["mesh.export"].sink
+    (tmp_path / "rt_broken_nodes.py").write_text("raise RuntimeError('boom')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("RETROTOUCH_NODE_MODULES", "rt_broken_nodes")
+    with pytest.raises(UserError, match="cannot import node module rt_broken_nodes: RuntimeError: boom"):
+        registry.load()
+    monkeypatch.setenv("RETROTOUCH_NODE_MODULES", "rt_no_such_module")
+    with pytest.raises(UserError, match="RETROTOUCH_NODE_MODULES names module 'rt_no_such_module'"):
+        registry.load()
