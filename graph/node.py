@@ -22,8 +22,12 @@ Conventions (the engine relies on them):
 * Sink nodes (``sink=True``) return :class:`Files`; the engine writes them into the run's output
   folder atomically and lists them in ``manifest.json``.
 * The code version is the sha256 of the AST-normalised source (docstrings and comments dropped) of
-  the node's module and of every ``retrotouch`` module it imports, transitively; pass
+  the node's module and of every ``retrotouch`` module it imports, transitively (the engine package
+  ``retrotouch.graph`` excepted: engine changes bump the cache-format salt instead); pass
   ``version="..."`` to pin it by hand instead.
+* Discovery: every module of ``retrotouch.nodes`` (except ``*_cli`` modules) is imported by the
+  engine; keep module imports cheap (heavy libraries inside the functions). Modules outside the
+  package are added with ``RETROTOUCH_NODE_MODULES=mod1,mod2``.
 * A node that reads files names them in ``Params.input_files()``; their content is part of the
   cache key.
 * Units: millimetres for lengths after ingest; angles are degrees in ``Params`` (YAML) and
