@@ -219,16 +219,18 @@ def centre_of_mass(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return ((p0 + p1 + p2) * volume[:, None]).sum(axis=0) / (4.0 * volume.sum())
 
 
-def rests_stably(vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, down: np.ndarray, centre: np.ndarray) -> bool:
-    """Whether ``centre`` projects along ``down`` inside the convex hull of the region's vertices."""
+def rests_stably(vertices: np.ndarray, down: np.ndarray, centre: np.ndarray, tolerance_mm: float) -> bool:
+    """Whether ``centre`` projects along ``down`` inside the support polygon: the convex hull of the
+    vertices within ``tolerance_mm`` of the support plane."""
     axis_u = np.cross(down, np.eye(3)[int(np.argmin(np.abs(down)))])
     axis_u /= np.linalg.norm(axis_u)
     axis_v = np.cross(down, axis_u)
     basis = np.stack([axis_u, axis_v], axis=1)
-    footprint = vertices[np.unique(faces[region])] @ basis
+    height = vertices @ down
+    footprint = vertices[height >= height.max() - tolerance_mm] @ basis
     try:
         hull = ConvexHull(footprint)
-    except QhullError:
+    except QhullError:  # fewer than three points or all on a line
         return False
     return bool((hull.equations[:, :2] @ (centre @ basis) + hull.equations[:, 2] <= 1e-9).all())
 
@@ -256,7 +258,7 @@ def automatic_base(
     for down in picked:
         region = contact_region(vertices, graph, normals, areas, down, params, None)
         if region.any():
-            stable = rests_stably(vertices, faces, region, down, centre)
+            stable = rests_stably(vertices, down, centre, params.plane_tolerance_mm)
             results.append((stable, float(areas[region].sum()), region, down))
     total = float(areas.sum())
     best_area = max((r[1] for r in results), default=0.0)
