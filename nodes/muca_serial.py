@@ -33,6 +33,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import os
 import re
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -347,6 +348,8 @@ class MucaReader:
         self._serial: serial.SerialBase | None = None
         self._closed = False
         self._seq = 0
+        if open_port is None and "://" not in port and not os.path.exists(port):
+            raise UserError(f"serial port {port} not found: plug in the board and check --port")
         try:
             self._serial = self._open_port()
         except (serial.SerialException, OSError, ValueError) as exc:

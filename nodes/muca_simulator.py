@@ -533,12 +533,13 @@ def frames_through_pty(
     frames: int | None = None,
     garbage_every: int = 0,
     record: str | Path | None = None,
+    loop: bool = False,
 ) -> Iterator[Frame]:
     """Run ``board`` on a pseudo-terminal and read it back with :class:`MucaReader` (the real serial
     path). Frames carry board time ``seq / rate_hz`` (s), so fast mode keeps the script's timing.
-    Ends after the board's last frame; labels of the script go into the recording if any."""
+    Ends after the board's last frame (never with ``loop``); the script's labels go into the recording."""
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
-                         garbage_every=garbage_every)
+                         garbage_every=garbage_every, loop=loop)
     options = FrameOptions(board.map.num_tx, board.map.num_rx, board.params.flip_tx, board.params.flip_rx)
     # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,

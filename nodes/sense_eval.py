@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
+from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.muca_serial import Frame, replay_frames
 from retrotouch.nodes.muca_simulator import (
@@ -95,7 +96,8 @@ def evaluate(frames: Iterable[Frame], labels: list[tuple[float, dict[str, Any]]]
     """Run ``processor`` over ``frames`` and score it against the press ``labels``."""
     presses = sorted((t, label) for t, label in labels if label.get("gesture") == "press")
     if not presses:
-        raise ValueError("no press labels: the evaluation needs {'gesture': 'press', ...} labels")
+        raise UserError("the recording holds no press labels: the evaluation needs {\"gesture\": \"press\", "
+                        "\"location\": i, \"point\": [x, y, z], \"t_end\": t} labels (see sense_eval)")
     starts = np.array([t for t, _ in presses])
     ends = np.array([float(label["t_end"]) for _, label in presses])
     truth = np.array([label["point"] for _, label in presses], dtype=np.float64)

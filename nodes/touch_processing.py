@@ -363,10 +363,10 @@ class TouchProcessor:
         self.frame_index = sensing_map.frame_index
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
-        self.contact_vertices, contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
-                                                               params.contact_mesh_faces)
-        self.areas = vertex_areas(self.contact_vertices, contact_faces)
-        self.adjacency = vertex_adjacency(contact_faces, len(self.contact_vertices))
+        self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
+                                                                    params.contact_mesh_faces)
+        self.areas = vertex_areas(self.contact_vertices, self.contact_faces)
+        self.adjacency = vertex_adjacency(self.contact_faces, len(self.contact_vertices))
         self._build_interpolation(interpolation_radius)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
@@ -527,12 +527,17 @@ class TouchProcessor:
 
     def _refine_all(self, found: list[list[Any]], positive: np.ndarray, sigma: np.ndarray) -> None:
         """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
-        within a pitch of the finger); with several touches a second pass fits each one to the
-        deltas minus the other touches' fitted coupling."""
+        within a pitch of the finger); with several touches the first pass fits each one to its own
+        cells (nearest to its peak) and a second pass to all deltas minus the other touches' fitted
+        coupling."""
         fits: list[tuple[np.ndarray, float] | None] = []
-        for entry in found:
+        peaks = np.array([entry[0] for entry in found])
+        # First pass: each touch sees only the cells nearer its own peak than any other peak.
+        nearest_peak = np.argmin(self.cell_distance[:, peaks], axis=1)
+        for j, entry in enumerate(found):
             cell = entry[0]
-            refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), positive, sigma)
+            own_cells = positive if len(found) == 1 else np.where(nearest_peak == j, positive, 0.0)
+            refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma)
             fits.append(None if refined is None else (refined[0], refined[3]))
             if refined is not None:
                 entry[1:4] = refined[:3]

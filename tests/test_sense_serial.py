@@ -167,7 +167,7 @@ def test_replay_of_missing_file_is_user_error(tmp_path):
 
 
 def test_missing_port_is_user_error():
-    with pytest.raises(UserError, match="cannot open serial port /dev/nonexistent-muca"):
+    with pytest.raises(UserError, match="serial port /dev/nonexistent-muca not found"):
         MucaReader("/dev/nonexistent-muca")
 
 
