@@ -128,9 +128,13 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     with PdfPages(buffer, metadata={"Title": "retrotouch assembly guide", "Creator": "retrotouch"}) as pdf:
         fig = Figure(figsize=(11.69, 8.27))
         axes = fig.subplots(1, 3)
-        fig.suptitle(f"retrotouch assembly guide: {mesh.source} — {layout.tx.count} Tx (blue) then "
-                     f"{layout.rx.count} Rx (red), attach in page order")
-        for ax, view in zip(axes, views[:3]):
+        source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]
+        fig.suptitle(f"retrotouch assembly guide: {source}\n{layout.tx.count} Tx (blue) then {layout.rx.count} Rx "
+                     "(red); attach the traces in page order")
+        everything = np.vstack([points for points, _, _ in traces])
+        overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
+        for ax, v in zip(axes, overview[::-1][:3]):
+            view = views[v]
             ax.imshow(view.shade)
             for points, name, _ in traces:
                 _draw_curve(ax, view, points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")

@@ -9,7 +9,8 @@ Parts go into the usable rectangle (sheet minus ``margin_mm`` on each side) at l
 ``spacing_mm`` apart, with free rotation. The primary nester is spyrrow (sparrow strip packing,
 no-fit free rotation): the strip runs along the sheet's longer side with the shorter side as its
 height; when the packed strip is longer than a sheet, the parts lying wholly inside the first sheet
-length are kept there and the rest are packed again onto the next sheet. The fallback (used when
+length are kept there and the rest are packed again onto the next sheet (a part that fits the sheet
+only at an angle spyrrow did not use gets a sheet of its own at a fitting rotation). The fallback (used when
 spyrrow is disabled, raises, or its result fails the overlap/gap/fit check) is shelf packing of
 minimum rotated bounding boxes, first fit by decreasing height. Every result is verified with
 shapely: parts inside their sheet, no overlaps, every gap >= ``spacing_mm``.
