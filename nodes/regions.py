@@ -95,11 +95,11 @@ class RegionParams(NodeParams):
     )
     exclusion_far_mm: float = Field(10.0, ge=0, description="second exclusion: geodesic radius at far point")
     direction_cells: int = Field(2000, ge=20, description="automatic detection: direction cells (one hull plane each)")
-    candidate_directions: int = Field(6, ge=1, description="automatic detection: best directions refined")
+    candidate_directions: int = Field(6, ge=1, description="automatic detection: best floor planes compared")
 
     @field_validator("up_axis")
     @classmethod
-    def _valid_axis(cls, value):  # noqa: ANN001, ANN206 - pydantic validator
+    def _valid_axis(cls, value: str | tuple[float, float, float] | None) -> str | tuple[float, float, float] | None:
         if value is not None:
             parse_axis(value)
         return value
