@@ -1,6 +1,8 @@
 """regions.detect on the bunny (170 mm diagonal) and a sphere, called directly."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -9,6 +11,8 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.datatypes import Mesh, SurfaceRegions
 from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.regions import RegionParams, detect_regions, face_normals_areas, parse_axis
+
+SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
 
 @pytest.fixture(scope="module")
@@ -147,3 +151,23 @@ def test_bad_overrides() -> None:
 def test_seed_face_out_of_range(sphere: Mesh) -> None:
     with pytest.raises(UserError, match="seed_face 99999 does not exist"):
         detect_regions(RegionParams(seed_face=99999), sphere)
+
+SHARED_UP_AXES = {  # None: the automatic detection finds a flat base; else the mesh's up axis
+    "blub_fish.ply": None, "duck_gao.ply": None, "pear_gao.ply": None, "spoon_pfc.ply": None,
+    "penguin_oded.ply": "+y", "spot_crane.ply": "+y", "teddy1_gao.ply": "+y",
+}
+
+
+@pytest.mark.parametrize("name", sorted(SHARED_UP_AXES))
+def test_shared_meshes_get_valid_regions(name: str) -> None:
+    path = SHARED_MESHES / name
+    if not path.is_file():
+        pytest.skip(f"{path} absent (shared test meshes are not checked out next to the repo)")
+    mesh = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
+    r = detect_regions(RegionParams(up_axis=SHARED_UP_AXES[name]), mesh)
+    stacked = np.stack([r.base_faces, r.exclusion_base, r.exclusion_far, r.sensing_faces]).astype(int)
+    assert (stacked.sum(axis=0) == 1).all()
+    assert r.base_faces[vertex_faces(mesh, int(r.base_dipole[0]))].all()
+    assert r.base_faces[vertex_faces(mesh, int(r.base_dipole[1]))].all()
+    assert r.sensing_faces.mean() > 0.6 and len(r.base_boundary_edges) > 10
+    assert r.base_distance_mm[r.far_vertex] > 50.0
