@@ -2,7 +2,8 @@
 
 Pipeline per frame: back-project a subset of the valid depth pixels, register them to the mesh
 with robust point-to-plane ICP (cKDTree over face centroids with face normals, Huber weights,
-back-facing correspondences rejected) starting from the last pose, gate the result on the inlier
+back-facing correspondences rejected) starting from the last pose (a constant-velocity guess was
+tried and drifts: an error along a weakly constrained direction feeds back and doubles), gate the result on the inlier
 fraction (a failed frame holds the last good pose; several in a row trigger a new global search),
 and smooth the accepted poses (One Euro filter on translation, adaptive slerp on rotation).
 

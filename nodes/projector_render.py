@@ -202,6 +202,9 @@ class RenderStyle:
     pad_radius_mm: float = 2.0
     depth_tolerance_mm: float = 2.0
     max_incidence_deg: float = 80.0
+    landmark_max_incidence_deg: float = 60.0  # crossings/pads: steeper spots smear and shift with pose error
+    landmark_clearance_px: int = 4  # crossings/pads need the same surface (no depth jump) this far around them
+    landmark_depth_jump_mm: float = 10.0
 
 
 def visible_points(
@@ -211,6 +214,7 @@ def visible_points(
     K: np.ndarray,
     zbuffer: np.ndarray,
     style: RenderStyle,
+    landmarks: bool = False,
 ) -> np.ndarray:
     """(n,) bool: the surface point is lit by the device and should be drawn.
 
@@ -218,12 +222,16 @@ def visible_points(
     (back-face culling plus dropping grazing spots, where light smears), lies in front of the device
     and inside the image, and the point lifted ``style.offset_mm`` along its normal passes the depth
     test against the z-buffer (nearest undistorted pixel, ``style.depth_tolerance_mm`` slack).
+    ``landmarks=True`` (crossings, pads) uses ``style.landmark_max_incidence_deg`` instead and also
+    drops points within ``landmark_clearance_px`` of a silhouette or depth jump, where a small pose
+    error would move the light onto another part of the object.
     """
     p = transform_points(T_dev_obj, points_obj)
     n = normals_obj @ np.ascontiguousarray(T_dev_obj[:3, :3].T)
     lifted = p + style.offset_mm * n
     to_device = -p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
-    facing = np.einsum("ij,ij->i", n, to_device) > np.cos(np.deg2rad(style.max_incidence_deg))
+    max_incidence = style.landmark_max_incidence_deg if landmarks else style.max_incidence_deg
+    facing = np.einsum("ij,ij->i", n, to_device) > np.cos(np.deg2rad(max_incidence))
     z = lifted[:, 2]
     in_front = z > 1e-6
     safe_z = np.where(in_front, z, 1.0)
@@ -233,6 +241,11 @@ def visible_points(
     ok = facing & in_front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
     z_ok = np.zeros(len(p), bool)
     z_ok[ok] = z[ok] <= zbuffer[row[ok], col[ok]] + style.depth_tolerance_mm
+    if landmarks:
+        r = style.landmark_clearance_px
+        for dr, dc in ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (r, r), (-r, r), (r, -r)):
+            rr, cc = np.clip(row + dr, 0, h - 1), np.clip(col + dc, 0, w - 1)
+            z_ok[ok] &= np.abs(zbuffer[rr[ok], cc[ok]] - z[ok]) < style.landmark_depth_jump_mm
     return ok & z_ok
 
 
@@ -274,7 +287,9 @@ def render_layers(
     )
     shift = 4  # sub-pixel precision bits for cv2 drawing
     scale = float(1 << shift)
-    cross_vis = visible_points(scene.crossing_points, scene.crossing_normals, T_proj_obj, projector.K, zbuffer, style)
+    cross_vis = visible_points(
+        scene.crossing_points, scene.crossing_normals, T_proj_obj, projector.K, zbuffer, style, landmarks=True
+    )
     cross_dev = transform_points(T_proj_obj, scene.crossing_points[cross_vis])
     cross_uv = project_points(cross_dev, projector)
     f_px = float(projector.K[0, 0])

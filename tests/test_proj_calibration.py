@@ -118,7 +118,7 @@ def test_projected_crossings_land_within_1mm(rig, estimated):
         T_true = rig.T_proj_cam @ poses[frame.index]
         T_est = estimated.T_proj_cam @ result.raw_T_cam_obj
         zbuf = rasterize_depth(transform_points(T_est, mesh.vertices), mesh.faces, estimated.projector.K, 640, 360)
-        vis = visible_points(scene.crossing_points, scene.crossing_normals, T_est, estimated.projector.K, zbuf, RenderStyle())
+        vis = visible_points(scene.crossing_points, scene.crossing_normals, T_est, estimated.projector.K, zbuf, RenderStyle(), landmarks=True)
         assert vis.sum() >= 5
         pixels = project_points(transform_points(T_est, scene.crossing_points[vis]), estimated.projector)
         landed = landing_points(pixels, mesh.vertices, mesh.faces, T_true, rig.projector)
