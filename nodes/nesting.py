@@ -5,12 +5,13 @@ SVG). A part is placed by rotating its outline (in its unfolded frame) by ``rota
 origin, counter-clockwise, then translating by ``translation``; no mirroring, so every part stays
 "seen from outside".
 
-Parts go into the usable rectangle (sheet minus ``margin_mm`` on each side) at least
-``spacing_mm`` apart, with free rotation. The primary nester is spyrrow (sparrow strip packing,
-no-fit free rotation): the strip runs along the sheet's longer side with the shorter side as its
-height; when the packed strip is longer than a sheet, the parts lying wholly inside the first sheet
-length are kept there and the rest are packed again onto the next sheet (a part that fits the sheet
-only at an angle spyrrow did not use gets a sheet of its own at a fitting rotation). The fallback (used when
+Parts go into the usable rectangle (sheet minus ``margin_mm`` on each side) at least ``spacing_mm``
+apart, with free rotation. The primary nester is spyrrow (sparrow strip packing, no-fit free
+rotation): the strip runs along the sheet's longer side with the shorter side as its height; when
+the packed strip is a little longer than a sheet (up to ``RETRY_OVERFLOW`` sheet lengths), spyrrow
+gets one more run with ``retry_seconds``; then the parts lying wholly inside the first sheet length
+are kept there and the rest are packed again onto the next sheet (a part that fits the sheet only at
+an angle spyrrow did not use gets a sheet of its own at a fitting rotation). The fallback (used when
 spyrrow is disabled, raises, or its result fails the overlap/gap/fit check) is shelf packing of
 minimum rotated bounding boxes, first fit by decreasing height. Every result is verified with
 shapely: parts inside their sheet, no overlaps, every gap >= ``spacing_mm``.
@@ -30,6 +31,10 @@ from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams, node
 from retrotouch.nodes.trace_outline import TraceOutlines
 
+RETRY_OVERFLOW = 1.25
+"""spyrrow retries only when the packed strip is at most this many sheet lengths long (a better
+packing may then save the extra sheet)."""
+
 MATS_MM = {"12x12": (292.0, 292.0), "12x24": (290.0, 600.0)}
 """Cut areas of the Cricut mats (width, height) in mm, measured in Design Space."""
 
@@ -42,6 +47,10 @@ class Params(NodeParams):
     spacing_mm: float = Field(1.0, ge=0, description="smallest gap between two parts (mm)")
     nester: Literal["spyrrow", "shelf"] = Field("spyrrow", description="nesting engine; shelf = simple fallback")
     seconds: int = Field(10, ge=1, description="spyrrow time budget per sheet (s); wall time is about twice that")
+    retry_seconds: int = Field(
+        30, ge=0, description="when the parts overflow a sheet by up to 25 %: one more spyrrow run with this "
+        "budget (s) before spilling onto another sheet; 0 = no retry"
+    )
     workers: int = Field(1, ge=1, description="spyrrow threads")
     seed: int = Field(0, description="spyrrow random seed")
     shape_tolerance_mm: float = Field(0.05, gt=0, description="outline simplification for the nester (mm), compensated")
@@ -143,17 +152,23 @@ def _spyrrow(polygons: list[Polygon], params: Params, long_side: float, short_si
     remaining = list(range(len(polygons)))
     result = {}
     sheet = 0
-    while remaining:
-        items = [spyrrow.Item(str(i), shapes[i], demand=1, allowed_orientations=None) for i in remaining]
+    def solve(indices: list[int], seconds: int):
+        items = [spyrrow.Item(str(i), shapes[i], demand=1, allowed_orientations=None) for i in indices]
         instance = spyrrow.StripPackingInstance("retrotouch", strip_height=short_side, items=items)
         config = spyrrow.StripPackingConfig(
             early_termination=True,
             min_items_separation=params.spacing_mm if params.spacing_mm > 0 else None,
-            total_computation_time=params.seconds,
+            total_computation_time=seconds,
             num_workers=params.workers,
             seed=params.seed,
         )
-        solution = instance.solve(config)
+        return instance.solve(config)
+
+    while remaining:
+        solution = solve(remaining, params.seconds)
+        if long_side < solution.width <= RETRY_OVERFLOW * long_side and params.retry_seconds > 0:
+            retry = solve(remaining, params.retry_seconds)
+            solution = retry if retry.width < solution.width else solution
         placed = {}
         for item in solution.placed_items:
             i = int(item.id)

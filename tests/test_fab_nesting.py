@@ -65,7 +65,7 @@ def test_spyrrow_packs_densely_with_spacing():
 @pytest.mark.parametrize("nester", ["shelf", "spyrrow"])
 def test_more_sheets_when_needed(nester):
     outlines = traces([100] * 5)
-    params = Params(mat="custom", sheet_width_mm=130, sheet_height_mm=20, nester=nester, seconds=1)
+    params = Params(mat="custom", sheet_width_mm=130, sheet_height_mm=20, nester=nester, seconds=1, retry_seconds=1)
     nested = nest(params, outlines)
     assert nested.nester == nester, nested.fallback_reason
     assert nested.sheet_count >= 2
@@ -91,7 +91,7 @@ def test_custom_sheet_needs_both_sizes():
 
 def test_part_fitting_only_diagonally_gets_its_own_sheet():
     outlines = traces([112, 40])  # 112 mm + 9 mm tab: longer than the 118 mm sheet side, fits diagonally
-    params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, seconds=1)
+    params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, seconds=1, retry_seconds=1)
     nested = nest(params, outlines)
     check_layout(outlines, nested, params)
     shelf = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester="shelf")
