@@ -48,7 +48,7 @@ class OptimizeParams(NodeParams):
     n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the mean sample distance (off: ablation)")
     resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
-    time_limit_s: float = Field(4.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
+    time_limit_s: float = Field(1.5, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
     pad_time_limit_s: float = Field(2.0, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
     seed: int = Field(0, description="CP-SAT random seed")
@@ -308,7 +308,7 @@ def angle_table(candidates: list[AngleLayout]) -> list[dict]:
             "channels": f"{m.get('tx_channels', 0)}x{m.get('rx_channels', 0)}",
             "seconds": m.get("seconds", {}).get("total"),
             "status": "/".join(s["status"] for s in stages) or c.message,
-            "gap": max((s["gap"] or 0.0) for s in stages) if stages else None,
+            "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
             "relaxations": len(m.get("relaxations", [])),
         })
     return rows
