@@ -25,6 +25,8 @@ import time
 import traceback
 from typing import Any, Callable
 
+from filelock import FileLock
+
 from retrotouch.graph import artifacts, registry
 from retrotouch.graph.errors import NodeFailed, UserError
 from retrotouch.graph.node import REGISTRY, Files
@@ -63,8 +65,6 @@ def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
     artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
     node = REGISTRY[spec.node_type]
     store = Store(spec.cache_root)
-    from filelock import FileLock
-
     lock_path = store.lock_path(spec.key)
     os.makedirs(os.path.dirname(lock_path), exist_ok=True)
     with FileLock(lock_path):
