@@ -63,7 +63,8 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
             if not inst.is_sink:
                 continue
             value = plan.store.load(refs[id(inst)])
-            assert isinstance(value, Files)
+            if not isinstance(value, Files):
+                raise UserError(f"sink node {inst.id} produced {type(value).__name__}, not Files")
             for path, data in value.contents.items():
                 rel = _safe_relpath(posixpath.join(_branch_dir(inst), path), inst.id)
                 if rel in files:

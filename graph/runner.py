@@ -1,6 +1,7 @@
 """Running a pipeline end to end (what ``retrotouch run`` does), callable from Python too."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -58,10 +59,9 @@ def run_pipeline(
     ``on_plan`` sees the plan before anything runs (the CLI prints ``--explain`` there);
     ``progress(total)`` returns a context manager yielding ``advance(instance id)``.
     """
+    from retrotouch.graph import snapshot
     from retrotouch.graph.execute import execute, task_name
     from retrotouch.graph.outputs import write_outputs
-
-    from retrotouch.graph import snapshot
 
     check_scheduler(scheduler)
     start = time.perf_counter()
@@ -78,8 +78,6 @@ def run_pipeline(
     by_task = {task_name(i): i for i in plan.to_run}
     status: dict[int, dict[str, Any]] = {}
     run_id = uuid.uuid4().hex
-    import contextlib
-
     bar = progress(len(by_task)) if progress else contextlib.nullcontext(lambda label: None)
     try:
         with bar as advance:
