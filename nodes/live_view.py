@@ -2,10 +2,12 @@
 the tool itself (stdlib ``http.server``; frames pushed as Server-Sent Events; self-contained JS that
 draws on a 2D canvas, no network access).
 
-Endpoints: ``/`` the page, ``/mesh.json`` the contact mesh (the processor's simplified mesh, mm) and
+Endpoints: ``/`` the page (``?frames=N`` stops updating after N frames, ``?follow=1`` turns the
+strongest touch towards the viewer), ``/mesh.json`` the contact mesh (the processor's simplified mesh, mm) and
 its up axis, ``/events`` one ``data:`` line per frame::
 
-    {"seq": 12, "t": 1.2, "heat": [0..255 per mesh vertex], "touches": [{"id", "point", "intensity", "area_mm2"}],
+    {"seq": 12, "t": 1.2, "heat": [0..255 per mesh vertex],
+     "touches": [{"id", "point", "normal", "intensity", "area_mm2"}],
      "events": ["tap", ...]}
 
 Heat is the interpolated delta over the mesh vertices, scaled to the frame's peak (at least
@@ -72,7 +74,7 @@ function draw() {
     const area = (sx[b] - sx[a]) * (sy[c] - sy[a]) - (sy[b] - sy[a]) * (sx[c] - sx[a]);
     if (area < 0) order.push([f, sz[a] + sz[b] + sz[c], -area]);
   }
-  order.sort((p, q) => q[1] - p[1]);
+  order.sort((p, q) => p[1] - q[1]);  // the viewer sits on the +depth side: far (small depth) first
   ctx.fillStyle = "#15171a"; ctx.fillRect(0, 0, W, H);
   const N = mesh.normals;
   for (const [f] of order) {
@@ -92,6 +94,15 @@ function draw() {
     ctx.beginPath(); ctx.arc(X, Y, 8, 0, 2 * Math.PI); ctx.fill(); ctx.stroke(); ctx.lineWidth = 1;
     ctx.fillStyle = "#fff"; ctx.fillText("#" + t.id, X + 10, Y - 10);
   }
+}
+function faceTowards(n) {  // choose yaw/pitch so that depth = n (right x up = depth points at the viewer)
+  const up = mesh.up, a = Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0];
+  let x = [up[1] * a[2] - up[2] * a[1], up[2] * a[0] - up[0] * a[2], up[0] * a[1] - up[1] * a[0]];
+  const len = Math.hypot(...x); x = x.map(v => v / len);
+  const z = [x[1] * up[2] - x[2] * up[1], x[2] * up[0] - x[0] * up[2], x[0] * up[1] - x[1] * up[0]];
+  const dot = (p, q) => p[0] * q[0] + p[1] * q[1] + p[2] * q[2];
+  pitch = Math.max(-1.5, Math.min(1.5, Math.asin(Math.max(-1, Math.min(1, -dot(n, up))))));
+  yaw = Math.atan2(-dot(n, x), dot(n, z));
 }
 function showTouches(list) {
   const ul = document.getElementById("touches");
@@ -124,9 +135,16 @@ window.addEventListener("resize", resize);
 fetch("mesh.json").then(r => r.json()).then(m => {
   mesh = m; resize();
   const source = new EventSource("events");
+  // ?frames=N: stop after N frames (a still snapshot, e.g. for headless checks);
+  // ?follow=1: turn the object so that the strongest touch faces the viewer.
+  const query = new URLSearchParams(location.search);
+  const limit = Number(query.get("frames") || 0), follow = query.get("follow") === "1";
+  let received = 0;
   source.onmessage = e => {
     const frame = JSON.parse(e.data);
+    if (limit && ++received >= limit) source.close();
     heat = frame.heat; touches = frame.touches; dirty = true;
+    if (follow && touches.length) faceTowards(touches.reduce((a, b) => (b.intensity > a.intensity ? b : a)).normal);
     document.getElementById("status").textContent = `frame ${frame.seq}, t ${frame.t.toFixed(1)} s, ${touches.length} touch(es)`;
     showTouches(touches); showEvents(frame.events, frame.t);
   };
@@ -225,6 +243,7 @@ class LiveView:
         payload = json.dumps({
             "seq": self._seq + 1, "t": round(result.t, 3), "heat": heat.tolist(),
             "touches": [{"id": t.id, "point": [round(float(x), 2) for x in t.point],
+                         "normal": [round(float(x), 3) for x in t.normal],
                          "intensity": round(t.intensity, 1), "area_mm2": round(t.area_mm2, 1)} for t in result.touches],
             "events": [e["type"] for e in gestures],
         }, separators=(",", ":")).encode()
