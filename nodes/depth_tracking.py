@@ -176,7 +176,7 @@ class TrackerSettings:
     min_depth_mm: float = 100.0
     max_depth_mm: float = 3000.0
     smooth_min_cutoff_hz: float = 1.5
-    smooth_beta: float = 0.05  # One Euro speed coefficient (per mm/s, per deg/s)
+    smooth_beta: float = 0.15  # One Euro speed coefficient (per mm/s, per deg/s)
     smooth_d_cutoff_hz: float = 1.0
     seed: int = 0
 
