@@ -180,7 +180,12 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done) -> dict[str,
     raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
 
 
+_nodes_ran_in_process = False
+
+
 def _run_sync(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], on_done: Done) -> dict[str, TaskResult]:
+    global _nodes_ran_in_process
+    _nodes_ran_in_process = True
     results: dict[str, TaskResult] = {}
     for name, (spec, args) in tasks.items():  # built in topological order
         refs = [results[a].ref if isinstance(a, str) else a for a in args]
@@ -204,7 +209,9 @@ def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> d
 def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done) -> dict[str, TaskResult]:
     from dask.callbacks import Callback
 
+    global _nodes_ran_in_process
     if kind == "threads":
+        _nodes_ran_in_process = True
         from dask.threaded import get
     else:
         from dask.multiprocessing import get
@@ -230,8 +237,10 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
             import dask
 
             # Forked workers start in ~0.3 s and inherit the imported node modules; spawned ones
-            # take seconds to re-import everything. Fork only on Linux (unsafe on macOS).
-            method = "fork" if sys.platform.startswith("linux") else "spawn"
+            # take seconds to re-import everything. Fork only on Linux (unsafe on macOS) and only
+            # while no node has run in this process (OpenMP runtimes do not survive a fork).
+            fork = sys.platform.startswith("linux") and not _nodes_ran_in_process
+            method = "fork" if fork else "spawn"
             with dask.config.set({"distributed.worker.multiprocessing-method": method}):
                 cluster = LocalCluster(n_workers=os.cpu_count() or 1, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=logging.CRITICAL)
