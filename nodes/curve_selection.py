@@ -55,7 +55,6 @@ import dataclasses
 import time
 
 import numpy as np
-from ortools.sat.python import cp_model
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.datatypes import Crossings
@@ -313,7 +312,9 @@ def heuristic_selection(
     return tx, rx, report
 
 
-def _stage_report(name: str, solver: cp_model.CpSolver, status: int, scale: float) -> dict:
+def _stage_report(name: str, solver, status: int, scale: float) -> dict:
+    from ortools.sat.python import cp_model
+
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     objective = solver.objective_value * scale if has else None
     bound = solver.best_objective_bound * scale
@@ -343,6 +344,8 @@ def select_curves(
     max_memberships: int = 40000,
 ) -> SelectionResult:
     """Solve phase 1 (see the module docstring) and report every stage."""
+    from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
+
     t0 = time.perf_counter()
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm)
     _, h_nearest = evaluate_selection(problem, start_tx, start_rx)
@@ -372,9 +375,9 @@ def select_curves(
     for a, b in problem.multi_pairs:
         model.add_bool_or([x[a].Not(), y[b].Not()])
 
-    act: dict[int, cp_model.IntVar] = {}
+    act: dict = {}
 
-    def active_var(c: int) -> cp_model.IntVar:
+    def active_var(c: int):
         if c not in act:
             v = model.new_bool_var(f"act{c}")
             model.add_implication(v, x[problem.cross_tx[c]])

@@ -23,8 +23,6 @@ import time
 
 import numpy as np
 from pydantic import Field
-from rich.console import Console
-from rich.table import Table
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams, node
@@ -48,7 +46,7 @@ class OptimizeParams(NodeParams):
     n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the mean sample distance (off: ablation)")
     resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
-    time_limit_s: float = Field(1.5, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
+    time_limit_s: float = Field(1.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
     pad_time_limit_s: float = Field(2.0, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
     seed: int = Field(0, description="CP-SAT random seed")
@@ -315,6 +313,9 @@ def angle_table(candidates: list[AngleLayout]) -> list[dict]:
 
 
 def print_angle_table(rows: list[dict], best: int) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
     table = Table(title="layout per Rx angle (* = chosen)")
     for name in ("angle", "radius mm", "mean mm", "Voronoi CV", "pads", "channels", "s", "status", "gap", "relax"):
         table.add_column(name, justify="right")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from ortools.sat.python import cp_model
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +32,8 @@ def place_pads(
     workers: int = 1,
 ) -> PadResult:
     """Maximum set of crossings pairwise >= ``d_min_mm`` apart (``distance_mm`` symmetric (A, A))."""
+    from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
+
     A = len(distance_mm)
     model = cp_model.CpModel()
     z = [model.new_bool_var(f"z{k}") for k in range(A)]

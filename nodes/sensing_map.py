@@ -11,7 +11,6 @@ import hashlib
 import json
 
 import numpy as np
-import trimesh
 
 from retrotouch.graph.node import Files, NodeParams, node
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT, Layout, Mesh
@@ -19,6 +18,8 @@ from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT, Layout, Mesh
 
 def mesh_ply_bytes(mesh: Mesh) -> bytes:
     """Binary PLY of the mesh, vertices and faces in order (no merging or reordering)."""
+    import trimesh  # heavy: imported when writing, not on node discovery
+
     return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type="ply", encoding="binary")
 
 

@@ -22,8 +22,6 @@ import functools
 import hashlib
 
 import numpy as np
-import scipy.sparse as sp
-from cholespy import CholeskySolverD, MatrixType
 from pydantic import Field
 
 from retrotouch.graph.errors import UserError
@@ -37,6 +35,8 @@ class HeatGeodesics:
     """Heat-method geodesic distance fields on one triangle mesh (see the module docstring)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, t_coef: float = 1.0):
+        import scipy.sparse as sp  # heavy: imported when used, not on node discovery
+
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces, dtype=np.int64)
         n, m = len(V), len(F)
@@ -117,15 +117,18 @@ class HeatGeodesics:
         return D
 
 
-def _cholesky(matrix: sp.spmatrix) -> CholeskySolverD:
+def _cholesky(matrix):
     """Sparse Cholesky factor (cholespy: ~10x faster than SuperLU on many right-hand sides)."""
+    import scipy.sparse as sp
+    from cholespy import CholeskySolverD, MatrixType
+
     coo = sp.coo_matrix(matrix)
     return CholeskySolverD(
         coo.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32), coo.data.astype(np.float64), MatrixType.COO
     )
 
 
-def _solve(factor: CholeskySolverD, rhs: np.ndarray) -> np.ndarray:
+def _solve(factor, rhs: np.ndarray) -> np.ndarray:
     rhs = np.ascontiguousarray(rhs, dtype=np.float64)
     out = np.zeros_like(rhs)
     factor.solve(rhs, out)
