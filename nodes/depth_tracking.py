@@ -18,7 +18,6 @@ invalid; they must be registered to the calibrated camera (same intrinsics).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from pathlib import Path
 from typing import Iterator, Protocol
 
@@ -30,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.datatypes import Mesh
 from retrotouch.nodes.procam_calibration import DeviceIntrinsics
-from retrotouch.nodes.projector_render import invert_pose, rasterize_depth, transform_points
+from retrotouch.nodes.projector_render import apply_distortion, invert_pose, rasterize_depth, transform_points
 
 
 # ---------------------------------------------------------------------------------------------
@@ -89,17 +88,6 @@ def write_depth_png(path: Path, depth_mm: np.ndarray) -> None:
     cv2.imwrite(str(path), np.clip(np.rint(d), 0, 65535).astype(np.uint16))
 
 
-@functools.lru_cache(maxsize=4)
-def _distortion_map(K_bytes: bytes, dist_bytes: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """For every distorted pixel, the pinhole pixel it sees (float32 maps for cv2.remap)."""
-    K = np.frombuffer(K_bytes).reshape(3, 3)
-    dist = np.frombuffer(dist_bytes)
-    gx, gy = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    pix = np.stack([gx.ravel(), gy.ravel()], axis=1).reshape(-1, 1, 2)
-    und = cv2.undistortPoints(pix, K, dist, None, None, K).reshape(height, width, 2)
-    return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
-
-
 def render_depth(mesh: Mesh, T_cam_obj: np.ndarray, camera: DeviceIntrinsics) -> np.ndarray:
     """Ideal depth image (float32 mm, 0 = background) of the mesh at pose ``T_cam_obj``, with the camera's distortion.
 
@@ -107,12 +95,7 @@ def render_depth(mesh: Mesh, T_cam_obj: np.ndarray, camera: DeviceIntrinsics) ->
     """
     depth = rasterize_depth(transform_points(T_cam_obj, mesh.vertices), mesh.faces, camera.K, camera.width, camera.height)
     depth[~np.isfinite(depth)] = 0.0
-    if np.any(camera.dist):
-        K = np.ascontiguousarray(camera.K, np.float64)
-        dist = np.ascontiguousarray(camera.dist, np.float64)
-        map_x, map_y = _distortion_map(K.tobytes(), dist.tobytes(), camera.width, camera.height)
-        depth = cv2.remap(depth, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return depth
+    return apply_distortion(depth, camera, cv2.INTER_NEAREST)
 
 
 def demo_trajectory(count: int, distance_mm: float = 550.0, fps: float = 30.0, seed: int = 0) -> np.ndarray:

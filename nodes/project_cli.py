@@ -8,7 +8,9 @@ Usage::
 ``RUN_FOLDER`` is a run's output folder holding ``projection/<name>_scene.npz`` (written by the
 ``projection.textures`` sink) or that file itself. ``DEPTH_DIR`` holds 16-bit depth PNGs (mm)
 registered to the calibrated camera. ``--synthetic N`` renders N frames of the object turning in
-front of the calibrated camera (known truth; pose errors are reported).
+front of the calibrated camera (known truth; pose errors are reported). ``--mode lines`` (default)
+projects the curves as 3D polylines; ``--mode texture`` renders the per-layer textures baked by the
+sink onto the atlas mesh (perspective-correct UV interpolation).
 
 Output: ``OUT/<layer>/frame_000000.png`` per layer (Tx first), optionally ``OUT/<layer>.mp4``, and
 ``OUT/track.json`` with the per-frame status, inlier fraction, residual and pose.
@@ -35,7 +37,7 @@ from retrotouch.nodes.depth_tracking import (
     pose_error,
 )
 from retrotouch.nodes.procam_calibration import ProCamCalibration, load_calibration
-from retrotouch.nodes.projector_render import ProjectionScene, load_scene, render_layers
+from retrotouch.nodes.projector_render import ProjectionScene, load_scene, render_layers, render_textured
 
 
 def find_scene_file(layout: Path) -> Path:
@@ -85,9 +87,14 @@ def run_projection(
     fps: float = 30.0,
     noise_mm: float = 0.5,
     distance_mm: float = 550.0,
+    mode: str = "lines",
 ) -> dict:
     """Track, render and write the projector frames; returns the summary written to ``track.json``."""
+    if mode not in ("lines", "texture"):
+        raise UserError(f"--mode {mode!r} is unknown: use lines or texture")
     scene = load_scene(find_scene_file(layout))
+    if mode == "texture" and scene.atlas_uv is None:
+        raise UserError("--mode texture needs a scene with baked textures: re-run the projection.textures sink")
     cal = load_calibration(calibration_file)
     source, truth = make_source(scene, cal, frames, synthetic, fps, noise_mm, distance_mm)
     tracker = DepthTracker(Mesh(scene.vertices, scene.faces, "projection scene"), cal.camera)
@@ -109,7 +116,10 @@ def run_projection(
         for frame in source.frames():
             t0 = time.perf_counter()
             result = tracker.update(frame)
-            if result.T_cam_obj is not None:
+            if result.T_cam_obj is not None and mode == "texture":
+                T_proj_obj = cal.T_proj_cam @ result.T_cam_obj
+                images = {n: render_textured(scene, i, T_proj_obj, proj) for i, n in enumerate(scene.layer_names)}
+            elif result.T_cam_obj is not None:
                 images = render_layers(scene, cal.T_proj_cam @ result.T_cam_obj, proj)
             else:
                 images = {n: blank for n in scene.layer_names}
@@ -153,12 +163,13 @@ def project(
     fps: float = typer.Option(30.0, "--fps", help="frame rate of the sequence and video"),
     noise_mm: float = typer.Option(0.5, "--noise-mm", help="synthetic depth noise (mm)"),
     distance_mm: float = typer.Option(550.0, "--distance-mm", help="synthetic object distance from the camera (mm)"),
+    mode: str = typer.Option("lines", "--mode", help="lines: projected 3D polylines; texture: the baked per-layer textures"),
 ) -> None:
     """Track the object in depth frames and write the projector image per layer (Tx first).
 
     Operator errors are raised as UserError; the retrotouch CLI prints them as one line, exit code 2.
     """
-    summary = run_projection(layout, calibration, out, frames, synthetic, video, fps, noise_mm, distance_mm)
+    summary = run_projection(layout, calibration, out, frames, synthetic, video, fps, noise_mm, distance_mm, mode)
     typer.echo(
         f"{summary['frames']} frames ({summary['tracked']} tracked), layers {', '.join(summary['layers'])}, "
         f"median {summary['median_latency_ms']} ms/frame -> {out}"

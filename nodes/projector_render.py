@@ -20,6 +20,7 @@ image segments (perspective-correct by construction, no affine interpolation in 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 from pathlib import Path
 
@@ -73,21 +74,7 @@ def rasterize_depth(
     arbitrary ``K`` is obtained by a linear shear of the camera coordinates, which keeps the stored
     depth equal to the z coordinate. Back faces are culled (they are hidden on a closed mesh anyway).
     """
-    fov_y = np.deg2rad(60.0)
-    f_gl = (height / 2.0) / np.tan(fov_y / 2.0)
-    # OpenCV's rasterizer puts pixel centres at i + 0.5; ours are at i, hence the half-pixel shift.
-    shear = np.eye(4)
-    shear[:3, :3] = np.array(
-        [
-            [K[0, 0] / f_gl, K[0, 1] / f_gl, (K[0, 2] + 0.5 - width / 2.0) / f_gl],
-            [0.0, -K[1, 1] / f_gl, -(K[1, 2] + 0.5 - height / 2.0) / f_gl],
-            [0.0, 0.0, -1.0],
-        ]
-    )
-    settings = cv2.TriangleRasterizeSettings()
-    # Culling mode checked against an unculled render: RASTERIZE_CULLING_CW drops the back faces here.
-    settings.setCullingMode(cv2.RASTERIZE_CULLING_CW)
-    settings.setShadingType(cv2.RASTERIZE_SHADING_FLAT)
+    fov_y, shear = _gl_frustum(K, width, height)
     depth = np.full((height, width), z_far_mm, np.float32)
     depth = cv2.triangleRasterizeDepth(
         np.ascontiguousarray(vertices_cam, np.float32),
@@ -97,10 +84,94 @@ def rasterize_depth(
         fov_y,
         z_near_mm,
         z_far_mm,
-        settings,
+        _raster_settings(cv2.RASTERIZE_SHADING_FLAT),
     )
     depth[depth >= z_far_mm] = np.inf
     return depth
+
+
+def _gl_frustum(K: np.ndarray, width: int, height: int) -> tuple[float, np.ndarray]:
+    """(fovY, world2cam) making OpenCV's symmetric GL-style rasterizer reproduce pinhole ``K``.
+
+    ``world2cam`` is a linear shear of camera coordinates (z -> -z, y flipped); the rasterizer's
+    depth stays the camera z. OpenCV puts pixel centres at i + 0.5, ours at i: half-pixel shift.
+    """
+    fov_y = np.deg2rad(60.0)
+    f_gl = (height / 2.0) / np.tan(fov_y / 2.0)
+    shear = np.eye(4)
+    shear[:3, :3] = np.array(
+        [
+            [K[0, 0] / f_gl, K[0, 1] / f_gl, (K[0, 2] + 0.5 - width / 2.0) / f_gl],
+            [0.0, -K[1, 1] / f_gl, -(K[1, 2] + 0.5 - height / 2.0) / f_gl],
+            [0.0, 0.0, -1.0],
+        ]
+    )
+    return float(fov_y), shear
+
+
+def _raster_settings(shading: int) -> cv2.TriangleRasterizeSettings:
+    settings = cv2.TriangleRasterizeSettings()
+    # Culling mode checked against an unculled render: RASTERIZE_CULLING_CW drops the back faces here.
+    settings.setCullingMode(cv2.RASTERIZE_CULLING_CW)
+    settings.setShadingType(shading)
+    return settings
+
+
+@functools.lru_cache(maxsize=4)
+def _distortion_map(K_bytes: bytes, dist_bytes: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """For every distorted pixel, the pinhole pixel it corresponds to (float32 maps for cv2.remap)."""
+    K = np.frombuffer(K_bytes).reshape(3, 3)
+    dist = np.frombuffer(dist_bytes)
+    gx, gy = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([gx.ravel(), gy.ravel()], axis=1).reshape(-1, 1, 2)
+    und = cv2.undistortPoints(pix, K, dist, None, None, K).reshape(height, width, 2)
+    return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
+
+
+def apply_distortion(image: np.ndarray, device: DeviceIntrinsics, interpolation: int) -> np.ndarray:
+    """Warp a pinhole rendering (through ``device.K``) into the device's distorted image."""
+    if not np.any(device.dist):
+        return image
+    K = np.ascontiguousarray(device.K, np.float64)
+    dist = np.ascontiguousarray(device.dist, np.float64)
+    map_x, map_y = _distortion_map(K.tobytes(), dist.tobytes(), device.width, device.height)
+    return cv2.remap(image, map_x, map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def render_textured(scene: ProjectionScene, layer: int, T_dev_obj: np.ndarray, device: DeviceIntrinsics) -> np.ndarray:
+    """BGR uint8 image of the atlas mesh textured with ``scene.layer_textures[layer]``, seen by ``device``.
+
+    The rasterizer interpolates the atlas UVs perspective-correctly (checked against exact ray-plane
+    UVs in the tests), culls back faces and depth-tests; the texture is then sampled bilinearly
+    with ``cv2.remap`` and the result warped by the device's distortion.
+    """
+    if scene.atlas_uv is None or not scene.layer_textures:
+        raise UserError("this projection scene has no baked textures: re-run the projection.textures sink")
+    texture = scene.layer_textures[layer]
+    size_y, size_x = texture.shape[:2]
+    w, h = device.width, device.height
+    fov_y, shear = _gl_frustum(device.K, w, h)
+    verts = transform_points(T_dev_obj, scene.vertices[scene.atlas_vertex_map])
+    colours = np.column_stack([scene.atlas_uv, np.ones(len(scene.atlas_uv))]).astype(np.float32)
+    colour_buf = np.zeros((h, w, 3), np.float32)
+    depth_buf = np.full((h, w), 1.0e5, np.float32)
+    colour_buf, depth_buf = cv2.triangleRasterize(
+        np.ascontiguousarray(verts, np.float32),
+        np.ascontiguousarray(scene.atlas_faces, np.int32),
+        colours,
+        colour_buf,
+        depth_buf,
+        shear,
+        fov_y,
+        10.0,
+        1.0e5,
+        _raster_settings(cv2.RASTERIZE_SHADING_SHADED),
+    )
+    hit = colour_buf[..., 2] > 0.5
+    map_x = np.where(hit, colour_buf[..., 0] * size_x - 0.5, -1.0).astype(np.float32)
+    map_y = np.where(hit, (1.0 - colour_buf[..., 1]) * size_y - 0.5, -1.0).astype(np.float32)
+    image = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return apply_distortion(image, device, cv2.INTER_LINEAR)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +182,10 @@ class ProjectionScene:
     ``layer_offsets[i][c]:layer_offsets[i][c + 1]`` of ``layer_points[i]`` (surface points) with unit
     surface normals ``layer_normals[i]``. ``crossing_points``/``crossing_normals`` are the Tx x Rx
     crossings, ``pad[k]`` marks those that carry an electrode pad.
+
+    Optional texture route: ``atlas_vertex_map``/``atlas_faces``/``atlas_uv`` describe a UV atlas
+    (split vertices into ``vertices``, OBJ UV convention) and ``layer_textures[i]`` is layer ``i``
+    baked into it as a projector image (BGR uint8, black = no light); see :func:`render_textured`.
     """
 
     vertices: np.ndarray  # (n, 3) float64
@@ -122,6 +197,10 @@ class ProjectionScene:
     crossing_points: np.ndarray  # (K, 3)
     crossing_normals: np.ndarray  # (K, 3)
     pad: np.ndarray  # (K,) bool
+    atlas_vertex_map: np.ndarray | None = None  # (n',) int64
+    atlas_faces: np.ndarray | None = None  # (m, 3) int64
+    atlas_uv: np.ndarray | None = None  # (n', 2) float64
+    layer_textures: tuple[np.ndarray, ...] = ()
 
 
 def interpolated_normals(mesh: Mesh, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -158,6 +237,15 @@ def save_scene(scene: ProjectionScene) -> bytes:
         "crossing_normals": scene.crossing_normals,
         "pad": scene.pad,
     }
+    if scene.atlas_uv is not None:
+        arrays["atlas_vertex_map"] = scene.atlas_vertex_map
+        arrays["atlas_faces"] = scene.atlas_faces
+        arrays["atlas_uv"] = scene.atlas_uv
+        for i, tex in enumerate(scene.layer_textures):
+            ok, png = cv2.imencode(".png", tex)
+            if not ok:
+                raise RuntimeError("PNG encoding of a layer texture failed")
+            arrays[f"layer{i}_texture_png"] = png.ravel()
     for i in range(len(scene.layer_names)):
         arrays[f"layer{i}_points"] = scene.layer_points[i]
         arrays[f"layer{i}_normals"] = scene.layer_normals[i]
@@ -174,6 +262,10 @@ def load_scene(path: Path) -> ProjectionScene:
         if str(data["format"]) != SCENE_FORMAT:
             raise UserError(f"{path} is {data['format']}, expected {SCENE_FORMAT}: re-run the projection.textures sink")
         names = tuple(str(n) for n in data["layer_names"])
+        textured = "atlas_uv" in data
+        textures = tuple(
+            cv2.imdecode(data[f"layer{i}_texture_png"], cv2.IMREAD_COLOR) for i in range(len(names))
+        ) if textured else ()
         return ProjectionScene(
             vertices=data["vertices"],
             faces=data["faces"],
@@ -184,6 +276,10 @@ def load_scene(path: Path) -> ProjectionScene:
             crossing_points=data["crossing_points"],
             crossing_normals=data["crossing_normals"],
             pad=data["pad"],
+            atlas_vertex_map=data["atlas_vertex_map"] if textured else None,
+            atlas_faces=data["atlas_faces"] if textured else None,
+            atlas_uv=data["atlas_uv"] if textured else None,
+            layer_textures=textures,
         )
     except (OSError, KeyError, ValueError) as exc:
         raise UserError(f"cannot read projection scene {path}: {exc}; point --layout at a run folder with projection/*_scene.npz") from exc

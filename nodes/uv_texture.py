@@ -11,7 +11,9 @@ Files written (``<name>`` from ``Params.name`` or the mesh source):
 * ``projection/<name>_layout.glb`` -- the textured mesh with the texture embedded,
 * ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png``,
 * ``projection/<name>_scene.npz`` -- the curves, normals and crossings the projector renderer and
-  ``retrotouch project`` read (see :class:`retrotouch.nodes.projector_render.ProjectionScene`).
+  ``retrotouch project`` read, plus the atlas and one projector texture per layer (black
+  background, white curves) for the textured route (see
+  :class:`retrotouch.nodes.projector_render.ProjectionScene`).
 
 UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size.
 """
@@ -131,27 +133,48 @@ def segment_uv_pixels(mesh: Mesh, atlas: Atlas, curves: CurveSet, texture_px: in
     return np.stack([a, b], axis=1)
 
 
-def bake_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: TextureParams) -> np.ndarray:
-    """The BGR uint8 texture (texture_px, texture_px, 3) with curves, crossings and pads."""
+def _bake(
+    mesh: Mesh,
+    layout: Layout,
+    atlas: Atlas,
+    params: TextureParams,
+    background: tuple[int, int, int],
+    curves: list[tuple[CurveSet, tuple[int, int, int]]],
+    crossing_bgr: tuple[int, int, int],
+    pad_bgr: tuple[int, int, int],
+) -> np.ndarray:
     size = params.texture_px
     img = np.zeros((size, size, 3), np.uint8)
-    img[:] = _bgr(params.background)
+    img[:] = background
     density = texels_per_mm(mesh, atlas, size)
     shift = 4
     scale = float(1 << shift)
     width = max(1, int(round(params.line_width_mm * density)))
-    for curves, colour in ((layout.tx, params.tx_colour), (layout.rx, params.rx_colour)):
-        segs = segment_uv_pixels(mesh, atlas, curves, size)
-        cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, _bgr(colour), width, cv2.LINE_AA, shift)
+    for curve_set, colour in curves:
+        segs = segment_uv_pixels(mesh, atlas, curve_set, size)
+        cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
     centres = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, size) * scale).astype(np.int64)
     pad_r = int(round(params.pad_radius_mm * density * scale))
     ring_r = int(round(params.crossing_radius_mm * density * scale))
     ring_w = max(1, width // 2)
     for (x, y), has_pad in zip(centres, np.asarray(layout.pad, bool)):
         if has_pad:
-            cv2.circle(img, (int(x), int(y)), pad_r, _bgr(params.pad_colour), -1, cv2.LINE_AA, shift)
-        cv2.circle(img, (int(x), int(y)), ring_r, _bgr(params.crossing_colour), ring_w, cv2.LINE_AA, shift)
+            cv2.circle(img, (int(x), int(y)), pad_r, pad_bgr, -1, cv2.LINE_AA, shift)
+        cv2.circle(img, (int(x), int(y)), ring_r, crossing_bgr, ring_w, cv2.LINE_AA, shift)
     return img
+
+
+def bake_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: TextureParams) -> np.ndarray:
+    """The BGR uint8 texture (texture_px, texture_px, 3) with both layers' curves, crossings and pads."""
+    curves = [(layout.tx, _bgr(params.tx_colour)), (layout.rx, _bgr(params.rx_colour))]
+    return _bake(mesh, layout, atlas, params, _bgr(params.background), curves, _bgr(params.crossing_colour), _bgr(params.pad_colour))
+
+
+def bake_projector_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: TextureParams, layer: str) -> np.ndarray:
+    """One layer baked for projection: black (no light), the layer's curves white, crossing rings and pads in colour."""
+    curve_set = layout.tx if layer == "tx" else layout.rx
+    white = (255, 255, 255)
+    return _bake(mesh, layout, atlas, params, (0, 0, 0), [(curve_set, white)], (0, 255, 255), _bgr(params.pad_colour))
 
 
 def obj_text(mesh: Mesh, atlas: Atlas, mtl_file: str) -> str:
@@ -192,12 +215,19 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
     textured = trimesh.Trimesh(vertices=mesh.vertices[atlas.vertex_map], faces=atlas.faces, visual=visual, process=False)
     glb = textured.export(file_type="glb")
     base = f"projection/{stem}"
+    scene = dataclasses.replace(
+        build_scene(mesh, layout),
+        atlas_vertex_map=atlas.vertex_map,
+        atlas_faces=atlas.faces,
+        atlas_uv=atlas.uv,
+        layer_textures=tuple(bake_projector_texture(mesh, layout, atlas, params, layer) for layer in ("tx", "rx")),
+    )
     return Files(
         {
             f"{base}_layout.glb": bytes(glb),
             f"{base}_layout.obj": obj_text(mesh, atlas, f"{stem}_layout.mtl").encode(),
             f"{base}_layout.mtl": mtl_text(f"{stem}_texture.png").encode(),
             f"{base}_texture.png": png.tobytes(),
-            f"{base}_scene.npz": save_scene(build_scene(mesh, layout)),
+            f"{base}_scene.npz": save_scene(scene),
         }
     )

@@ -1,11 +1,12 @@
 """Projector rendering: z-buffer accuracy, back-face culling, occlusion, layer order."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import trimesh
 
 from retrotouch.nodes.procam_calibration import DeviceIntrinsics
-from retrotouch.nodes.projector_render import ProjectionScene, project_points, rasterize_depth, render_layers
+from retrotouch.nodes.projector_render import ProjectionScene, project_points, rasterize_depth, render_layers, render_textured
 
 K = np.array([[800.0, 0.0, 330.0], [0.0, 790.0, 236.0], [0.0, 0.0, 1.0]])
 PROJECTOR = DeviceIntrinsics(K, np.array([0.02, 0.0, 0.0, 0.0, 0.0]), 640, 480)
@@ -93,3 +94,30 @@ def test_rendered_lines_sit_on_the_projected_points():
     seg = np.linalg.norm(np.diff(uv, axis=0), axis=1).max()
     assert d.max() < 2.0 + seg / 2
     assert images["rx"].max() == 0
+
+
+def test_textured_route_interpolates_uv_perspective_correctly():
+    """A steeply tilted quad with a texture encoding its own coordinates: rendered colours match exact ray-plane UVs."""
+    corners = np.array([[-80.0, -60.0, 520.0], [-80.0, 60.0, 330.0], [80.0, 60.0, 330.0], [80.0, -60.0, 520.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.0, 1.0], [0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])  # v up (OBJ): top image row = corner 0 side
+    cols, rows = np.meshgrid(np.arange(256), np.arange(256))
+    texture = np.stack([cols, rows, np.zeros_like(cols)], axis=2).astype(np.uint8)
+    scene = ProjectionScene(
+        vertices=corners, faces=faces, layer_names=("tx",), layer_points=(np.zeros((0, 3)),),
+        layer_normals=(np.zeros((0, 3)),), layer_offsets=(np.array([0]),), crossing_points=np.zeros((0, 3)),
+        crossing_normals=np.zeros((0, 3)), pad=np.zeros(0, bool),
+        atlas_vertex_map=np.arange(4), atlas_faces=faces, atlas_uv=uv, layer_textures=(texture,),
+    )
+    device = DeviceIntrinsics(K, np.zeros(5), 640, 480)
+    image = render_textured(scene, 0, np.eye(4), device)
+    depth = rasterize_depth(corners, faces, K, 640, 480)
+    inner = np.isfinite(depth) & (cv2.erode(np.isfinite(depth).astype(np.uint8), np.ones((5, 5))) > 0)
+    r, c = np.nonzero(inner)
+    rays = np.linalg.solve(K, np.stack([c, r, np.ones_like(c)]).astype(float)).T
+    n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+    p = rays * ((n @ corners[0]) / (rays @ n))[:, None]
+    u = (p[:, 0] + 80.0) / 160.0
+    v_row = (p[:, 1] + 60.0) / 120.0  # texture row fraction (0 at corner 0's edge)
+    assert np.abs(image[r, c, 0] - (u * 256 - 0.5)).max() < 1.5
+    assert np.abs(image[r, c, 1] - (v_row * 256 - 0.5)).max() < 1.5

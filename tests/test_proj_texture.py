@@ -11,7 +11,9 @@ import trimesh
 from proj_fixtures import bunny_layout, bunny_mm
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.datatypes import Layout
-from retrotouch.nodes.projector_render import load_scene
+from retrotouch.nodes.depth_tracking import demo_trajectory
+from retrotouch.nodes.procam_calibration import demo_rig
+from retrotouch.nodes.projector_render import RenderStyle, load_scene, render_layers, render_textured
 from retrotouch.nodes.uv_texture import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
 
 
@@ -88,3 +90,17 @@ def test_name_from_source():
     assert name_from_source("builtin:bunny sha256:ab12") == "bunny"
     assert name_from_source("/data/my duck.ply sha256:00") == "my_duck"
     assert name_from_source("/data/duck_gao.ply") == "duck_gao"
+
+
+def test_textured_route_agrees_with_projected_polylines(baked):
+    """Both projector routes light the same places: textured-route pixels lie on the polyline route's lines."""
+    _, _, _, _, out = baked
+    scene = load_scene(out / "projection/bunny_scene.npz")
+    assert [t.shape for t in scene.layer_textures] == [(1024, 1024, 3)] * 2
+    rig = demo_rig(640, 360)
+    T = rig.T_proj_cam @ demo_trajectory(1)[0]
+    textured = render_textured(scene, 0, T, rig.projector).max(axis=2) > 128
+    lines = render_layers(scene, T, rig.projector, RenderStyle(line_px=1))["tx"].max(axis=2) > 0
+    assert textured.sum() > 200
+    near_lines = cv2.dilate(lines.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert (textured & near_lines).sum() / textured.sum() > 0.9
