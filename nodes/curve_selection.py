@@ -341,7 +341,7 @@ def select_curves(
     time_limit_s: float = 4.0,
     seed: int = 0,
     workers: int = 1,
-    max_memberships: int = 40000,
+    max_memberships: int = 15000,
 ) -> SelectionResult:
     """Solve phase 1 (see the module docstring) and report every stage."""
     from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery

@@ -4,8 +4,8 @@
 (:mod:`retrotouch.nodes.curve_selection`), geodesic distances among the active crossings, phase 2
 pad placement (:mod:`retrotouch.nodes.pad_placement`) with the relaxation ladder, and the metrics
 (:mod:`retrotouch.nodes.layout_metrics`). ``layout.pick_best`` takes the branches in order and
-keeps the best by (coverage radius, then mean distance when the secondary objective is on, then
-Voronoi CV), and returns the per-angle table.
+keeps the best by (coverage radius within ``radius_tolerance_mm`` of the best, then mean distance
+when the secondary objective is on, then Voronoi CV), and returns the per-angle table.
 
 Relaxation ladder, applied only when phase 2 is infeasible (some selected curve cannot carry
 ``min_pads_per_curve`` pads at spacing ``d_min``): (1) smaller pads, each radius of
@@ -48,6 +48,9 @@ class OptimizeParams(NodeParams):
     resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
     time_limit_s: float = Field(1.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
     pad_time_limit_s: float = Field(2.0, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
+    max_model_memberships: int = Field(
+        15000, ge=100, description="phase-1 model size cap in (sample, crossing) pairs; beyond it a trust region"
+    )
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
     seed: int = Field(0, description="CP-SAT random seed")
     require_base_end: bool = Field(True, description="only curves that reach the base can be wired")
@@ -185,7 +188,8 @@ def optimize_angle(
     }
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
-                                  params.resolution_mm, params.time_limit_s, params.seed, params.workers)
+                                  params.resolution_mm, params.time_limit_s, params.seed, params.workers,
+                                  params.max_model_memberships)
     except UserError as exc:
         return AngleLayout(angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
     t1 = time.perf_counter()
@@ -279,15 +283,26 @@ def optimize(
 
 class PickParams(NodeParams):
     print_table: bool = Field(True, description="print the per-angle table to the console")
+    radius_tolerance_mm: float = Field(
+        1.0, ge=0, description="coverage radii within this of the best count as equal (then mean, then CV)"
+    )
 
 
-def ranking_key(metrics: dict) -> tuple:
-    """Sort key of a feasible branch: radius (at the model's resolution), secondary, Voronoi CV."""
-    resolution = metrics["phase1"]["resolution_mm"]
-    radius = round(metrics["coverage_radius_mm"] / resolution)
-    mean = metrics["mean_distance_mm"] if metrics["secondary"] else 0.0
-    cv = metrics["voronoi_cv"] if metrics["voronoi_cv"] is not None else float("inf")
-    return (radius, mean, cv)
+def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float) -> int:
+    """Index of the best feasible branch: smallest coverage radius (ties within the tolerance, since
+    the K samples resolve no finer), then the mean distance when the secondary objective is on,
+    then the Voronoi CV."""
+    feasible = [i for i, c in enumerate(candidates) if c.feasible]
+    best_radius = min(candidates[i].metrics["coverage_radius_mm"] for i in feasible)
+    tied = [i for i in feasible if candidates[i].metrics["coverage_radius_mm"] <= best_radius + radius_tolerance_mm]
+
+    def key(i: int) -> tuple:
+        m = candidates[i].metrics
+        mean = m["mean_distance_mm"] if m["secondary"] else 0.0
+        cv = m["voronoi_cv"] if m["voronoi_cv"] is not None else float("inf")
+        return (mean, cv, m["coverage_radius_mm"])
+
+    return min(tied, key=key)
 
 
 def angle_table(candidates: list[AngleLayout]) -> list[dict]:
@@ -335,7 +350,7 @@ def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, ob
     if not feasible:
         reasons = "; ".join(f"{c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
         raise UserError(f"no Rx angle gives a feasible layout ({reasons})")
-    best = min(feasible, key=lambda i: ranking_key(candidates[i].metrics))
+    best = best_branch(candidates, params.radius_tolerance_mm)
     rows = angle_table(candidates)
     if params.print_table:
         print_angle_table(rows, best)

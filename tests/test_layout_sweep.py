@@ -1,0 +1,37 @@
+"""layout.pick_best ranking and the per-angle table, on hand-made branch results."""
+from __future__ import annotations
+
+import pytest
+
+from retrotouch.nodes.layout_sweep import AngleLayout, PickParams, angle_table, best_branch, pick_best
+
+
+def branch(angle, radius, mean, cv, secondary=True, feasible=True):
+    metrics = {"coverage_radius_mm": radius, "mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
+               "pads": 10, "tx_channels": 21, "rx_channels": 12, "seconds": {"total": 1.0}, "relaxations": [],
+               "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0}], "resolution_mm": 0.5}}
+    return AngleLayout(angle, feasible, "ok" if feasible else "no pads", None, metrics)
+
+
+def test_radius_ties_within_tolerance_fall_to_the_mean_then_the_cv():
+    candidates = [branch(-10, 30.0, 8.0, 0.5), branch(0, 30.6, 7.0, 0.6), branch(10, 33.0, 5.0, 0.1)]
+    assert best_branch(candidates, 1.0) == 1  # 30.6 ties with 30.0, lower mean wins; 33.0 is out
+    assert best_branch(candidates, 0.0) == 0
+    off = [branch(-10, 30.0, 8.0, 0.5, False), branch(0, 30.6, 7.0, 0.4, False)]
+    assert best_branch(off, 1.0) == 1  # secondary off: the Voronoi CV decides among ties
+
+
+def test_infeasible_branches_are_skipped_and_listed():
+    candidates = [branch(-10, 10.0, 1.0, 0.1, feasible=False), branch(0, 30.0, 8.0, 0.5)]
+    assert best_branch(candidates, 1.0) == 1
+    rows = angle_table(candidates)
+    assert [r["angle_deg"] for r in rows] == [-10, 0] and [r["feasible"] for r in rows] == [False, True]
+    out = pick_best(PickParams(print_table=False), candidates)
+    assert out["metrics"]["chosen_angle_deg"] == 0 and len(out["metrics"]["angles"]) == 2
+
+
+def test_gap_is_unknown_when_a_stage_has_no_incumbent():
+    c = branch(0, 30.0, 8.0, 0.5)
+    c.metrics["phase1"]["stages"].append({"status": "UNKNOWN", "gap": None})
+    assert angle_table([c])[0]["gap"] is None
+    assert angle_table([branch(0, 30.0, 8.0, 0.5)])[0]["gap"] == pytest.approx(0.0)
