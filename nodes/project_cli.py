@@ -165,10 +165,8 @@ def project(
     distance_mm: float = typer.Option(550.0, "--distance-mm", help="synthetic object distance from the camera (mm)"),
     mode: str = typer.Option("lines", "--mode", help="lines: projected 3D polylines; texture: the baked per-layer textures"),
 ) -> None:
-    """Track the object in depth frames and write the projector image per layer (Tx first).
-
-    Operator errors are raised as UserError; the retrotouch CLI prints them as one line, exit code 2.
-    """
+    """Track the object in depth frames and write the projector image per layer (Tx first)."""
+    # Operator errors are raised as UserError; the retrotouch CLI prints them as one line, exit code 2.
     summary = run_projection(layout, calibration, out, frames, synthetic, video, fps, noise_mm, distance_mm, mode)
     typer.echo(
         f"{summary['frames']} frames ({summary['tracked']} tracked), layers {', '.join(summary['layers'])}, "

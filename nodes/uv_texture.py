@@ -23,17 +23,15 @@ import dataclasses
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
-import trimesh
-import xatlas
-from PIL import Image
 from pydantic import Field, field_validator
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import Files, NodeParams, node
 from retrotouch.nodes.datatypes import CurveSet, Layout, Mesh
-from retrotouch.nodes.projector_render import build_scene, save_scene
+
+# Heavy libraries (cv2, trimesh, xatlas, PIL) are imported inside the functions: node modules must
+# import cheaply (the engine imports them to discover node types).
 
 HEX_COLOUR = re.compile(r"^#[0-9a-fA-F]{6}$")
 
@@ -91,6 +89,8 @@ class Atlas:
 
 def build_atlas(mesh: Mesh, texture_px: int, padding_px: int) -> Atlas:
     """xatlas parametrisation packed into a ``texture_px`` square with ``padding_px`` gutters."""
+    import xatlas
+
     atlas = xatlas.Atlas()
     atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
     pack = xatlas.PackOptions()
@@ -122,6 +122,8 @@ def face_uv_pixels(atlas: Atlas, faces: np.ndarray, bary: np.ndarray, texture_px
 
 def segment_uv_pixels(mesh: Mesh, atlas: Atlas, curves: CurveSet, texture_px: int) -> np.ndarray:
     """(S, 2, 2) texture pixel coordinates of every curve segment, both ends in the segment's own face."""
+    import trimesh
+
     starts = np.concatenate([np.arange(curves.offsets[c], curves.offsets[c + 1] - 1) for c in range(curves.count)])
     if len(starts) == 0:
         return np.zeros((0, 2, 2))
@@ -143,6 +145,8 @@ def _bake(
     crossing_bgr: tuple[int, int, int],
     pad_bgr: tuple[int, int, int],
 ) -> np.ndarray:
+    import cv2
+
     size = params.texture_px
     img = np.zeros((size, size, 3), np.uint8)
     img[:] = background
@@ -204,6 +208,12 @@ def check_layout_on_mesh(mesh: Mesh, layout: Layout) -> None:
 @node("projection.textures", params=TextureParams, inputs=("mesh", "layout"), outputs=("files",), sink=True)
 def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Files:
     """Bake the selected curves (per-layer colour), crossings and pads into a UV texture; write GLB, OBJ+MTL+PNG and the projection scene."""
+    import cv2
+    import trimesh
+    from PIL import Image
+
+    from retrotouch.nodes.projector_render import build_scene, save_scene
+
     check_layout_on_mesh(mesh, layout)
     stem = params.name or name_from_source(mesh.source)
     atlas = build_atlas(mesh, params.texture_px, params.padding_px)

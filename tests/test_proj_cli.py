@@ -7,6 +7,7 @@ import cv2
 import pytest
 
 from proj_fixtures import bunny_layout, bunny_mm
+from retrotouch.nodes.depth_tracking import SyntheticDepthSource, demo_trajectory, write_depth_png
 from retrotouch.nodes.procam_calibration import demo_rig, save_calibration
 from retrotouch.nodes.projector_render import build_scene, save_scene
 
@@ -42,6 +43,7 @@ def test_synthetic_sequence_writes_projector_frames(cli, run_folder):
     [
         (["--synthetic", "2", "--frames", "."], "exactly one of --frames"),
         (["--frames", "nowhere"], "is not a folder"),
+        (["--synthetic", "1", "--mode", "texture"], "needs a scene with baked textures"),
     ],
 )
 def test_operator_errors_are_one_line(cli, run_folder, extra, message):
@@ -57,3 +59,20 @@ def test_missing_scene_and_calibration(cli, run_folder, tmp_path):
     assert result.returncode == 2 and "no projection/*_scene.npz" in result.stderr
     result = cli("project", "--layout", run_folder / "run", "--calibration", tmp_path / "none.json", "--synthetic", "1", "--out", tmp_path / "o")
     assert result.returncode == 2 and "cannot read calibration file" in result.stderr
+
+
+def test_recorded_depth_folder(cli, run_folder):
+    """--frames plays 16-bit depth PNGs registered to the calibrated camera."""
+    mesh = bunny_mm(3000)
+    depth_dir = run_folder / "depth"
+    depth_dir.mkdir()
+    for frame in SyntheticDepthSource(mesh, demo_rig(320, 180).camera, demo_trajectory(2, seed=5)).frames():
+        write_depth_png(depth_dir / f"{frame.index:05d}.png", frame.depth_mm)
+    out = run_folder / "out_frames"
+    result = cli("project", "--layout", run_folder / "run" / "projection" / "bunny_scene.npz",
+                 "--calibration", run_folder / "rig.json", "--frames", depth_dir, "--out", out)
+    assert result.returncode == 0, result.stderr
+    track = json.loads((out / "track.json").read_text())
+    assert [r["status"] for r in track["records"]] == ["found", "tracked"]
+    assert "error_deg" not in track["records"][0]  # no truth for recorded frames
+    assert len(list((out / "rx").glob("frame_*.png"))) == 2
