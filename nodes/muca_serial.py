@@ -16,8 +16,10 @@ Frame conventions (stated once here, used by the simulator and the touch process
   prints ``i2c write failed`` without one) is salvaged when the text ends in a non-digit.
 * Binary format (Muca_Raw_Basic.ino SendRawByte): ``2 + num_tx * num_rx`` bytes per frame,
   ``[min_hi, min_lo, uint8(value - min) ...]``, no sync marker. Frames are cut every
-  ``2 + cells`` bytes; the reader drops a partial frame after a pause in the byte stream
-  (the board sends a frame in one burst), which re-aligns the stream.
+  ``2 + cells`` bytes from the start of the stream (after any status lines); the reader drops a
+  partial frame after a read timeout without a byte (a pause between frames), which re-aligns the
+  stream. A board that streams without pauses stays aligned only while no byte is lost: prefer
+  the ASCII format when the link is unreliable.
 
 Recording file (JSON lines, replayable through the same parser)::
 
@@ -196,11 +198,12 @@ class BinaryFrameParser:
 
     def _drop_status_line(self) -> None:
         """ASCII status lines printed before streaming starts are not frame bytes."""
-        if self._pending.startswith(STATUS_PREFIXES):
+        while self._pending.startswith(STATUS_PREFIXES):
             end = self._pending.find(b"\n")
-            if end >= 0:
-                self.stats.status_lines += 1
-                del self._pending[: end + 1]
+            if end < 0:
+                return
+            self.stats.status_lines += 1
+            del self._pending[: end + 1]
 
     def resync(self) -> None:
         """Drop a partial frame; called after a pause in the byte stream (frames come in bursts)."""
@@ -328,7 +331,6 @@ class MucaReader:
         skip_first_lines: int = 0,
         record: str | Path | None = None,
         read_timeout_s: float = 0.05,
-        resync_gap_s: float = 0.01,
         reconnect_interval_s: float = 0.5,
         reconnect_timeout_s: float | None = None,
         open_port: Callable[..., serial.SerialBase] | None = None,
@@ -340,7 +342,6 @@ class MucaReader:
         self.options = options
         self.parser = make_parser(frame_format, options, skip_first_lines)
         self.read_timeout_s = read_timeout_s
-        self.resync_gap_s = resync_gap_s
         self.reconnect_interval_s = reconnect_interval_s
         self.reconnect_timeout_s = reconnect_timeout_s
         self.reconnects = 0
@@ -372,7 +373,7 @@ class MucaReader:
 
     def frames(self) -> Iterator[Frame]:
         """Yield frames until :meth:`close`; never raises on bad input or an unplug."""
-        last_byte_t = time.monotonic()
+        idle = False
         while not self._closed:
             if self._serial is None and not self._reconnect():
                 return
@@ -388,10 +389,11 @@ class MucaReader:
                 continue
             now = time.monotonic()
             if not data:
+                idle = True  # a whole read timeout without a byte: the board is between frames
                 continue
-            if isinstance(self.parser, BinaryFrameParser) and now - last_byte_t > self.resync_gap_s:
+            if idle and isinstance(self.parser, BinaryFrameParser):
                 self.parser.resync()
-            last_byte_t = now
+            idle = False
             if self.recorder is not None:
                 self.recorder.bytes(data)
             for values in self.parser.feed(data):

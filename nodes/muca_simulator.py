@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
+import multiprocessing
 import os
 import pty
 import threading
@@ -426,7 +427,8 @@ DEMO_SCRIPT = [
 class PtyBoard:
     """Serves a virtual board's frames on a pseudo-terminal; open :attr:`port` with pyserial.
 
-    Paced at ``rate_hz`` of board time, or as fast as the reader drains the pty when ``fast``.
+    Paced at ``rate_hz`` of board time, or as fast as the reader drains the pty when ``fast``; with
+    ``separate_process`` the board runs in a forked process (as a real board runs on its own chip).
     Frame ``k`` shows the script at board time ``k / rate_hz``. Stops after the script's duration
     (or ``frames`` frames if given; ``loop`` repeats the script forever).
     """
@@ -440,6 +442,7 @@ class PtyBoard:
         frames: int | None = None,
         loop: bool = False,
         garbage_every: int = 0,
+        separate_process: bool = False,
     ):
         self.board = board
         self.script = script
@@ -454,10 +457,14 @@ class PtyBoard:
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)
         self.port = os.ttyname(self.slave)
-        self.frames_sent = 0
-        self.done = threading.Event()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="muca-simulator", daemon=True)
+        if separate_process:
+            # A board of its own: frame synthesis does not compete with the reader for the GIL.
+            context = multiprocessing.get_context("fork")
+            self.done, self._stop = context.Event(), context.Event()
+            self._thread = context.Process(target=self._run, name="muca-simulator", daemon=True)
+        else:
+            self.done, self._stop = threading.Event(), threading.Event()
+            self._thread = threading.Thread(target=self._run, name="muca-simulator", daemon=True)
 
     def __enter__(self) -> PtyBoard:
         self.start()
@@ -492,11 +499,8 @@ class PtyBoard:
                     delay = start + t - time.monotonic()
                     if delay > 0:
                         self._stop.wait(delay)
-                elif self.frame_format == "binary":
-                    self._stop.wait(0.002)  # binary frames carry no sync: keep bursts apart
                 self._write(data)
                 k += 1
-                self.frames_sent = k
         except OSError:
             pass  # the reader side went away
         finally:
@@ -505,6 +509,9 @@ class PtyBoard:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
+        if isinstance(self._thread, multiprocessing.process.BaseProcess) and self._thread.is_alive():
+            self._thread.kill()  # blocked writing into a pty nobody reads any more
+            self._thread.join()
         for fd in (self.master, self.slave):
             try:
                 os.close(fd)
@@ -534,12 +541,13 @@ def frames_through_pty(
     garbage_every: int = 0,
     record: str | Path | None = None,
     loop: bool = False,
+    separate_process: bool = False,
 ) -> Iterator[Frame]:
     """Run ``board`` on a pseudo-terminal and read it back with :class:`MucaReader` (the real serial
     path). Frames carry board time ``seq / rate_hz`` (s), so fast mode keeps the script's timing.
     Ends after the board's last frame (never with ``loop``); the script's labels go into the recording."""
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
-                         garbage_every=garbage_every, loop=loop)
+                         garbage_every=garbage_every, loop=loop, separate_process=separate_process)
     options = FrameOptions(board.map.num_tx, board.map.num_rx, board.params.flip_tx, board.params.flip_rx)
     # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
@@ -552,10 +560,12 @@ def frames_through_pty(
     stalled = threading.Event()
 
     def watchdog() -> None:
-        # The reader blocks on the port: end it once the board is done and the stream went quiet.
-        seen = -1
+        # The reader blocks on the port: end it once the board is done and no frame came for 5 s
+        # (only if frames were lost; normally the loop below stops at the board's last frame).
+        seen, quiet = -1, 0
         while not stalled.wait(0.5):
-            if simulator.done.is_set() and reader_seq[0] == seen:
+            quiet = quiet + 1 if simulator.done.is_set() and reader_seq[0] == seen else 0
+            if quiet >= 10:
                 reader.close()
                 return
             seen = reader_seq[0]

@@ -217,17 +217,20 @@ def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> np
         w_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         total = va + vb + vc
         v_in, w_in = vb / total, vc / total
-    zero, one = np.zeros_like(d1), np.ones_like(d1)
-    conditions = [
-        (d1 <= 0) & (d2 <= 0),
-        (d3 >= 0) & (d4 <= d3),
-        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-        (d6 >= 0) & (d5 <= d6),
-        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-    ]
-    v = np.select(conditions, [zero, one, v_ab, zero, zero, 1 - w_bc], v_in)
-    w = np.select(conditions, [zero, zero, zero, one, w_ac, w_bc], w_in)
+    # Regions in reverse priority, so the first matching test of Ericson's order wins.
+    v, w = v_in, w_in
+    edge_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    v, w = np.where(edge_bc, 1 - w_bc, v), np.where(edge_bc, w_bc, w)
+    edge_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    v, w = np.where(edge_ac, 0.0, v), np.where(edge_ac, w_ac, w)
+    corner_c = (d6 >= 0) & (d5 <= d6)
+    v, w = np.where(corner_c, 0.0, v), np.where(corner_c, 1.0, w)
+    edge_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    v, w = np.where(edge_ab, v_ab, v), np.where(edge_ab, 0.0, w)
+    corner_b = (d3 >= 0) & (d4 <= d3)
+    v, w = np.where(corner_b, 1.0, v), np.where(corner_b, 0.0, w)
+    corner_a = (d1 <= 0) & (d2 <= 0)
+    v, w = np.where(corner_a, 0.0, v), np.where(corner_a, 0.0, w)
     return np.column_stack([1 - v - w, v, w])
 
 
@@ -241,6 +244,10 @@ class SurfaceProjector:
         self.k = min(k, len(faces))
         normals = np.cross(self.triangles[:, 1] - self.triangles[:, 0], self.triangles[:, 2] - self.triangles[:, 0])
         self.face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        helper = np.where(np.abs(self.face_normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        t1 = np.cross(self.face_normals, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        self.face_frames = np.stack([t1, np.cross(self.face_normals, t1), self.face_normals], axis=1)  # rows t1, t2, n
 
     def project(self, points: np.ndarray, facing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(n, 3) points -> closest surface points (n, 3), their faces (n,), barycentrics (n, 3).
@@ -282,13 +289,6 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     triangles = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
     return np.bincount(faces.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
-
-
-def vertex_adjacency(faces: np.ndarray, n: int) -> sp.csr_matrix:
-    """Symmetric vertex adjacency of the mesh edges (CSR, bool)."""
-    rows = faces[:, [0, 1, 2, 1, 2, 0]].ravel()
-    cols = faces[:, [1, 2, 0, 0, 1, 2]].ravel()
-    return sp.csr_matrix((np.ones(len(rows), dtype=bool), (rows, cols)), shape=(n, n))
 
 
 # --------------------------------------------------------------------------------------------
@@ -366,7 +366,8 @@ class TouchProcessor:
         self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
                                                                     params.contact_mesh_faces)
         self.areas = vertex_areas(self.contact_vertices, self.contact_faces)
-        self.adjacency = vertex_adjacency(self.contact_faces, len(self.contact_vertices))
+        edges = self.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        self.edges = np.unique(np.sort(edges, axis=1), axis=0)  # (E, 2) undirected mesh edges
         self._build_interpolation(interpolation_radius)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
@@ -383,8 +384,6 @@ class TouchProcessor:
         cell_to_vertex = sp.csr_matrix((weights, (pairs.row, pairs.col)), shape=(self.map.cell_count, len(vertices)))
         totals = np.asarray(cell_to_vertex.sum(axis=0)).ravel()
         self.vertex_to_cell = sp.csr_matrix(cell_to_vertex.T.multiply(1.0 / np.maximum(totals, 1e-300)[:, None]))
-        self.cell_vertices = [cell_to_vertex.indices[cell_to_vertex.indptr[k]:cell_to_vertex.indptr[k + 1]]
-                              for k in range(self.map.cell_count)]
 
     def reset(self) -> None:
         """Forget baseline, noise and tracks (the next frames recalibrate)."""
@@ -487,14 +486,18 @@ class TouchProcessor:
         if len(peaks) == 0:
             return []
         positive = np.maximum(delta, 0.0)
-        region = np.unique(np.concatenate([self.cell_vertices[k] for k in np.flatnonzero(self.active)]))
-        field = self.vertex_to_cell[region] @ positive
+        field = self.vertex_to_cell @ positive
         floor = self.params.off_sigma * float(np.median(sigma))
         inside = field > floor
-        region, field = region[inside], field[inside]
+        region = np.flatnonzero(inside)
         if len(region) == 0:
             return []
-        _, labels = connected_components(self.adjacency[region][:, region], directed=False)
+        field = field[region]
+        local = np.cumsum(inside) - 1
+        kept = inside[self.edges[:, 0]] & inside[self.edges[:, 1]]
+        a, b = local[self.edges[kept, 0]], local[self.edges[kept, 1]]
+        graph = sp.coo_matrix((np.ones(len(a), dtype=bool), (a, b)), shape=(len(region), len(region)))
+        _, labels = connected_components(graph, directed=False)
         vertices = self.contact_vertices[region]
         # Each vertex belongs to the nearest peak of its own component (components without a peak drop).
         peak_points = self.map.cell_points[peaks]
@@ -504,7 +507,7 @@ class TouchProcessor:
         d2[labels[:, None] != peak_label[None]] = np.inf
         owner = np.argmin(d2, axis=1)
         owned = np.isfinite(d2[np.arange(len(region)), owner])
-        found = []  # (cell, point, face, bary, area)
+        found = []  # [cell, point, face, bary, area, centroid]; point/face/bary set by the refinement or below
         for j, cell in enumerate(peaks):
             mine = owned & (owner == j)
             if not mine.any():
@@ -513,17 +516,24 @@ class TouchProcessor:
             centroid = weights @ vertices[mine] / weights.sum()
             peak_field = field[mine].max()
             area = float(self.areas[region[mine]][field[mine] >= 0.5 * peak_field].sum())
-            facing = self.map.cell_normals[cell]
-            points, faces, barys = self.projector.project(centroid, facing)
-            point, face, bary = points[0], int(faces[0]), barys[0]
-            if self.projector.face_normals[face] @ facing <= 0.0:
-                # The centroid of a contact wrapping a thin part projected onto the far side.
-                point, face, bary = self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
-            found.append([int(cell), point, face, bary, area])
+            found.append([int(cell), None, None, None, area, centroid])
         if self.params.refine:
             self._refine_all(found, positive, sigma)
+        for entry in found:
+            if entry[1] is None:
+                entry[1:4] = self._coarse_point(entry[5], entry[0])
         return [Touch(-1, point, face, bary, self.projector.face_normals[face], float(delta[cell]), area, cell)
-                for cell, point, face, bary, area in found]
+                for cell, point, face, bary, area, _ in found]
+
+    def _coarse_point(self, centroid: np.ndarray, cell: int) -> tuple[np.ndarray, int, np.ndarray]:
+        """The contact centroid projected on the surface on the side facing like the peak cell."""
+        facing = self.map.cell_normals[cell]
+        points, faces, barys = self.projector.project(centroid, facing)
+        face = int(faces[0])
+        if self.projector.face_normals[face] @ facing <= 0.0:
+            # The centroid of a contact wrapping a thin part projected onto the far side.
+            return self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
+        return points[0], face, barys[0]
 
     def _refine_all(self, found: list[list[Any]], positive: np.ndarray, sigma: np.ndarray) -> None:
         """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
@@ -576,10 +586,7 @@ class TouchProcessor:
             near = np.flatnonzero(strong & (np.sum((cells - point) ** 2, axis=1) <= reach2))
             if len(near) < 4:
                 break
-            normal = self.projector.face_normals[face]
-            t1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-            t1 /= np.linalg.norm(t1)
-            frame = np.array([t1, np.cross(normal, t1), normal])
+            frame = self.projector.face_frames[face]
             y = cells[near] - point
             d = positive[near]
             design = np.column_stack([np.ones(len(near)), y @ frame.T / s2])

@@ -134,7 +134,7 @@ def test_fuzz_random_bytes_never_crash_either_parser(chunks):
 def test_binary_round_trip_and_resync():
     frames = [grid(9, 9500, 9700), grid(10, 9500, 9700)]
     parser = BinaryFrameParser()
-    data = b"[Muca] Initialized\r\n" + b"".join(encode_binary_frame(f) for f in frames)
+    data = b"[Muca] Initialized\r\n[Muca] Set TEST mode\r\n" + b"".join(encode_binary_frame(f) for f in frames)
     out = parse_stream([data[:100], data[100:]], parser)
     assert len(out) == 2 and all(np.array_equal(a, b) for a, b in zip(out, frames))
     parser.feed(b"\x01\x02\x03")  # a partial frame, then a pause

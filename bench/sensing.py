@@ -1,0 +1,148 @@
+"""Sensing benchmark: processing throughput and per-frame latency, localization error, SNR and false
+touches at rest, all measured through the pseudo-terminal simulator (the real serial path).
+
+    python bench/sensing.py [--layout PATH] [--frames 3000] [--snr 60]
+
+Layout: ``--layout`` (a sensing_map.json or its run folder), else the default pipeline's output
+``out/retrofit/sensing_map.json`` when present, else the synthetic bunny map (the output says which).
+Prints a table, then as its LAST line one JSON object.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from retrotouch.nodes.gestures import GestureRecognizer
+from retrotouch.nodes.muca_simulator import (
+    DEMO_SCRIPT,
+    BoardParams,
+    ScriptBuilder,
+    VirtualBoard,
+    default_sensing_map_path,
+    frames_through_pty,
+)
+from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
+from retrotouch.nodes.touch_processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def throughput(sensing_map, frames: int, snr: float) -> dict:
+    """Gestures (taps, presses, swipes, pinches) looped through the pty in fast mode; per-frame
+    latency is parse-to-result time of the processing (processor + gestures)."""
+    params = BoardParams(snr=snr, seed=1)
+    board = VirtualBoard(sensing_map, params)
+    script = ScriptBuilder(sensing_map, params, seed=1).build(DEMO_SCRIPT * 4)
+    processor = TouchProcessor(sensing_map)
+    recognizer = GestureRecognizer()
+    latencies, cpu, touched = [], [], []
+    started = time.perf_counter()
+    cpu_started = time.thread_time()
+    for frame in frames_through_pty(board, script, fast=True, frames=frames, loop=True, separate_process=True):
+        t0, c0 = time.perf_counter(), time.thread_time()
+        result = processor.process(frame.values, frame.t)
+        recognizer.feed(result)
+        latencies.append(time.perf_counter() - t0)
+        cpu.append(time.thread_time() - c0)
+        touched.append(bool(result.touches))
+        if len(latencies) >= frames:
+            break
+    wall = time.perf_counter() - started
+    reader_cpu = time.thread_time() - cpu_started  # reading, parsing and processing in this thread
+    latency_ms = np.array(latencies) * 1000
+    cpu_ms = np.array(cpu) * 1000
+    touched_arr = np.array(touched)
+    return {"frames": len(latencies), "wall_s": wall, "frames_per_s": len(latencies) / wall,
+            "frames_per_cpu_s": len(latencies) / reader_cpu,
+            "latency_cpu_ms_p50": float(np.median(cpu_ms)), "latency_cpu_ms_p99": float(np.percentile(cpu_ms, 99)),
+            "latency_touch_cpu_ms_p50": float(np.median(cpu_ms[touched_arr])) if touched_arr.any() else None,
+            "latency_ms_p50": float(np.median(latency_ms)), "latency_ms_p99": float(np.percentile(latency_ms, 99)),
+            "latency_touch_ms_p50": float(np.median(latency_ms[touched_arr])) if touched_arr.any() else None,
+            "latency_touch_ms_p99": float(np.percentile(latency_ms[touched_arr], 99)) if touched_arr.any() else None,
+            "touched_fraction": float(touched_arr.mean())}
+
+
+def rest(sensing_map, minutes: float) -> dict:
+    """Minutes at rest with drift through the pty in fast mode: every touch-down is a false touch."""
+    params = BoardParams(seed=2, drift_fraction=0.01, drift_period_s=240, cell_walk_counts=0.3)
+    board = VirtualBoard(sensing_map, params)
+    processor = TouchProcessor(sensing_map)
+    frames = int(minutes * 60 * params.rate_hz)
+    false_touches = 0
+    worst = 0.0
+    count = 0
+    for frame in frames_through_pty(board, None, fast=True, frames=frames, separate_process=True):
+        result = processor.process(frame.values, frame.t)
+        false_touches += sum(event["type"] == "touch_down" for event in result.events)
+        if result.calibrated:
+            worst = max(worst, float(np.max(result.delta / processor._sigma())))
+        count += 1
+    return {"frames": count, "false_touches": false_touches, "max_delta_sigmas": worst}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--layout", help="sensing_map.json or a run folder (default: out/retrofit, else synthetic bunny)")
+    parser.add_argument("--frames", type=int, default=3000, help="frames of the throughput run")
+    parser.add_argument("--snr", type=float, default=60.0, help="simulated SNR (peak signal / noise sigma)")
+    parser.add_argument("--rest-minutes", type=float, default=10.0, help="simulated minutes at rest")
+    args = parser.parse_args()
+    if args.layout:
+        path, layout_note = resolve_sensing_map_path(args.layout), f"--layout {args.layout}"
+    else:
+        path, layout_note = default_sensing_map_path(REPO, Path(tempfile.gettempdir()) / "retrotouch-bench-synthetic-bunny")
+    sensing_map = load_sensing_map(path)
+    print(f"layout: {layout_note}; {sensing_map.cell_count} cells, pitch {sensing_map.pitch_mm():.1f} mm; "
+          f"cores: {os.cpu_count()}, load average at start {os.getloadavg()[0]:.1f}")
+    speed = throughput(sensing_map, args.frames, args.snr)
+    started = time.perf_counter()
+    report = evaluate_simulator(path, BoardParams(snr=args.snr), EvalParams()).summary()
+    eval_s = time.perf_counter() - started
+    at_rest = rest(sensing_map, args.rest_minutes)
+    rows = [
+        ("throughput (pty, fast mode)", f"{speed['frames_per_s']:.0f} frames/s", f"{speed['frames']} frames, "
+         f"{100 * speed['touched_fraction']:.0f} % touched"),
+        ("throughput per CPU second", f"{speed['frames_per_cpu_s']:.0f} frames/s", "read + parse + process thread"),
+        ("latency per frame p50 / p99", f"{speed['latency_ms_p50']:.3f} / {speed['latency_ms_p99']:.3f} ms", "all frames, wall"),
+        ("latency touched frame p50 / p99", f"{speed['latency_touch_ms_p50']:.3f} / {speed['latency_touch_ms_p99']:.3f} ms",
+         "frames with touches, wall"),
+        ("CPU per frame p50 / p99", f"{speed['latency_cpu_ms_p50']:.3f} / {speed['latency_cpu_ms_p99']:.3f} ms",
+         f"touched p50 {speed['latency_touch_cpu_ms_p50']:.3f} ms"),
+        ("localization error mean / max", f"{report['localization_error_mm_mean']:.3f} / "
+         f"{report['localization_error_mm_max']:.3f} mm", f"{report['locations']} locations x "
+         f"{report['presses'] // report['locations']} presses, SNR {args.snr:g}"),
+        ("localization RMSE / std", f"{report['localization_error_mm_rmse']:.3f} / {report['localization_error_mm_std']:.3f} mm", ""),
+        ("SNR sigma form mean / std", f"{report['snr_mean']:.1f} / {report['snr_std']:.1f}", "per location"),
+        ("SNR peak-to-peak form mean / std", f"{report['snr_p2p_mean']:.1f} / {report['snr_p2p_std']:.1f}", "per location"),
+        ("missed presses / false touches", f"{report['missed_presses']} / {report['false_touches']}", f"eval {eval_s:.1f} s"),
+        ("false touches at rest", f"{at_rest['false_touches']}", f"{at_rest['frames']} frames with drift, "
+         f"max delta {at_rest['max_delta_sigmas']:.1f} sigma"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    value_width = max(len(r[1]) for r in rows)
+    for name, value, note in rows:
+        print(f"{name:<{width}}  {value:>{value_width}}  {note}")
+    print(json.dumps({
+        "layout": str(path),
+        "layout_source": "synthetic" if "synthetic" in layout_note else ("given" if args.layout else "pipeline"),
+        "frames_per_s": round(speed["frames_per_s"], 1), "latency_ms_p50": round(speed["latency_ms_p50"], 4),
+        "latency_ms_p99": round(speed["latency_ms_p99"], 4),
+        "latency_touch_ms_p50": round(speed["latency_touch_ms_p50"], 4),
+        "frames_per_cpu_s": round(speed["frames_per_cpu_s"], 1), "latency_cpu_ms_p50": round(speed["latency_cpu_ms_p50"], 4),
+        "latency_touch_cpu_ms_p50": round(speed["latency_touch_cpu_ms_p50"], 4), "load_average": round(os.getloadavg()[0], 2),
+        "localization_error_mm_mean": report["localization_error_mm_mean"],
+        "localization_error_mm_max": report["localization_error_mm_max"],
+        "snr_mean": report["snr_mean"], "snr_p2p_mean": report["snr_p2p_mean"],
+        "missed_presses": report["missed_presses"], "false_touches_eval": report["false_touches"],
+        "false_touches_at_rest": at_rest["false_touches"], "rest_frames": at_rest["frames"],
+    }))
+
+
+if __name__ == "__main__":
+    main()
