@@ -1,6 +1,8 @@
 """Track the known mesh in depth frames (stand-in for the paper's OVE6D on an Azure Kinect).
 
-Pipeline per frame: back-project a subset of the valid depth pixels, register them to the mesh
+Pipeline per frame: back-project the valid depth pixels on a grid, drop a support plane (table)
+larger than the object (RANSAC), keep the points near the tracked object and subsample them,
+register them to the mesh
 with robust point-to-plane ICP (cKDTree over face centroids with face normals, Huber weights,
 back-facing correspondences rejected) starting from the last pose (a constant-velocity guess was
 tried and drifts: an error along a weakly constrained direction feeds back and doubles), gate the result on the inlier
@@ -158,6 +160,10 @@ class TrackerSettings:
     reinit_after_frames: int = 5  # consecutive rejected frames before a new global search
     min_depth_mm: float = 100.0
     max_depth_mm: float = 3000.0
+    remove_support_plane: bool = True  # drop a table/floor plane larger than the object
+    plane_threshold_mm: float = 4.0
+    min_plane_fraction: float = 0.2  # of the depth points, for a plane to count as support
+    track_margin_mm: float = 30.0  # while tracking, keep points within model radius + margin of the object
     smooth_min_cutoff_hz: float = 1.5
     smooth_beta: float = 0.15  # One Euro speed coefficient (per mm/s, per deg/s)
     smooth_d_cutoff_hz: float = 1.0
@@ -175,16 +181,15 @@ class ModelSurface:
         self.normals = cross / np.maximum(area, 1e-12)[:, None]
         self.area = area / 2.0
         self.tree = cKDTree(self.points)
+        self.centre = (self.points * self.area[:, None]).sum(axis=0) / self.area.sum()
+        self.radius = float(np.linalg.norm(mesh.vertices - self.centre, axis=1).max())
 
 
-def backproject(depth_mm: np.ndarray, camera: DeviceIntrinsics, settings: TrackerSettings, rng: np.random.Generator) -> np.ndarray:
-    """Camera-frame points (n, 3) mm from a random subset of valid pixels on the sampling grid."""
+def backproject(depth_mm: np.ndarray, camera: DeviceIntrinsics, settings: TrackerSettings) -> np.ndarray:
+    """Camera-frame points (n, 3) mm of the valid pixels on the ``grid_stride_px`` grid within the depth range."""
     s = settings.grid_stride_px
     sub = depth_mm[::s, ::s]
     rows, cols = np.nonzero((sub > settings.min_depth_mm) & (sub < settings.max_depth_mm))
-    if len(rows) > settings.sample_points:
-        keep = rng.choice(len(rows), settings.sample_points, replace=False)
-        rows, cols = rows[keep], cols[keep]
     z = sub[rows, cols].astype(np.float64)
     pix = np.stack([cols * s, rows * s], axis=1).astype(np.float64)
     if np.any(camera.dist):
@@ -194,6 +199,40 @@ def backproject(depth_mm: np.ndarray, camera: DeviceIntrinsics, settings: Tracke
         y = (pix[:, 1] - K[1, 2]) / K[1, 1]
         xy = np.stack([(pix[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0], y], axis=1)
     return np.column_stack([xy * z[:, None], z])
+
+
+def support_plane_mask(
+    points: np.ndarray, threshold_mm: float, min_fraction: float, min_extent_mm: float, rng: np.random.Generator
+) -> np.ndarray:
+    """(n,) bool: points on the dominant plane (RANSAC, 64 hypotheses on <= 2000 points, least-squares refit).
+
+    All False unless the plane holds ``min_fraction`` of the points and spreads wider than
+    ``min_extent_mm`` (95th percentile distance from its centroid): a table or floor, not a flat
+    side of the object itself.
+    """
+    none = np.zeros(len(points), bool)
+    if len(points) < 50:
+        return none
+    sub = points[rng.choice(len(points), min(len(points), 2000), replace=False)]
+    tri = sub[rng.integers(0, len(sub), (64, 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 1e-6
+    if not good.any():
+        return none
+    normals = normals[good] / length[good, None]
+    offsets = np.einsum("ij,ij->i", normals, tri[good, 0])
+    counts = (np.abs(sub @ normals.T - offsets) < threshold_mm).sum(axis=0)
+    best = int(np.argmax(counts))
+    mask = np.abs(points @ normals[best] - offsets[best]) < threshold_mm
+    if mask.sum() >= 3:  # least-squares refit on the inliers
+        centre = points[mask].mean(axis=0)
+        normal = np.linalg.svd(points[mask] - centre, full_matrices=False)[2][2]
+        mask = np.abs((points - centre) @ normal) < threshold_mm
+    if mask.mean() < min_fraction:
+        return none
+    spread = np.percentile(np.linalg.norm(points[mask] - points[mask].mean(axis=0), axis=1), 95)
+    return mask if spread > min_extent_mm else none
 
 
 @dataclasses.dataclass(frozen=True)
@@ -367,16 +406,30 @@ class DepthTracker:
         self.smoothed: np.ndarray | None = None
         self.rejected_in_row = 0
 
+    def scene_points(self, frame: DepthFrame, searching: bool) -> np.ndarray:
+        """The depth points to register: support plane removed, cropped around the tracked object, subsampled."""
+        s = self.settings
+        points = backproject(frame.depth_mm, self.camera, s)
+        if s.remove_support_plane:
+            plane = support_plane_mask(points, s.plane_threshold_mm, s.min_plane_fraction, 1.5 * self.model.radius, self.rng)
+            points = points[~plane]
+        if not searching and self.raw is not None:
+            centre = transform_points(self.raw, self.model.centre[None])[0]
+            points = points[np.linalg.norm(points - centre, axis=1) < self.model.radius + s.track_margin_mm]
+        if len(points) > s.sample_points:
+            points = points[self.rng.choice(len(points), s.sample_points, replace=False)]
+        return points
+
     def update(self, frame: DepthFrame) -> TrackResult:
         s = self.settings
-        scene = backproject(frame.depth_mm, self.camera, s, self.rng)
+        searching = self.raw is None or self.rejected_in_row >= s.reinit_after_frames
+        scene = self.scene_points(frame, searching)
         if len(scene) < 50:
             reg = None
-        elif self.raw is None or self.rejected_in_row >= s.reinit_after_frames:
+        elif searching:
             reg = global_registration(scene, self.model, s)
         else:
             reg = icp_point_to_plane(scene, self.model, self.raw, s)
-        searching = self.raw is None or self.rejected_in_row >= s.reinit_after_frames
         if reg is not None and reg.inlier_fraction >= s.min_inlier_fraction:
             if searching:
                 self.smoother.reset()
