@@ -35,7 +35,7 @@ from retrotouch.nodes.curve_selection import (
 )
 from retrotouch.nodes.datatypes import Crossings, CurveEnd, CurveSet, Layout, Mesh
 from retrotouch.nodes.layout_metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
-from retrotouch.nodes.pad_placement import PadResult, place_pads
+from retrotouch.nodes.pad_placement import PadResult, place_pads, sparseness
 from retrotouch.nodes.surface_samples import HeatGeodesics, SurfaceSamples, geodesics_for
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,8 @@ def _pads_with_ladder(
     relaxations: list[dict] = []
     radii = [params.pad_radius_mm] + [r for r in params.relax_pad_radii_mm if r < params.pad_radius_mm]
     keep = np.ones(len(distance), dtype=bool)
-    kwargs = dict(time_limit_s=params.pad_time_limit_s, seed=params.seed, workers=params.workers)
+    kwargs = dict(time_limit_s=params.pad_time_limit_s, seed=params.seed, workers=params.workers,
+                  tie_break=sparseness(distance))
     for i, radius in enumerate(radii):
         d_min = d_min_for(params, radius)
         result = place_pads(distance, ctx, crx, d_min, params.min_pads_per_curve, **kwargs)
@@ -158,6 +159,7 @@ def _pads_with_ladder(
     keep = np.isin(ctx, padded_tx) & np.isin(crx, padded_rx)
     relaxations[-1]["dropped_tx"] = sorted(int(a) for a in set(ctx.tolist()) - set(padded_tx.tolist()))
     relaxations[-1]["dropped_rx"] = sorted(int(b) for b in set(crx.tolist()) - set(padded_rx.tolist()))
+    kwargs["tie_break"] = sparseness(distance[np.ix_(keep, keep)])
     result = place_pads(distance[np.ix_(keep, keep)], ctx[keep], crx[keep], d_min, params.min_pads_per_curve, **kwargs)
     return result, keep, radius, relaxations
 

@@ -6,12 +6,26 @@ conflict graph whose edges join crossings closer than ``d_min`` (geodesic, mm), 
 Optionally every selected curve must carry at least ``min_pads_per_curve`` pads (a wired channel
 without a pad only senses through its bare crossings); that requirement is what can make the
 problem infeasible, and the caller's relaxation ladder (smaller pads, then fewer curves) answers it.
+
+Among the maximum pad sets, ``tie_break`` weights (larger = preferred) pick one: the layout uses
+the mean geodesic distance of each crossing to its three nearest active neighbours (see
+:func:`sparseness`), so inside a cluster the pads go to the crossings bordering sparse areas,
+which evens out the pad spacing (on the bunny it lowers the Voronoi CV of most angles by 0-0.05).
+The count keeps priority: the count weight exceeds the sum of all tie-break weights.
 """
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
+
+
+def sparseness(distance_mm: np.ndarray, neighbours: int = 3) -> np.ndarray:
+    """Mean distance (mm) of each point to its ``neighbours`` nearest others (inf-free, >= 0)."""
+    if len(distance_mm) < 2:
+        return np.zeros(len(distance_mm))
+    k = min(neighbours, len(distance_mm) - 1)
+    return np.sort(distance_mm, axis=1)[:, 1 : k + 1].mean(axis=1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,6 +44,7 @@ def place_pads(
     time_limit_s: float = 2.0,
     seed: int = 0,
     workers: int = 1,
+    tie_break: np.ndarray | None = None,
 ) -> PadResult:
     """Maximum set of crossings pairwise >= ``d_min_mm`` apart (``distance_mm`` symmetric (A, A))."""
     from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
@@ -44,7 +59,14 @@ def place_pads(
         for curves in (curve_tx, curve_rx):
             for c in np.unique(curves):
                 model.add(sum(z[k] for k in np.flatnonzero(curves == c)) >= min_pads_per_curve)
-    model.maximize(sum(z))
+    if tie_break is None:
+        model.maximize(sum(z))
+    else:
+        # integer tie-break weights in [0, 100]; the count weight exceeds their total, so the pad
+        # count stays the primary objective
+        w = np.round(100 * np.asarray(tie_break, dtype=float) / max(float(np.max(tie_break)), 1e-12)).astype(int)
+        big = int(w.sum()) + 1
+        model.maximize(sum((big + int(w[k])) * z[k] for k in range(A)))
     solver = cp_model.CpSolver()
     solver.parameters.num_workers = workers
     solver.parameters.random_seed = seed
@@ -53,8 +75,9 @@ def place_pads(
     status = solver.solve(model)
     feasible = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     pad = np.array([solver.boolean_value(v) for v in z], dtype=bool) if feasible else np.zeros(A, dtype=bool)
-    objective = float(solver.objective_value) if feasible else None
-    bound = float(solver.best_objective_bound)
+    scale = 1.0 if tie_break is None else float(big)
+    objective = float(pad.sum()) if feasible else None
+    bound = float(np.floor(solver.best_objective_bound / scale + 1e-9))
     report = {
         "status": solver.status_name(status),
         "d_min_mm": float(d_min_mm),

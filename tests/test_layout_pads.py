@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from retrotouch.nodes.layout_sweep import OptimizeParams, _pads_with_ladder, d_min_for
-from retrotouch.nodes.pad_placement import place_pads
+from retrotouch.nodes.pad_placement import place_pads, sparseness
 
 
 def sphere_points(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -64,3 +64,22 @@ def test_explicit_d_min_scales_with_the_pad_radius():
     params = OptimizeParams(d_min_mm=10.0)
     assert d_min_for(params, 2.0) == pytest.approx(10.0)
     assert d_min_for(params, 1.0) == pytest.approx(5.0)
+
+
+def line_distances(positions: list[float]) -> np.ndarray:
+    p = np.asarray(positions, dtype=float)
+    return np.abs(p[:, None] - p[None, :])
+
+
+def test_tie_break_keeps_the_crossing_in_the_sparser_neighbourhood():
+    D = line_distances([0.0, 5.0, 20.0, 100.0])  # {0, 20, 100} and {5, 20, 100} are both maximum
+    ids = np.arange(4)
+    result = place_pads(D, ids, ids, d_min_mm=8.0, tie_break=sparseness(D))
+    assert result.pad.tolist() == [True, False, True, True]
+
+
+def test_tie_break_never_costs_a_pad():
+    D = line_distances([0.0, 6.0, 12.0])  # the middle one is sparse-looking but conflicts with both
+    ids = np.arange(3)
+    result = place_pads(D, ids, ids, d_min_mm=7.0, tie_break=np.array([0.0, 1000.0, 0.0]))
+    assert result.pad.tolist() == [True, False, True] and result.report["objective"] == 2
