@@ -9,6 +9,10 @@ from proj_fixtures import bunny_mm
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.depth_tracking import (
     DepthFolderSource,
+    ModelSurface,
+    TrackerSettings,
+    backproject,
+    global_registration,
     DepthFrame,
     DepthTracker,
     PoseSmoother,
@@ -116,3 +120,25 @@ def test_tracks_the_object_standing_on_a_table(mesh, camera):
         assert result.status in ("found", "tracked")
         deg, mm = pose_error(result.raw_T_cam_obj, poses[frame.index])
         assert deg < 1.0 and mm < 1.0, (frame.index, deg, mm)
+
+
+def test_global_search_from_arbitrary_orientations(mesh, camera):
+    """Any orientation: the search finds the pose, or scores it below the gate (never a confident wrong pose)."""
+    settings = TrackerSettings()
+    model = ModelSurface(mesh)
+    rng = np.random.default_rng(11)
+    found = 0
+    for i in range(4):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+        T[:3, 3] = [rng.uniform(-40, 40), rng.uniform(-20, 20), rng.uniform(480, 650)]
+        depth = render_depth(mesh, T, camera)
+        depth[depth > 0] += rng.normal(0, 0.5, int((depth > 0).sum()))
+        points = backproject(depth, camera, settings)
+        points = points[rng.choice(len(points), min(len(points), settings.sample_points), replace=False)]
+        reg = global_registration(points, model, settings)
+        deg, mm = pose_error(reg.T_cam_obj, T)
+        correct = deg < 1.0 and mm < 1.0
+        assert correct or reg.inlier_fraction < settings.min_inlier_fraction, (i, deg, mm, reg.inlier_fraction)
+        found += correct
+    assert found >= 3
