@@ -2,12 +2,12 @@
 
 Pipeline per frame: back-project the valid depth pixels on a grid, drop a support plane (table)
 larger than the object (RANSAC), keep the points near the tracked object and subsample them,
-register them to the mesh
-with robust point-to-plane ICP (cKDTree over face centroids with face normals, Huber weights,
-back-facing correspondences rejected) starting from the last pose (a constant-velocity guess was
-tried and drifts: an error along a weakly constrained direction feeds back and doubles), gate the result on the inlier
-fraction (a failed frame holds the last good pose; several in a row trigger a new global search),
-and smooth the accepted poses (One Euro filter on translation, adaptive slerp on rotation).
+register them to the mesh with robust point-to-plane ICP (cKDTree over face centroids with face
+normals, Huber weights, back-facing correspondences rejected) starting from the last pose (a
+constant-velocity guess was tried and drifts: an error along a weakly constrained direction feeds
+back and doubles), gate the result on the inlier fraction (a failed frame holds the last good
+pose; several in a row trigger a new global search), and smooth the accepted poses (One Euro
+filter on translation, adaptive slerp on rotation).
 
 The global search tries rotation hypotheses (the 60 rotations of the icosahedral group, each
 combined with a translation aligning the centroid of the model's camera-facing surface with the
@@ -48,7 +48,12 @@ class DepthFrame:
 
 
 class FrameSource(Protocol):
-    """Anything that yields depth frames registered to ``camera`` (a live RGB-D camera plugs in here)."""
+    """Anything that yields depth frames registered to ``camera`` (a live RGB-D camera plugs in here).
+
+    A live source wraps its SDK: e.g. for an Azure Kinect (pyk4a), ``camera`` holds the colour
+    camera's calibrated intrinsics and ``frames()`` yields ``capture.transformed_depth`` (depth
+    mapped into the colour camera) as float32 with the device timestamp in seconds.
+    """
 
     camera: DeviceIntrinsics
 
