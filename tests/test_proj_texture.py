@@ -10,7 +10,6 @@ import trimesh
 
 from proj_fixtures import bunny_layout, bunny_mm
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.datatypes import Layout
 from retrotouch.nodes.depth_tracking import demo_trajectory
 from retrotouch.nodes.procam_calibration import demo_rig
 from retrotouch.nodes.projector_render import RenderStyle, load_scene, render_layers, render_textured
