@@ -169,6 +169,8 @@ def _progress(total: int):
 
 
 def _print_explain(plan) -> None:
+    if not plan.to_run:
+        print(f"nothing to run: all {len(plan.instances)} node instances are cached")
     for inst in plan.to_run:
         print(f"{inst.id}: runs because {inst.reason}")
 
