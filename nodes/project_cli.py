@@ -14,6 +14,16 @@ sink onto the atlas mesh (perspective-correct UV interpolation).
 
 Output: ``OUT/<layer>/frame_000000.png`` per layer (Tx first), optionally ``OUT/<layer>.mp4``, and
 ``OUT/track.json`` with the per-frame status, inlier fraction, residual and pose.
+
+Calibration (before use)::
+
+    retrotouch project-patterns --projector-size 1280x720 --out PATTERNS
+    # show PATTERNS/00.png, 01.png, ... full screen on the projector; for each board pose save the
+    # camera image of every pattern as CAPTURES/<pose>/00.png, 01.png, ... (same numbers)
+    retrotouch project-calibrate --captures CAPTURES --projector-size 1280x720 --board 9x7 --square-mm 20 --out rig.json
+
+Pattern 00 is full white (the camera finds the board corners under it), 01 full black, then the
+gray codes; ``PATTERNS/board.png`` is a printable checkerboard with the given inner corners.
 """
 from __future__ import annotations
 
@@ -36,7 +46,16 @@ from retrotouch.nodes.depth_tracking import (
     demo_trajectory,
     pose_error,
 )
-from retrotouch.nodes.procam_calibration import ProCamCalibration, load_calibration
+from retrotouch.nodes.procam_calibration import (
+    BoardCapture,
+    BoardSpec,
+    ProCamCalibration,
+    calibrate_procam,
+    checkerboard_image,
+    gray_code_patterns,
+    load_calibration,
+    save_calibration,
+)
 from retrotouch.nodes.projector_render import ProjectionScene, load_scene, render_layers, render_textured
 
 
@@ -174,6 +193,75 @@ def project(
     )
 
 
+def parse_size(text: str, option: str) -> tuple[int, int]:
+    """'1280x720' -> (1280, 720); UserError naming ``option`` otherwise."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise UserError(f"{option} {text!r} must look like 1280x720")
+    return int(parts[0]), int(parts[1])
+
+
+def project_patterns(
+    projector_size: str = typer.Option(..., "--projector-size", help="projector resolution, e.g. 1280x720"),
+    out: Path = typer.Option(..., "--out", help="folder for the pattern PNGs"),
+    board: str = typer.Option("9x7", "--board", help="checkerboard inner corners, columns x rows"),
+) -> None:
+    """Write the calibration patterns to show on the projector (00 white, 01 black, gray codes) and a printable board."""
+    width, height = parse_size(projector_size, "--projector-size")
+    cols, rows = parse_size(board, "--board")
+    patterns = gray_code_patterns(width, height)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create {out}: {exc.strerror}") from exc
+    for i, img in enumerate(patterns):
+        cv2.imwrite(str(out / f"{i:02d}.png"), img)
+    cv2.imwrite(str(out / "board.png"), checkerboard_image(BoardSpec(cols, rows, 1.0), square_px=100))
+    typer.echo(f"{len(patterns)} patterns for a {width}x{height} projector and board.png -> {out}")
+
+
+def read_captures(folder: Path, count: int) -> list[BoardCapture]:
+    """Board captures from ``folder/<pose>/NN.png`` (greyscale, NN = pattern number); UserError when incomplete."""
+    if not folder.is_dir():
+        raise UserError(f"--captures {folder} is not a folder")
+    poses = sorted(p for p in folder.iterdir() if p.is_dir())
+    if not poses:
+        raise UserError(f"no pose folders in {folder}: save each board pose's images as {folder}/<pose>/00.png ...")
+    captures = []
+    for pose in poses:
+        images = []
+        for i in range(count):
+            img = cv2.imread(str(pose / f"{i:02d}.png"), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise UserError(f"{pose / f'{i:02d}.png'} is missing or unreadable: each pose needs {count} images 00..{count - 1:02d}")
+            images.append(img.astype(np.float32))
+        captures.append(BoardCapture(white=images[0], black=images[1], stack=images[2:]))
+    return captures
+
+
+def project_calibrate(
+    captures: Path = typer.Option(..., "--captures", help="folder with one sub-folder of camera images per board pose"),
+    projector_size: str = typer.Option(..., "--projector-size", help="projector resolution, e.g. 1280x720"),
+    out: Path = typer.Option(..., "--out", help="calibration JSON to write"),
+    board: str = typer.Option("9x7", "--board", help="checkerboard inner corners, columns x rows"),
+    square_mm: float = typer.Option(..., "--square-mm", help="checkerboard square side (mm)"),
+) -> None:
+    """Calibrate camera and projector from gray-code captures of a checkerboard and write the calibration JSON."""
+    width, height = parse_size(projector_size, "--projector-size")
+    cols, rows = parse_size(board, "--board")
+    if square_mm <= 0:
+        raise UserError("--square-mm must be positive")
+    count = len(gray_code_patterns(width, height))
+    cal = calibrate_procam(read_captures(captures, count), BoardSpec(cols, rows, square_mm), width, height)
+    save_calibration(cal, out)
+    typer.echo(
+        f"RMS camera {cal.rms_camera_px:.3f} px, projector {cal.rms_projector_px:.3f} px, "
+        f"stereo {cal.rms_stereo_px:.3f} px -> {out}"
+    )
+
+
 def register(app: typer.Typer) -> None:
-    """Add the ``project`` command to the retrotouch CLI."""
+    """Add the ``project``, ``project-patterns`` and ``project-calibrate`` commands to the retrotouch CLI."""
     app.command("project")(project)
+    app.command("project-patterns")(project_patterns)
+    app.command("project-calibrate")(project_calibrate)

@@ -4,11 +4,18 @@ from __future__ import annotations
 import json
 
 import cv2
+import numpy as np
 import pytest
 
-from proj_fixtures import bunny_layout, bunny_mm
+from proj_fixtures import BOARD, board_poses, bunny_layout, bunny_mm
 from retrotouch.nodes.depth_tracking import SyntheticDepthSource, demo_trajectory, write_depth_png
-from retrotouch.nodes.procam_calibration import demo_rig, save_calibration
+from retrotouch.nodes.procam_calibration import (
+    BoardCaptureSimulator,
+    demo_rig,
+    gray_code_patterns,
+    load_calibration,
+    save_calibration,
+)
 from retrotouch.nodes.projector_render import build_scene, save_scene
 
 
@@ -76,3 +83,30 @@ def test_recorded_depth_folder(cli, run_folder):
     assert [r["status"] for r in track["records"]] == ["found", "tracked"]
     assert "error_deg" not in track["records"][0]  # no truth for recorded frames
     assert len(list((out / "rx").glob("frame_*.png"))) == 2
+
+
+def test_patterns_and_calibration_commands(cli, tmp_path):
+    """project-patterns writes what the projector shows; project-calibrate turns saved captures into a calibration."""
+    rig = demo_rig(640, 360)
+    result = cli("project-patterns", "--projector-size", "640x360", "--out", tmp_path / "patterns", "--board", "9x7")
+    assert result.returncode == 0, result.stderr
+    shown = sorted((tmp_path / "patterns").glob("[0-9][0-9].png"))
+    assert len(shown) == len(gray_code_patterns(640, 360)) == 2 + 2 * (10 + 9)
+    assert cv2.imread(str(tmp_path / "patterns" / "board.png")) is not None
+    sim = BoardCaptureSimulator(rig, BOARD)
+    for k, T in enumerate(board_poses(6)):
+        cap = sim.capture(T, seed=k)
+        pose_dir = tmp_path / "captures" / f"pose{k}"
+        pose_dir.mkdir(parents=True)
+        for i, img in enumerate([cap.white, cap.black, *cap.stack]):
+            cv2.imwrite(str(pose_dir / f"{i:02d}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    result = cli("project-calibrate", "--captures", tmp_path / "captures", "--projector-size", "640x360",
+                 "--board", f"{BOARD.cols}x{BOARD.rows}", "--square-mm", str(BOARD.square_mm), "--out", tmp_path / "rig.json")
+    assert result.returncode == 0, result.stderr
+    cal = load_calibration(tmp_path / "rig.json")
+    assert max(cal.rms_camera_px, cal.rms_projector_px, cal.rms_stereo_px) < 0.3
+    assert np.linalg.norm(cal.T - rig.T) < 1.5
+    (tmp_path / "captures" / "pose0" / "05.png").unlink()
+    result = cli("project-calibrate", "--captures", tmp_path / "captures", "--projector-size", "640x360",
+                 "--square-mm", "15", "--out", tmp_path / "x.json")
+    assert result.returncode == 2 and "05.png is missing" in result.stderr
