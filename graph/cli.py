@@ -30,7 +30,8 @@ CORE_COMMANDS = ("run", "plan", "nodes", "cache")
 
 SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
                          help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
-                              "or -S nodes.remesh.params.target_edge_mm=2 (short: -S remesh.target_edge_mm=2).")
+                              "(short: -S diagonal_mm=200) or -S nodes.remesh.params.target_edge_mm=2 "
+                              "(short: -S remesh.target_edge_mm=2).")
 CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: $RETROTOUCH_CACHE_DIR or ./cache).")
 
 

@@ -136,7 +136,8 @@ def apply_override(doc: Document, override: str) -> None:
     """Apply ``-S PATH=VALUE`` to the document (VALUE parsed as YAML).
 
     PATH is dotted into the document (``params.diagonal_mm``, ``nodes.remesh.params.target_edge_mm``,
-    list items by index); ``NODE.PARAM`` is short for ``nodes.NODE.params.PARAM``. Existing paths can
+    list items by index); ``NODE.PARAM`` is short for ``nodes.NODE.params.PARAM`` and a bare
+    ``NAME`` for the pipeline param ``params.NAME``. Existing paths can
     be replaced; new keys are accepted only inside a node's ``params`` (checked against the node
     type later) and for a node's optional keys (``map``, ``cache``, ...).
     """
@@ -153,10 +154,12 @@ def apply_override(doc: Document, override: str) -> None:
     if parts[0] not in TOP_KEYS:
         if parts[0] in nodes and len(parts) == 2:
             parts = ["nodes", parts[0], "params", parts[1]]
+        elif parts[0] in doc.data["params"] and len(parts) == 1:
+            parts = ["params", parts[0]]
         else:
-            choices = list(TOP_KEYS) + [f"{n}.<param>" for n in nodes]
+            choices = list(TOP_KEYS) + list(nodes) + list(doc.data["params"])
             raise UserError(f"{where}: unknown path {path_text!r}{did_you_mean(str(parts[0]), choices)} "
-                            "(use params.NAME, nodes.NODE.params.NAME or NODE.NAME)")
+                            "(use NAME or params.NAME for pipeline params, NODE.PARAM or nodes.NODE.params.PARAM)")
     cur: Any = doc.data
     for i, part in enumerate(parts):
         last = i == len(parts) - 1

@@ -111,6 +111,8 @@ def test_overrides(tmp_path, test_nodes):
     assert [i.id for i in plan.instances] == ["src", "plus[delta=7]", "tot"]
     assert plan.instances[-1].runs and plan.instances[-1].reason == "cache: recompute"
     assert make_plan(str(path), ["src.scale=2.5"], str(tmp_path)).instances[0].params.scale == 2.5
+    assert make_plan(str(path), ["n=7"], str(tmp_path)).instances[0].params.n == 7
+    assert error_of(tmp_path, GOOD, ["deltaz=[1]"]).startswith("-S deltaz=[1]: unknown path 'deltaz'; did you mean 'deltas'?")
     assert error_of(tmp_path, GOOD, ["params.m=1"]) == "-S params.m=1: params has no key 'm' (keys: n, deltas)"
     assert error_of(tmp_path, GOOD, ["nodes.plsu.params.delta=1"]).startswith(
         "-S nodes.plsu.params.delta=1: nodes has no key 'plsu'; did you mean 'plus'?")
