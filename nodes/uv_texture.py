@@ -124,7 +124,9 @@ def segment_uv_pixels(mesh: Mesh, atlas: Atlas, curves: CurveSet, texture_px: in
     """(S, 2, 2) texture pixel coordinates of every curve segment, both ends in the segment's own face."""
     import trimesh
 
-    starts = np.concatenate([np.arange(curves.offsets[c], curves.offsets[c + 1] - 1) for c in range(curves.count)])
+    starts = np.concatenate(
+        [np.arange(curves.offsets[c], curves.offsets[c + 1] - 1) for c in range(curves.count)] + [np.zeros(0, np.int64)]
+    ).astype(np.int64)
     if len(starts) == 0:
         return np.zeros((0, 2, 2))
     seg_faces = curves.faces[starts]
@@ -156,7 +158,8 @@ def _bake(
     width = max(1, int(round(params.line_width_mm * density)))
     for curve_set, colour in curves:
         segs = segment_uv_pixels(mesh, atlas, curve_set, size)
-        cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
+        if len(segs):
+            cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
     centres = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, size) * scale).astype(np.int64)
     pad_r = int(round(params.pad_radius_mm * density * scale))
     ring_r = int(round(params.crossing_radius_mm * density * scale))

@@ -1,6 +1,7 @@
 """The projection.textures sink: atlas baking, file names, GLB/OBJ readability."""
 from __future__ import annotations
 
+import dataclasses
 import io
 
 import cv2
@@ -103,3 +104,24 @@ def test_textured_route_agrees_with_projected_polylines(baked):
     assert textured.sum() > 200
     near_lines = cv2.dilate(lines.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     assert (textured & near_lines).sum() / textured.sum() > 0.9
+
+
+def test_layout_without_rx_curves_or_cells(baked, tmp_path):
+    """A degenerate layout (no Rx curves, no crossings) still bakes: Tx lines only."""
+    mesh, layout, *_ = baked
+    empty_rx = dataclasses.replace(
+        layout.rx, points=np.zeros((0, 3)), faces=np.zeros(0, np.int64), bary=np.zeros((0, 3)),
+        offsets=np.zeros(1, np.int64), lengths_mm=np.zeros(0), end_reason=np.zeros(0, np.int8),
+    )
+    cells = dataclasses.replace(
+        layout.cells, **{f: getattr(layout.cells, f)[:0] for f in
+                         ("curve_a", "curve_b", "seg_a", "seg_b", "arc_a", "arc_b", "points", "faces", "bary")}
+    )
+    bare = dataclasses.replace(layout, rx=empty_rx, cells=cells, pad=np.zeros(0, bool))
+    files = projection_textures(TextureParams(texture_px=256), mesh, bare)
+    tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
+    blue_rx = (tex[..., 0] > 150) & (tex[..., 2] < 100)
+    red_tx = (tex[..., 2] > 150) & (tex[..., 0] < 100)
+    assert red_tx.sum() > 100 and blue_rx.sum() == 0
+    (tmp_path / "scene.npz").write_bytes(files.contents["projection/bunny_scene.npz"])
+    assert load_scene(tmp_path / "scene.npz").layer_points[1].shape == (0, 3)
