@@ -104,8 +104,8 @@ class AsciiFrameParser:
         self._pending = bytearray()
         self._lines_to_skip = skip_first_lines
         n = options.cells
-        self._frame_re = re.compile(rb"[0-9]*(?:,[0-9]*){%d}" % (n - 1))
-        self._suffix_re = re.compile(rb"[0-9]*(?:,[0-9]*){%d}\Z" % (n - 1))
+        self._frame_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}" % (n - 1))
+        self._suffix_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}\Z" % (n - 1))
         # A frame line is at most n fields of 5 digits plus commas; keep a little more than two so a
         # frame glued behind newline-less garbage survives the trimming of the pending buffer.
         self._max_pending = 2 * (6 * n + 64)
@@ -161,10 +161,12 @@ class AsciiFrameParser:
 
     @staticmethod
     def _values(text: bytes) -> np.ndarray | None:
+        """Fields already matched ``[0-9]{0,5}``; empty ones read 0."""
         fields = text.split(b",")
-        if any(len(f) > 5 for f in fields):
-            return None
-        values = np.array([int(f) if f else 0 for f in fields], dtype=np.int64)
+        if b",," in text or text.startswith(b",") or text.endswith(b","):
+            values = np.array([int(f) if f else 0 for f in fields], dtype=np.int64)
+        else:
+            values = np.array(list(map(int, fields)), dtype=np.int64)
         if values.max(initial=0) > MAX_COUNT:
             return None
         return values

@@ -581,7 +581,7 @@ class TouchProcessor:
         cells = self.map.cell_points
         reach2 = (2.5 * self.coupling_sigma) ** 2
         strong = positive > 2.0 * sigma
-        bary = None
+        fitted = None
         for _ in range(REFINE_ITERATIONS):
             near = np.flatnonzero(strong & (np.sum((cells - point) ** 2, axis=1) <= reach2))
             if len(near) < 4:
@@ -603,9 +603,14 @@ class TouchProcessor:
             step_len = np.linalg.norm(step)
             if step_len > self.pitch:
                 step *= self.pitch / step_len
-            projected, faces, barys = self.projector.project(point + step)
-            point, face, bary = projected[0], int(faces[0]), barys[0]
-        return None if bary is None else (point, face, bary, amplitude)
+            # The model is exact about any reference point: iterating only re-selects the cells
+            # around the new estimate; the frame (for the ridge) stays that of the start face.
+            point = point + step
+            fitted = amplitude
+        if fitted is None:
+            return None
+        projected, faces, barys = self.projector.project(point)
+        return projected[0], int(faces[0]), barys[0], fitted
 
     # ---- tracking
 

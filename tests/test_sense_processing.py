@@ -166,7 +166,7 @@ def test_binary_format_with_flipped_rx_through_the_pty(bunny_map):
     for frame in frames_through_pty(board, script, fast=True, frame_format="binary"):
         touches.extend(processor.process(frame.values, frame.t).touches)
     assert len(touches) == 5
-    assert all(np.linalg.norm(t.point - bunny_map.cell_points[10]) < 1.5 for t in touches)
+    assert all(np.linalg.norm(t.point - bunny_map.cell_points[10]) < 2.5 for t in touches)  # pitch 8.7 mm
 
 
 def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
