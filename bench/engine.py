@@ -9,7 +9,7 @@
    cached) timed as subprocess wall time, interpreter start-up included.
 
 Prints a table; the LAST line is one JSON object (``map_speedup_vs_sync``, ``warm_rerun_s``, ...).
-Usage: ``python bench/engine.py [--branches 11] [--seconds-per-branch 0.5]``.
+Usage: ``python bench/engine.py [--branches 11] [--seconds-per-branch 0.5] [--repeat 2]``.
 """
 from __future__ import annotations
 
@@ -62,6 +62,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--branches", type=int, default=11)
     parser.add_argument("--seconds-per-branch", type=float, default=0.5)
+    parser.add_argument("--repeat", type=int, default=2, help="map runs per scheduler (best is kept)")
     args = parser.parse_args()
 
     iterations = calibrate(args.seconds_per_branch)
@@ -76,14 +77,18 @@ def main() -> None:
             "nodes:\n"
             f"  work: {{type: bench.python_work, map: {{seed: \"${{seeds}}\"}}, params: {{iterations: {iterations}}}}}\n"
             "  all:  {type: bench.collect, inputs: {parts: \"work[*]\"}}\n")
-        timings = {}
+        timings: dict[str, tuple[float, float]] = {}
+        for _ in range(args.repeat):  # interleaved; the best of each (the machine may be shared)
+            for scheduler in ("sync", "auto"):
+                cache = tmp / f"cache-{scheduler}"
+                wall, reported, _ = run(["run", "map.yaml", "--scheduler", scheduler, "--cache-dir", str(cache),
+                                         "--out", str(tmp / f"out-{scheduler}")], tmp, env)
+                best = timings.get(scheduler, (float("inf"), float("inf")))
+                timings[scheduler] = (min(best[0], wall), min(best[1], reported))
+                shutil.rmtree(cache)
         for scheduler in ("sync", "auto"):
-            cache = tmp / f"cache-{scheduler}"
-            wall, reported, _ = run(["run", "map.yaml", "--scheduler", scheduler, "--cache-dir", str(cache),
-                                     "--out", str(tmp / f"out-{scheduler}")], tmp, env)
-            timings[scheduler] = (wall, reported)
-            rows.append((f"map x{args.branches}, --scheduler {scheduler}", reported, wall))
-            shutil.rmtree(cache)
+            rows.append((f"map x{args.branches}, --scheduler {scheduler} (best of {args.repeat})",
+                         timings[scheduler][1], timings[scheduler][0]))
         outputs = [json.loads((tmp / f"out-{s}" / "manifest.json").read_text())["nodes"] for s in ("sync", "auto")]
         assert [n["content_sha256"] for n in outputs[0]] == [n["content_sha256"] for n in outputs[1]]
 
@@ -98,9 +103,9 @@ def main() -> None:
 
     speedup = timings["sync"][1] / timings["auto"][1]
     speedup_wall = timings["sync"][0] / timings["auto"][0]
-    print(f"{'case':40s} {'run s':>8s} {'wall s':>8s}")
+    print(f"{'case':52s} {'run s':>8s} {'wall s':>8s}")
     for name, reported, wall in rows:
-        print(f"{name:40s} {reported:8.2f} {wall:8.2f}")
+        print(f"{name:52s} {reported:8.2f} {wall:8.2f}")
     print(f"map speed-up vs sync: {speedup:.2f}x (run time), {speedup_wall:.2f}x (wall); "
           f"{iterations} iterations per branch, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     print(json.dumps({"map_speedup_vs_sync": round(speedup, 3), "map_speedup_vs_sync_wall": round(speedup_wall, 3),
