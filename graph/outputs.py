@@ -6,6 +6,7 @@ sub-folder named after their branch (``target_edge_mm=2/mesh.ply``).
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import importlib.metadata
 import json
@@ -88,13 +89,23 @@ def _branch_dir(inst: Any) -> str:
 
 
 def _swap(tmp: str, out_dir: str) -> None:
-    old = None
-    if os.path.exists(out_dir):
-        old = f"{tmp}.old"
-        os.rename(out_dir, old)
-    os.rename(tmp, out_dir)
-    if old:
-        shutil.rmtree(old, ignore_errors=True)
+    """Replace ``out_dir`` by ``tmp`` with two renames (retried if a concurrent run swaps too)."""
+    old = f"{tmp}.old"
+    for _ in range(10):
+        try:
+            os.rename(out_dir, old)
+        except FileNotFoundError:
+            pass
+        try:
+            os.rename(tmp, out_dir)
+            break
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+        finally:
+            shutil.rmtree(old, ignore_errors=True)
+    else:
+        raise UserError(f"could not replace {out_dir}: other runs keep writing it")
 
 
 def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:

@@ -239,3 +239,26 @@ def test_unchanged_rerun_skips_planning_but_notices_changes(tmp_path, test_nodes
     edited = run_pipeline(str(tmp_path / "sweep.yaml"), out_dir=str(tmp_path / "out"),
                           cache_dir=str(tmp_path / "cache"), scheduler="sync")
     assert isinstance(edited.plan, Plan) and "tot" in edited.ran()
+
+
+def test_runs_replacing_the_same_output_folder_at_once(tmp_path, test_nodes):
+    import threading
+
+    run(tmp_path)
+    errors = []
+
+    def again():
+        try:
+            run(tmp_path)
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=again) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["manifest.json", "scale=1", "scale=2", "scale=3",
+                                                                   "value.json"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp")]
