@@ -7,7 +7,8 @@ Usage::
     retrotouch sense --simulate [script.json] [--fast] [--layout ...]       # the virtual board on a pty
     retrotouch sense --replay session.jsonl --layout out/retrofit           # a recording
     ... --record session.jsonl   --udp 127.0.0.1:9000   --websocket 8765   --view [--view-port 8080]
-    ... --evaluate   (with --simulate or --replay: the 15 x 10 SNR / localization protocol, one JSON report)
+    ... --evaluate   (with --simulate or --replay: the 15 x 10 SNR / localization protocol, one JSON report;
+                      a hardware recording without labels needs --protocol locations.json)
 
 Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
 gestures from :mod:`retrotouch.nodes.gestures`); the same lines go to every ``--udp`` target as
@@ -154,6 +155,9 @@ def sense(
     duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds of frames."),
     evaluate: bool = typer.Option(False, "--evaluate", help="Run the SNR/localization protocol (with --simulate "
                                   "or --replay) and print its report as one JSON object."),
+    protocol: Optional[str] = typer.Option(None, "--protocol", help="With --evaluate --replay of an unlabelled "
+                                           "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
+                                           "round by round."),
 ) -> None:
     """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
     from retrotouch.nodes.gestures import GestureRecognizer
@@ -169,6 +173,8 @@ def sense(
         raise UserError("--record and --replay together: a replay is already recorded")
     if evaluate and port:
         raise UserError("--evaluate needs --simulate or a labelled --replay recording")
+    if protocol and not (evaluate and replay):
+        raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
     if frame_format not in ("ascii", "binary"):
         raise UserError(f"--format {frame_format!r}: use ascii or binary")
     if layout is None:
@@ -178,7 +184,7 @@ def sense(
     else:
         layout_path = resolve_sensing_map_path(layout)
     if evaluate:
-        _evaluate(layout_path, replay, snr, seed, record)
+        _evaluate(layout_path, replay, snr, seed, record, protocol)
         return
     sensing_map = load_sensing_map(layout_path)
     options = FrameOptions(sensing_map.num_tx, sensing_map.num_rx, flip_tx, flip_rx,
@@ -243,13 +249,14 @@ def _simulated(sensing_map, steps, snr, seed, fast, loop, frame_format, record) 
     return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
 
 
-def _evaluate(layout_path: Path, replay: Optional[str], snr: float, seed: int, record: Optional[str]) -> None:
+def _evaluate(layout_path: Path, replay: Optional[str], snr: float, seed: int, record: Optional[str],
+              protocol: Optional[str]) -> None:
     from retrotouch.nodes.muca_simulator import BoardParams
     from retrotouch.nodes.sense_eval import EvalParams, evaluate_recording, evaluate_simulator
 
     started = time.perf_counter()
     if replay:
-        report = evaluate_recording(replay, layout_path)
+        report = evaluate_recording(replay, layout_path, protocol=protocol)
     else:
         report = evaluate_simulator(layout_path, BoardParams(snr=snr, seed=seed), EvalParams(seed=seed), record=record)
     print(json.dumps({**report.summary(), "per_location": list(report.locations),

@@ -14,10 +14,15 @@ marked locations). Frames in ``[t0 + settle, t1)`` are touch frames; frames fart
   and ``snr_p2p = signal / peak-to-peak(rest)`` (the CapSense form).
 * False touches: touch-downs outside every press window (+ margin); missed presses: presses with
   no touch in their touch frames.
+
+A hardware session needs no hand-made labels: record it while touching the marked locations round
+by round, then score it with a protocol file listing the locations (:func:`load_protocol`); the
+detected presses are matched to the protocol in order.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -177,11 +182,56 @@ def evaluate_simulator(
     return evaluate(frames, list(script.labels), processor, eval_params)
 
 
+def load_protocol(path: str | Path) -> tuple[np.ndarray, int]:
+    """``{"points": [[x, y, z], ...], "repetitions": 10}`` (mm): the marked locations of a hardware
+    session, touched in rounds (every location once per round, in list order)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"protocol file {path} not found: write {{\"points\": [[x, y, z], ...], \"repetitions\": 10}}")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        points = np.array(doc["points"], dtype=np.float64).reshape(-1, 3)
+        repetitions = int(doc.get("repetitions", 10))
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"protocol file {path} is malformed ({exc}): write "
+                        "{\"points\": [[x, y, z], ...], \"repetitions\": 10}") from None
+    return points, repetitions
+
+
+def labels_from_presses(frames: list[Frame], processor: TouchProcessor, points: np.ndarray,
+                        repetitions: int) -> list[tuple[float, dict[str, Any]]]:
+    """Press labels for an unlabelled hardware session: the detected single-finger presses, in
+    order, are the protocol's presses (round by round over ``points``). Needs exactly
+    ``len(points) x repetitions`` presses; the processor is reset afterwards."""
+    presses: list[list[float]] = []
+    open_ids: dict[int, float] = {}
+    for frame in frames:
+        for event in processor.process(frame.values, frame.t).events:
+            if event["type"] == "touch_down":
+                open_ids[event["id"]] = event["t"]
+            elif event["type"] == "touch_up" and event["id"] in open_ids:
+                presses.append([open_ids.pop(event["id"]), event["t"]])
+    processor.reset()
+    expected = len(points) * repetitions
+    if len(presses) != expected:
+        raise UserError(f"found {len(presses)} presses but the protocol has {len(points)} locations x "
+                        f"{repetitions} repetitions = {expected}: record the session again or fix the protocol file")
+    return [(t0, {"gesture": "press", "location": k % len(points), "repetition": k // len(points),
+                  "point": points[k % len(points)].tolist(), "t_end": t1})
+            for k, (t0, t1) in enumerate(presses)]
+
+
 def evaluate_recording(recording: str | Path, sensing_map_path: str | Path,
                        eval_params: EvalParams = EvalParams(),
-                       processing_params: ProcessingParams = ProcessingParams()) -> EvalReport:
-    """The protocol scored on a recording whose labels hold the presses (see the module docstring)."""
+                       processing_params: ProcessingParams = ProcessingParams(),
+                       protocol: str | Path | None = None) -> EvalReport:
+    """The protocol scored on a recording: its press labels (simulator recordings carry them), or,
+    with ``protocol`` (see :func:`load_protocol`), presses detected in an unlabelled hardware session.
+    With detected presses, ``missed_presses`` is 0 by construction (a miss shows as a count error)."""
     labels: list[tuple[float, dict[str, Any]]] = []
     processor = TouchProcessor(load_sensing_map(sensing_map_path), processing_params)
     frames = list(replay_frames(recording, on_label=lambda t, label: labels.append((t, label))))
+    if protocol is not None:
+        points, repetitions = load_protocol(protocol)
+        labels = labels_from_presses(frames, processor, points, repetitions)
     return evaluate(frames, labels, processor, eval_params)

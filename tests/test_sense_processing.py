@@ -101,6 +101,26 @@ def test_localization_through_the_pty_at_snr_60(bunny_map_path, tmp_path):
     assert replayed["localization_error_mm_mean"] == pytest.approx(summary["localization_error_mm_mean"], abs=1e-9)
 
 
+def test_unlabelled_session_is_scored_with_a_protocol_file(bunny_map_path, tmp_path):
+    """A hardware-style recording (no labels) plus the list of touched locations scores like the labelled one."""
+    params = EvalParams(locations=5, repetitions=3, seed=4)
+    labelled = tmp_path / "labelled.jsonl"
+    reference = evaluate_simulator(bunny_map_path, BoardParams(seed=4), params, record=labelled).summary()
+    lines = labelled.read_text().splitlines()
+    unlabelled = tmp_path / "unlabelled.jsonl"
+    unlabelled.write_text("\n".join(line for line in lines if '"label"' not in line) + "\n")
+    truth = [json.loads(line)["label"] for line in lines if '"label"' in line]
+    points = [label["point"] for label in sorted(truth, key=lambda l: (l["repetition"], l["location"]))[:5]]
+    protocol = tmp_path / "protocol.json"
+    protocol.write_text(json.dumps({"points": points, "repetitions": 3}))
+    scored = evaluate_recording(unlabelled, bunny_map_path, params, protocol=protocol).summary()
+    assert scored["presses"] == 15 and scored["false_touches"] == 0
+    assert scored["localization_error_mm_mean"] == pytest.approx(reference["localization_error_mm_mean"], abs=0.1)
+    protocol.write_text(json.dumps({"points": points, "repetitions": 4}))
+    with pytest.raises(UserError, match="found 15 presses but the protocol has 5 locations x 4 repetitions = 20"):
+        evaluate_recording(unlabelled, bunny_map_path, params, protocol=protocol)
+
+
 def test_low_snr_still_localizes_within_a_pitch(bunny_map_path, bunny_map):
     summary = evaluate_simulator(bunny_map_path, BoardParams(snr=15, seed=3),
                                  EvalParams(locations=6, repetitions=3), through_pty=False).summary()
