@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
-from retrotouch.nodes.muca_serial import MAX_COUNT, Frame, FrameOptions, MucaReader, encode_ascii_frame, encode_binary_frame
+from retrotouch.nodes.muca_serial import MAX_COUNT, NUM_RX, NUM_TX, Frame, FrameOptions, MucaReader, encode_ascii_frame, encode_binary_frame
 from retrotouch.nodes.touch_processing import SensingMap, SurfaceProjector, load_sensing_map, write_sensing_map
 
 # --------------------------------------------------------------------------------------------
@@ -129,7 +129,7 @@ def synthetic_bunny_map(
     cost = ((rank_height[:, None, None] - tx_target[None, :, None]) ** 2
             + (rank_azimuth[:, None, None] - rx_target[None, None, :]) ** 2).reshape(cells, -1)
     rows, slots = linear_sum_assignment(cost)
-    cell_tx, cell_rx = np.divmod(slots[np.argsort(rows)], num_rx)
+    cell_tx, cell_rx = np.divmod(slots[np.argsort(rows)], num_rx)  # slot = tx * num_rx + rx of the cost matrix
     return write_sensing_map(folder, vertices, faces, cell_tx, cell_rx, cell_faces, bary, num_tx, num_rx)
 
 
@@ -190,7 +190,7 @@ class VirtualBoard:
         self.map = sensing_map
         self.params = params
         self.rng = np.random.default_rng(params.seed)
-        n = sensing_map.num_tx * sensing_map.num_rx
+        n = NUM_TX * NUM_RX  # the board scans all its channels, wired or not
         self.baseline = self.rng.uniform(params.baseline_low, params.baseline_high, n)
         self.pitch = sensing_map.pitch_mm()
         self.coupling_sigma = params.coupling_sigma_mm or float(np.hypot(params.finger_radius_mm, self.pitch / 2))
@@ -210,7 +210,7 @@ class VirtualBoard:
         return self.gain * signal
 
     def frame(self, t: float, fingers: Sequence[tuple[np.ndarray, float]] = ()) -> np.ndarray:
-        """Counts at time ``t`` (s) in wire order, shape (num_tx, num_rx), int64."""
+        """Counts at time ``t`` (s) in wire order, shape (21, 12), int64."""
         p = self.params
         if p.cell_walk_counts and self._last_t is not None and t > self._last_t:
             self.walk += self.rng.normal(0, p.cell_walk_counts * np.sqrt(t - self._last_t), len(self.walk))
@@ -218,7 +218,7 @@ class VirtualBoard:
         common = p.drift_fraction * np.sin(2 * np.pi * t / p.drift_period_s + self.drift_phase)
         raw = self.baseline * (1 + common) + self.walk + self.rng.normal(0, self.noise_sigma, len(self.walk))
         raw[self.map.frame_index] += self.signal(fingers)
-        grid = np.clip(np.rint(raw), 0, MAX_COUNT).astype(np.int64).reshape(self.map.num_tx, self.map.num_rx)
+        grid = np.clip(np.rint(raw), 0, MAX_COUNT).astype(np.int64).reshape(NUM_TX, NUM_RX)
         if p.flip_tx:
             grid = grid[::-1]
         if p.flip_rx:
@@ -548,7 +548,7 @@ def frames_through_pty(
     Ends after the board's last frame (never with ``loop``); the script's labels go into the recording."""
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
                          garbage_every=garbage_every, loop=loop, separate_process=separate_process)
-    options = FrameOptions(board.map.num_tx, board.map.num_rx, board.params.flip_tx, board.params.flip_rx)
+    options = FrameOptions(flip_tx=board.params.flip_tx, flip_rx=board.params.flip_rx)
     # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
                         reconnect_timeout_s=0.0,

@@ -187,8 +187,8 @@ def sense(
         _evaluate(layout_path, replay, snr, seed, record, protocol)
         return
     sensing_map = load_sensing_map(layout_path)
-    options = FrameOptions(sensing_map.num_tx, sensing_map.num_rx, flip_tx, flip_rx,
-                           _parse_channels(skip_tx, "--skip-tx"), _parse_channels(skip_rx, "--skip-rx"))
+    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
+                           skip_rx=_parse_channels(skip_rx, "--skip-rx"))
     steps = _steps(script)
     processor = TouchProcessor(sensing_map)
     sinks = EventSinks(udp=udp or (), websocket_port=websocket)

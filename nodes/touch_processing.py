@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
+from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
 REFINE_ITERATIONS = 2  # re-linearisations of the coupling fit (the second one absorbs curvature)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
@@ -61,8 +62,8 @@ class SensingMap:
 
     vertices: np.ndarray  # (n, 3) float64, mm
     faces: np.ndarray  # (m, 3) int64
-    num_tx: int
-    num_rx: int
+    num_tx: int  # Tx channels wired (<= the board's 21)
+    num_rx: int  # Rx channels wired (<= the board's 12)
     cell_tx: np.ndarray  # (K,) int64
     cell_rx: np.ndarray  # (K,) int64
     cell_points: np.ndarray  # (K, 3) float64, mm
@@ -78,8 +79,9 @@ class SensingMap:
 
     @property
     def frame_index(self) -> np.ndarray:
-        """Index of each cell in a flattened channel-order frame (``tx * num_rx + rx``)."""
-        return self.cell_tx * self.num_rx + self.cell_rx
+        """Index of each cell in a flattened channel-order board frame (``tx * 12 + rx`` on a Muca board,
+        whatever number of channels the layout wires)."""
+        return self.cell_tx * NUM_RX + self.cell_rx
 
     def pitch_mm(self) -> float:
         """Median distance from a cell to its nearest neighbour cell (mm)."""
@@ -123,6 +125,8 @@ def load_sensing_map(path: str | Path) -> SensingMap:
         raise UserError(f"sensing map {path} misses or mangles field {exc}: regenerate it with the pipeline") from None
     if len(cells) == 0:
         raise UserError(f"sensing map {path} lists no cells: the layout has no Tx/Rx crossings")
+    if num_tx > NUM_TX or num_rx > NUM_RX:
+        raise UserError(f"sensing map {path} wires {num_tx} x {num_rx} channels but the Muca board has {NUM_TX} x {NUM_RX}")
     if cell_tx.min() < 0 or cell_tx.max() >= num_tx or cell_rx.min() < 0 or cell_rx.max() >= num_rx:
         raise UserError(f"sensing map {path} has cell channels outside {num_tx} x {num_rx}")
     if len(np.unique(cell_tx * num_rx + cell_rx)) != len(cells):
@@ -403,7 +407,7 @@ class TouchProcessor:
         return len(self._calibration) >= self.params.calibration_frames
 
     def process(self, values: np.ndarray, t: float) -> FrameResult:
-        """One channel-order frame ``(num_tx, num_rx)`` at time ``t`` (s) -> :class:`FrameResult`."""
+        """One channel-order board frame ``(21, 12)`` at time ``t`` (s) -> :class:`FrameResult`."""
         raw = np.asarray(values, dtype=np.float64).ravel()[self.frame_index]
         valid = raw >= 0
         if not self.calibrated:
@@ -413,7 +417,7 @@ class TouchProcessor:
         p = self.params
         sigma = self._sigma()
         delta = raw - self.baseline
-        quiet = valid & (np.abs(delta) < p.update_sigma * sigma) & ~self.active
+        quiet = valid & (np.abs(delta) < p.update_sigma * sigma) & ~self.active & (self.baseline > 0)
         if np.count_nonzero(quiet) >= 3:
             common = float(np.median(delta[quiet] / self.baseline[quiet]))
             delta = raw - self.baseline * (1.0 + common)

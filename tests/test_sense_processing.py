@@ -189,6 +189,18 @@ def test_binary_format_with_flipped_rx_through_the_pty(bunny_map):
     assert all(np.linalg.norm(t.point - bunny_map.cell_points[10]) < 2.5 for t in touches)  # pitch 8.7 mm
 
 
+def test_layout_wiring_fewer_channels_than_the_board(tmp_path):
+    """18 Tx x 10 Rx wired: frames still carry 21 x 12 values, cells index them as tx * 12 + rx."""
+    sensing_map = load_sensing_map(synthetic_bunny_map(tmp_path, cells=160, num_tx=18, num_rx=10))
+    assert sensing_map.num_tx == 18 and sensing_map.num_rx == 10
+    assert sensing_map.frame_index.max() < 21 * 12
+    assert np.array_equal(sensing_map.frame_index, sensing_map.cell_tx * 12 + sensing_map.cell_rx)
+    summary = evaluate_simulator(sensing_map.source, BoardParams(seed=11), EvalParams(locations=4, repetitions=2),
+                                 through_pty=True).summary()
+    assert summary["missed_presses"] == 0 and summary["false_touches"] == 0
+    assert summary["localization_error_mm_mean"] < 1.5
+
+
 def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
     with pytest.raises(UserError, match="not found"):
         load_sensing_map(tmp_path / "missing")
