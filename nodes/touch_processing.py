@@ -317,6 +317,7 @@ class ProcessingParams(NodeParams):
     interpolation_radius_mm: float | None = Field(None, gt=0, description="vertex-to-cell interpolation radius; None: 1.5 x pitch")
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
     refine: bool = Field(True, description="refine the centroid with the Gaussian coupling fit")
+    no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -365,6 +366,7 @@ class TouchProcessor:
         interpolation_radius = params.interpolation_radius_mm or 1.5 * self.pitch
         cells = sensing_map.cell_points
         self.frame_index = sensing_map.frame_index
+        self.cell_gain = np.where(sensing_map.cell_pad, 1.0, params.no_pad_gain)
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
@@ -572,7 +574,7 @@ class TouchProcessor:
 
     def _refine(self, point, face, positive, sigma):
         """Gaussian coupling fit around ``point``; returns (point, face, bary) on the surface and the
-        fitted amplitude A (counts), or None when fewer than 4 cells carry signal.
+        fitted amplitude A (counts), or None when fewer than 3 cells carry signal.
 
         With ``p = point + u`` and ``y_i = x_i - point``:
         ``log d_i + |y_i|^2 / (2 s^2) = c + u.y_i / s^2`` is linear in ``(c, u)``. It is solved by
@@ -588,11 +590,11 @@ class TouchProcessor:
         fitted = None
         for _ in range(REFINE_ITERATIONS):
             near = np.flatnonzero(strong & (np.sum((cells - point) ** 2, axis=1) <= reach2))
-            if len(near) < 4:
+            if len(near) < 3:  # the ridge keeps three cells (c, two tangent offsets) solvable
                 break
             frame = self.projector.face_frames[face]
             y = cells[near] - point
-            d = positive[near]
+            d = positive[near] / self.cell_gain[near]
             design = np.column_stack([np.ones(len(near)), y @ frame.T / s2])
             target = np.log(d) + np.einsum("ij,ij->i", y, y) / (2 * s2)
             weighted = design * (d * d)[:, None]
@@ -603,7 +605,7 @@ class TouchProcessor:
             except np.linalg.LinAlgError:
                 break
             step = solution[1:] @ frame
-            amplitude = float(np.exp(solution[0] + solution[1:] @ solution[1:] / (2 * s2)))
+            amplitude = float(np.exp(min(solution[0] + solution[1:] @ solution[1:] / (2 * s2), 30.0)))
             step_len = np.linalg.norm(step)
             if step_len > self.pitch:
                 step *= self.pitch / step_len
