@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -46,8 +45,8 @@ class OptimizeParams(NodeParams):
     n_drive: int = Field(21, ge=1, le=128, description="Tx channels available (N_drive; 21 on the Muca board)")
     n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the sample distances (off: ablation)")
-    secondary_metric: Literal["mean_squared", "mean"] = Field(
-        "mean_squared", description="secondary objective: mean squared or mean sample-to-crossing distance"
+    secondary_power: int = Field(
+        6, ge=1, le=8, description="secondary objective: power mean of sample distances (1 = plain mean)"
     )
     resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
     time_limit_s: float = Field(1.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
@@ -187,7 +186,7 @@ def optimize_angle(
     base = {
         "angle_deg": angle_deg,
         "secondary": params.secondary,
-        "secondary_metric": params.secondary_metric,
+        "secondary_power": params.secondary_power,
         "candidates": {"tx": tx.count, "rx": rx.count, "tx_usable": int(problem.tx_usable.sum()),
                        "rx_usable": int(problem.rx_usable.sum()), "single_crossings": len(rows),
                        "multi_crossing_pairs": len(multi), "tx_conflicts": len(problem.tx_conflicts),
@@ -196,7 +195,7 @@ def optimize_angle(
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
                                   params.resolution_mm, params.time_limit_s, params.seed, params.workers,
-                                  params.max_model_memberships, params.secondary_metric == "mean_squared")
+                                  params.max_model_memberships, params.secondary_power)
     except UserError as exc:
         return AngleLayout(angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
     t1 = time.perf_counter()
@@ -245,7 +244,7 @@ def optimize_angle(
         "feasible": True,
         "coverage_radius_mm": float(nearest.max()),
         "mean_distance_mm": float(nearest.mean()),
-        "rms_distance_mm": float(np.sqrt(np.mean(nearest**2))),
+        "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
         "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
                                   "max": float(cell_area.max())} if pad.sum() else None,
@@ -298,16 +297,15 @@ class PickParams(NodeParams):
 
 def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float) -> int:
     """Index of the best feasible branch: smallest coverage radius (ties within the tolerance, since
-    the K samples resolve no finer), then the secondary objective when it is on (RMS or mean
-    sample distance), then the Voronoi CV."""
+    the K samples resolve no finer), then the secondary objective when it is on (power mean of the
+    sample distances), then the Voronoi CV."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     best_radius = min(candidates[i].metrics["coverage_radius_mm"] for i in feasible)
     tied = [i for i in feasible if candidates[i].metrics["coverage_radius_mm"] <= best_radius + radius_tolerance_mm]
 
     def key(i: int) -> tuple:
         m = candidates[i].metrics
-        key = "rms_distance_mm" if m["secondary_metric"] == "mean_squared" else "mean_distance_mm"
-        mean = m[key] if m["secondary"] else 0.0
+        mean = m["power_mean_distance_mm"] if m["secondary"] else 0.0
         cv = m["voronoi_cv"] if m["voronoi_cv"] is not None else float("inf")
         return (mean, cv, m["coverage_radius_mm"])
 

@@ -87,7 +87,7 @@ def test_metrics_and_pick(run):
     assert b.metrics["rx_channels"] <= 3  # pin-count override reaches the branch
     radius = min(c.metrics["coverage_radius_mm"] for c in (a, b))
     tied = [c for c in (a, b) if c.metrics["coverage_radius_mm"] <= radius + 1.0]
-    best = min(tied, key=lambda c: c.metrics["rms_distance_mm"])
+    best = min(tied, key=lambda c: c.metrics["power_mean_distance_mm"])
     assert metrics["chosen_angle_deg"] == pytest.approx(best.angle_deg)
     layout = picked["layout"]
     assert layout.tx.count == len(layout.tx_source) == metrics["tx_channels"]

@@ -7,8 +7,7 @@ from retrotouch.nodes.layout_sweep import AngleLayout, PickParams, angle_table, 
 
 
 def branch(angle, radius, mean, cv, secondary=True, feasible=True):
-    metrics = {"coverage_radius_mm": radius, "mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
-               "secondary_metric": "mean",
+    metrics = {"coverage_radius_mm": radius, "power_mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
                "pads": 10, "tx_channels": 21, "rx_channels": 12, "seconds": {"total": 1.0}, "relaxations": [],
                "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0}], "resolution_mm": 0.5}}
     return AngleLayout(angle, feasible, "ok" if feasible else "no pads", None, metrics)
