@@ -365,14 +365,6 @@ class MucaReader:
             if record else None
         )
 
-    def write(self, data: bytes) -> None:
-        """Send a host command (e.g. ``b"c\\n"`` to recalibrate); lost silently while unplugged."""
-        try:
-            if self._serial is not None:
-                self._serial.write(data)
-        except (serial.SerialException, OSError):
-            pass
-
     def frames(self) -> Iterator[Frame]:
         """Yield frames until :meth:`close`; never raises on bad input or an unplug."""
         idle = False

@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.muca_serial import MAX_COUNT, NUM_RX, NUM_TX, Frame, FrameOptions, MucaReader, encode_ascii_frame, encode_binary_frame
-from retrotouch.nodes.touch_processing import SensingMap, SurfaceProjector, load_sensing_map, write_sensing_map
+from retrotouch.nodes.touch_processing import SensingMap, SurfaceProjector, write_sensing_map
 
 # --------------------------------------------------------------------------------------------
 # Synthetic layout (until the pipeline's sensing map exists)
@@ -517,19 +517,6 @@ class PtyBoard:
                 os.close(fd)
             except OSError:
                 pass
-
-
-def simulated_session(
-    sensing_map_path: str | Path,
-    steps: list[dict[str, Any]],
-    board_params: BoardParams = BoardParams(),
-    seed: int = 0,
-) -> tuple[SensingMap, VirtualBoard, Script]:
-    """Load a map and build the board and script for it (shared by the CLI, eval and bench)."""
-    sensing_map = load_sensing_map(sensing_map_path)
-    board = VirtualBoard(sensing_map, board_params)
-    script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
-    return sensing_map, board, script
 
 
 def frames_through_pty(
