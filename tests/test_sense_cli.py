@@ -71,6 +71,18 @@ def test_script_file_record_and_replay_give_the_same_events(app, layout, tmp_pat
     assert replayed == live
 
 
+def test_evaluate_a_labelled_recording_prints_one_json_report(app, layout, tmp_path):
+    from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
+
+    recording = tmp_path / "eval.jsonl"
+    evaluate_simulator(layout, BoardParams(seed=2), EvalParams(locations=4, repetitions=2), record=recording)
+    lines = invoke(app, "--evaluate", "--replay", recording, "--layout", layout).stdout.strip().splitlines()
+    assert len(lines) == 1
+    report = json.loads(lines[0])
+    assert report["presses"] == 8 and report["locations"] == 4 and len(report["per_location"]) == 4
+    assert report["localization_error_mm_mean"] < 1.5 and report["snr_mean"] > report["snr_p2p_mean"] > 0
+
+
 def test_udp_receives_the_same_lines(app, layout, tmp_path):
     receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     receiver.bind(("127.0.0.1", 0))
