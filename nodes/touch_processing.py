@@ -29,6 +29,7 @@ capacitance. Touch points lie on the mesh (``face`` + ``bary`` follow the dataty
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import json
@@ -50,6 +51,8 @@ from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
 REFINE_ITERATIONS = 2  # re-linearisations of the coupling fit (the second one absorbs curvature)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
+COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
+COUPLING_MIN_ESTIMATES = 20  # estimates needed before the learned width replaces the initial one
 
 
 # --------------------------------------------------------------------------------------------
@@ -318,6 +321,7 @@ class ProcessingParams(NodeParams):
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
     refine: bool = Field(True, description="refine the centroid with the Gaussian coupling fit")
     no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
+    adapt_coupling: bool = Field(True, description="learn the coupling width from touches seen by >= 6 crossings")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -361,6 +365,8 @@ class TouchProcessor:
         self.params = params
         self.pitch = sensing_map.pitch_mm()
         self.coupling_sigma = params.coupling_sigma_mm or float(np.hypot(params.finger_radius_mm, self.pitch / 2))
+        self.initial_coupling_sigma = self.coupling_sigma
+        self._width_estimates: collections.deque[float] = collections.deque(maxlen=COUPLING_WINDOW)
         self.hold_radius = params.hold_radius_mm or 2.5 * self.pitch
         self.peak_radius = params.peak_radius_mm or 1.5 * self.pitch
         interpolation_radius = params.interpolation_radius_mm or 1.5 * self.pitch
@@ -541,6 +547,26 @@ class TouchProcessor:
             return self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
         return points[0], face, barys[0]
 
+    def _learn_coupling(self, design: np.ndarray, weighted: np.ndarray, log_d: np.ndarray, s2: float) -> None:
+        """One estimate of the coupling width from a touch: ``log d_i = c + b.y_i - a |y_i|^2`` is
+        linear in (c, b, a) and ``s = sqrt(1 / (2 a))``. The width in use becomes the median of the last
+        estimates (from the ``COUPLING_MIN_ESTIMATES``-th on), kept within half to twice the initial one."""
+        y2 = np.sum((design[:, 1:] * s2) ** 2, axis=1)
+        full = np.column_stack([design, -y2])
+        weights = weighted[:, 0]  # d_i^2
+        normal_matrix = full.T @ (full * weights[:, None])
+        normal_matrix[3, 3] += NORMAL_RIDGE * 0.5 * (normal_matrix[1, 1] + normal_matrix[2, 2])
+        try:
+            a = np.linalg.solve(normal_matrix, full.T @ (weights * log_d))[4]
+        except np.linalg.LinAlgError:
+            return
+        if a <= 0:
+            return
+        self._width_estimates.append(float(np.sqrt(1.0 / (2.0 * a))))
+        if len(self._width_estimates) >= COUPLING_MIN_ESTIMATES:
+            learned = float(np.median(self._width_estimates))
+            self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
+
     def _refine_all(self, found: list[list[Any]], positive: np.ndarray, sigma: np.ndarray) -> None:
         """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
         within a pitch of the finger); with several touches the first pass fits each one to its own
@@ -604,6 +630,8 @@ class TouchProcessor:
                 solution = np.linalg.solve(normal_matrix, weighted.T @ target)
             except np.linalg.LinAlgError:
                 break
+            if fitted is None and self.params.adapt_coupling and len(near) >= 6:
+                self._learn_coupling(design, weighted, np.log(d), s2)
             step = solution[1:] @ frame
             amplitude = float(np.exp(min(solution[0] + solution[1:] @ solution[1:] / (2 * s2), 30.0)))
             step_len = np.linalg.norm(step)

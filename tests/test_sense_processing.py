@@ -128,6 +128,21 @@ def test_low_snr_still_localizes_within_a_pitch(bunny_map_path, bunny_map):
     assert summary["localization_error_mm_mean"] < bunny_map.pitch_mm() / 2
 
 
+def test_coupling_width_is_learned_from_touches(bunny_map, bunny_map_path):
+    """The board couples 25 % wider than the processing assumes at start: it learns the width."""
+    processor = TouchProcessor(bunny_map)
+    true_width = 1.25 * processor.coupling_sigma
+    params = BoardParams(coupling_sigma_mm=true_width, seed=12)
+    board = VirtualBoard(bunny_map, params)
+    steps = [{"gesture": "press", "at": "random", "ms": 500} for _ in range(20)]
+    script = ScriptBuilder(bunny_map, params, seed=12).build(steps)
+    feed(processor, board, script.fingers_at, script.duration)
+    assert processor.coupling_sigma == pytest.approx(true_width, rel=0.05)
+    fixed = TouchProcessor(bunny_map, ProcessingParams(adapt_coupling=False))
+    feed(fixed, board, script.fingers_at, script.duration)
+    assert fixed.coupling_sigma == pytest.approx(true_width / 1.25)
+
+
 def test_ten_minutes_at_rest_with_drift_give_no_touch(bunny_map):
     board = VirtualBoard(bunny_map, BoardParams(drift_fraction=0.01, drift_period_s=240, cell_walk_counts=0.3, seed=5))
     processor = TouchProcessor(bunny_map)
