@@ -41,13 +41,16 @@ def throughput(sensing_map, frames: int, snr: float) -> dict:
     latency is parse-to-result time of the processing (processor + gestures)."""
     params = BoardParams(snr=snr, seed=1)
     board = VirtualBoard(sensing_map, params)
-    script = ScriptBuilder(sensing_map, params, seed=1).build(DEMO_SCRIPT * 4)
+    script = ScriptBuilder(sensing_map, params, seed=1).build(DEMO_SCRIPT * (1 + frames // 60))  # ~80 frames each
     processor = TouchProcessor(sensing_map)
     recognizer = GestureRecognizer()
     latencies, cpu, touched = [], [], []
-    started = time.perf_counter()
-    cpu_started = time.thread_time()
-    for frame in frames_through_pty(board, script, fast=True, frames=frames, loop=True, separate_process=True):
+    started = cpu_started = None
+    # The board (own process) synthesizes every frame first; the clock starts at the first frame read.
+    for frame in frames_through_pty(board, script, fast=True, frames=frames + 1, separate_process=True,
+                                    prerender=True):
+        if started is None:
+            started, cpu_started = time.perf_counter(), time.thread_time()
         t0, c0 = time.perf_counter(), time.thread_time()
         result = processor.process(frame.values, frame.t)
         recognizer.feed(result)

@@ -428,7 +428,8 @@ class PtyBoard:
     """Serves a virtual board's frames on a pseudo-terminal; open :attr:`port` with pyserial.
 
     Paced at ``rate_hz`` of board time, or as fast as the reader drains the pty when ``fast``; with
-    ``separate_process`` the board runs in a forked process (as a real board runs on its own chip).
+    ``separate_process`` the board runs in a forked process (as a real board runs on its own chip);
+    ``prerender`` (fast mode, finite) synthesizes all frames before writing the first one.
     Frame ``k`` shows the script at board time ``k / rate_hz``. Stops after the script's duration
     (or ``frames`` frames if given; ``loop`` repeats the script forever).
     """
@@ -443,6 +444,7 @@ class PtyBoard:
         loop: bool = False,
         garbage_every: int = 0,
         separate_process: bool = False,
+        prerender: bool = False,
     ):
         self.board = board
         self.script = script
@@ -454,6 +456,9 @@ class PtyBoard:
         self.frames_total = None if loop else frames
         self.loop = loop
         self.garbage_every = garbage_every
+        if prerender and (not fast or self.frames_total is None):
+            raise ValueError("prerender needs fast mode and a finite number of frames")
+        self.prerender = prerender
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)
         self.port = os.ttyname(self.slave)
@@ -482,21 +487,30 @@ class PtyBoard:
             written = os.write(self.master, view)
             view = view[written:]
 
+    def _frame_bytes(self, k: int) -> bytes:
+        t = k / self.rate_hz
+        script_t = t % self.script.duration if (self.script is not None and self.loop) else t
+        fingers = self.script.fingers_at(script_t) if self.script is not None else []
+        grid = self.board.frame(t, fingers)
+        data = encode_ascii_frame(grid) if self.frame_format == "ascii" else encode_binary_frame(grid)
+        if self.garbage_every and k % self.garbage_every == self.garbage_every - 1:
+            data = b"Calibration performed 3/20\r\n\x00\xff garbage,12,\r\n" + data
+        return data
+
     def _run(self) -> None:
         try:
+            if self.prerender:
+                # Synthesize every frame first, then only write: the stream runs at the reader's pace.
+                stream = b"".join(self._frame_bytes(k) for k in range(self.frames_total))
+                self._write(b"[Muca] Initialized\r\n[Muca] Set TEST mode\r\n" + stream)
+                return
             self._write(b"[Muca] Initialized\r\n[Muca] Set TEST mode\r\n")
             start = time.monotonic()
             k = 0
             while not self._stop.is_set() and (self.frames_total is None or k < self.frames_total):
-                t = k / self.rate_hz
-                script_t = t % self.script.duration if (self.script is not None and self.loop) else t
-                fingers = self.script.fingers_at(script_t) if self.script is not None else []
-                grid = self.board.frame(t, fingers)
-                data = encode_ascii_frame(grid) if self.frame_format == "ascii" else encode_binary_frame(grid)
-                if self.garbage_every and k % self.garbage_every == self.garbage_every - 1:
-                    data = b"Calibration performed 3/20\r\n\x00\xff garbage,12,\r\n" + data
+                data = self._frame_bytes(k)
                 if not self.fast:
-                    delay = start + t - time.monotonic()
+                    delay = start + k / self.rate_hz - time.monotonic()
                     if delay > 0:
                         self._stop.wait(delay)
                 self._write(data)
@@ -529,12 +543,14 @@ def frames_through_pty(
     record: str | Path | None = None,
     loop: bool = False,
     separate_process: bool = False,
+    prerender: bool = False,
 ) -> Iterator[Frame]:
     """Run ``board`` on a pseudo-terminal and read it back with :class:`MucaReader` (the real serial
     path). Frames carry board time ``seq / rate_hz`` (s), so fast mode keeps the script's timing.
     Ends after the board's last frame (never with ``loop``); the script's labels go into the recording."""
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
-                         garbage_every=garbage_every, loop=loop, separate_process=separate_process)
+                         garbage_every=garbage_every, loop=loop, separate_process=separate_process,
+                         prerender=prerender)
     options = FrameOptions(flip_tx=board.params.flip_tx, flip_rx=board.params.flip_rx)
     # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
