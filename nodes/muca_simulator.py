@@ -275,9 +275,9 @@ class ScriptBuilder:
         self.interior_cells = np.flatnonzero(counts >= np.percentile(counts, 50))
 
     def inside(self, points: np.ndarray) -> bool:
-        """Whether every point is within 0.7 pitch of a crossing (the sensed region)."""
+        """Whether every point is within 0.8 pitch of a crossing (the sensed region)."""
         distance, _ = self.cell_tree.query(np.atleast_2d(points))
-        return bool(np.all(distance <= 0.7 * self.pitch))
+        return bool(np.all(distance <= 0.8 * self.pitch))
 
     def location(self, spec: Any) -> np.ndarray:
         if isinstance(spec, dict) and "cell" in spec:
@@ -379,7 +379,7 @@ class ScriptBuilder:
         return Script(tuple(strokes), tuple(labels), t + tail_s)
 
     def _surface_path(self, at: Any, direction: Any, length: float) -> np.ndarray:
-        for _ in range(50):
+        for _ in range(200):
             start = self.location(at)
             path = self.march(start, self._tangent(start, direction), length)
             if self.fits(path, length):
@@ -387,7 +387,7 @@ class ScriptBuilder:
         raise UserError(f"no {length:g} mm swipe fits inside the sensed region from {at!r}: shorten length_mm")
 
     def _pinch_centre(self, at: Any, direction: Any, half: float) -> tuple[np.ndarray, np.ndarray]:
-        for _ in range(50):
+        for _ in range(200):
             centre = self.location(at)
             d = self._tangent(centre, direction)
             ahead, behind = self.march(centre, d, half), self.march(centre, -d, half)

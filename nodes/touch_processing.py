@@ -52,7 +52,8 @@ from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 REFINE_ITERATIONS = 2  # re-linearisations of the coupling fit (the second one absorbs curvature)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
 COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
-COUPLING_MIN_ESTIMATES = 20  # estimates needed before the learned width replaces the initial one
+COUPLING_MIN_ESTIMATES = 30  # estimates needed before the learned width replaces the initial one
+COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,7 +322,7 @@ class ProcessingParams(NodeParams):
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
     refine: bool = Field(True, description="refine the centroid with the Gaussian coupling fit")
     no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
-    adapt_coupling: bool = Field(True, description="learn the coupling width from touches seen by >= 6 crossings")
+    adapt_coupling: bool = Field(True, description="learn the coupling width from touches seen by >= 7 crossings")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -630,7 +631,7 @@ class TouchProcessor:
                 solution = np.linalg.solve(normal_matrix, weighted.T @ target)
             except np.linalg.LinAlgError:
                 break
-            if fitted is None and self.params.adapt_coupling and len(near) >= 6:
+            if fitted is None and self.params.adapt_coupling and len(near) >= COUPLING_MIN_CELLS:
                 self._learn_coupling(design, weighted, np.log(d), s2)
             step = solution[1:] @ frame
             amplitude = float(np.exp(min(solution[0] + solution[1:] @ solution[1:] / (2 * s2), 30.0)))
