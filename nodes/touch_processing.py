@@ -11,15 +11,19 @@ Per frame (``TouchProcessor.process``):
    that rested on it at start-up).
 2. **Detection**: ``delta = raw - baseline`` in counts (a touch raises counts on FT5x16 raw output).
    A cell turns on above ``on_sigma`` noise sigmas and stays on above ``off_sigma`` (hysteresis).
-3. **Contact areas**: the deltas are interpolated over mesh vertices near active cells (Gaussian
-   kernel, Nadaraya-Watson); vertices above the off threshold form connected components on the mesh
-   graph. Each component is split among its touch peaks (active cells that are local maxima and are
+3. **Contact areas**: the deltas are interpolated over the vertices of a simplified copy of the mesh
+   (``contact_mesh_faces``; Gaussian kernel, Nadaraya-Watson); vertices above the off threshold form
+   connected components over the mesh edges. Each component is split among its touch peaks (active cells that are local maxima and are
    not explained by a stronger peak's coupling tail); the intensity-weighted, area-weighted centroid
    of each part, projected on the surface, is the coarse touch point, and the part's area above half
    of its peak intensity is the contact area.
 4. **Sub-cell refinement** (``refine``): a Gaussian coupling model
-   ``delta_i = A exp(-|p - x_i|^2 / (2 s^2))`` fitted to the cells around the coarse point by weighted
-   log-linear least squares with ``p`` in the tangent plane, then projected on the surface (twice).
+   ``delta_i = g_i A exp(-|p - x_i|^2 / (2 s^2))`` (``g_i`` = 1 with a pad, ``no_pad_gain`` without)
+   fitted by weighted log-linear least squares to the crossings around the peak crossing, then
+   projected on the surface; with several touches each one is refitted to the deltas minus the
+   others' fitted coupling. The width ``s`` starts at ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is
+   learned from touches that many crossings see (``adapt_coupling``). Without enough crossings the
+   coarse point stays.
 5. **Tracking**: touches are matched to the previous frame's tracks by minimum total distance
    (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
    ids, unmatched tracks end.
