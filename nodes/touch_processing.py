@@ -619,7 +619,7 @@ class TouchProcessor:
         """
         s2 = self.coupling_sigma**2
         cells = self.map.cell_points
-        reach2 = (2.5 * self.coupling_sigma) ** 2
+        reach2 = (3.0 * self.coupling_sigma) ** 2  # wider hurts: far crossings feel the curvature
         strong = positive > 2.0 * sigma
         fitted = None
         for _ in range(REFINE_ITERATIONS):
