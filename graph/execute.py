@@ -11,7 +11,8 @@ Schedulers (``--scheduler``):
   least two instances could run at once, otherwise in-process. Nothing of dask is imported when
   everything is cached.
 * ``sync``: in-process, one instance at a time (debugging, profiling).
-* ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers.
+* ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers (the process pool
+  is forked on Linux, like the local cluster's workers).
 * ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need retrotouch installed
   and the cache dir at the same path (a shared filesystem).
 """
@@ -220,10 +221,20 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
         def _posttask(self, key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
             on_done(key, result)
 
+    import dask
+
     names = list(tasks)
-    with Progress():
+    context = "fork" if kind == "processes" and _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
+    with Progress(), dask.config.set({"multiprocessing.context": context}):
         values = get(_dask_graph(tasks), names)
     return dict(zip(names, values))
+
+
+def _fork_is_safe() -> bool:
+    """Fork worker processes (fast start, node modules already imported) only on Linux (fork is
+    unsafe on macOS) and only while no node has run in this process (OpenMP runtimes do not
+    survive a fork)."""
+    return sys.platform.startswith("linux") and not _nodes_ran_in_process
 
 
 def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], address: str, on_done: Done) -> dict[str, TaskResult]:
@@ -236,11 +247,9 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
         if address == "local-cluster":
             import dask
 
-            # Forked workers start in ~0.3 s and inherit the imported node modules; spawned ones
-            # take seconds to re-import everything. Fork only on Linux (unsafe on macOS) and only
-            # while no node has run in this process (OpenMP runtimes do not survive a fork).
-            fork = sys.platform.startswith("linux") and not _nodes_ran_in_process
-            method = "fork" if fork else "spawn"
+            # Forked workers start in ~0.15 s and inherit the imported node modules; spawned ones
+            # take seconds to re-import everything (see _fork_is_safe).
+            method = "fork" if _fork_is_safe() else "spawn"
             with dask.config.set({"distributed.worker.multiprocessing-method": method}):
                 cluster = LocalCluster(n_workers=os.cpu_count() or 1, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=logging.CRITICAL)

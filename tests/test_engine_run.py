@@ -262,3 +262,10 @@ def test_runs_replacing_the_same_output_folder_at_once(tmp_path, test_nodes):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["manifest.json", "scale=1", "scale=2", "scale=3",
                                                                    "value.json"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp")]
+
+
+def test_processes_scheduler_from_the_cli(tmp_path, cli, test_nodes):
+    (tmp_path / "p.yaml").write_text(SWEEP)
+    result = cli("run", "p.yaml", "--scheduler", "processes", "--out", "out")
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL
