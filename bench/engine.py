@@ -1,8 +1,8 @@
 """Engine benchmark: parallel speed-up of a map: sweep, and the warm rerun of the default pipeline.
 
 1. An 11-branch ``map:`` of pure-Python work (``bench.python_work``, calibrated to about 0.5 s per
-   branch on this machine) run by the CLI with the default scheduler and with ``--scheduler sync``,
-   each with a fresh cache. Speed-up = sync time / default time, from the run time the CLI reports
+   branch on this machine) run by the CLI with the default scheduler, ``--scheduler sync`` and
+   ``--scheduler local-cluster`` (dask.distributed), each with a fresh cache. Speed-up = sync time / default time, from the run time the CLI reports
    (planning, cluster start-up, execution and outputs; the interpreter start-up, identical for both,
    is left out) and from the whole subprocess wall time.
 2. ``retrotouch run pipelines/retrofit.yaml`` twice with a fresh cache: the second run (everything
@@ -78,26 +78,27 @@ def main() -> None:
             f"  work: {{type: bench.python_work, map: {{seed: \"${{seeds}}\"}}, params: {{iterations: {iterations}}}}}\n"
             "  all:  {type: bench.collect, inputs: {parts: \"work[*]\"}}\n")
         timings: dict[str, tuple[float, float]] = {}
+        schedulers = ("sync", "auto", "local-cluster")
         for _ in range(args.repeat):  # interleaved; the best of each (the machine may be shared)
-            for scheduler in ("sync", "auto"):
+            for scheduler in schedulers:
                 cache = tmp / f"cache-{scheduler}"
                 wall, reported, _ = run(["run", "map.yaml", "--scheduler", scheduler, "--cache-dir", str(cache),
                                          "--out", str(tmp / f"out-{scheduler}")], tmp, env)
                 best = timings.get(scheduler, (float("inf"), float("inf")))
                 timings[scheduler] = (min(best[0], wall), min(best[1], reported))
                 shutil.rmtree(cache)
-        for scheduler in ("sync", "auto"):
+        for scheduler in schedulers:
             rows.append((f"map x{args.branches}, --scheduler {scheduler} (best of {args.repeat})",
                          timings[scheduler][1], timings[scheduler][0]))
         fixed = {}  # the same map with almost no work: what starting the parallel machinery costs
-        for scheduler in ("sync", "auto"):
+        for scheduler in schedulers:
             cache = tmp / f"cache-trivial-{scheduler}"
             wall, reported, _ = run(["run", "map.yaml", "-S", "work.iterations=1", "--scheduler", scheduler,
                                      "--cache-dir", str(cache), "--out", str(tmp / f"out-trivial-{scheduler}")], tmp, env)
             fixed[scheduler] = reported
             rows.append((f"map x{args.branches}, no work, --scheduler {scheduler}", reported, wall))
-        outputs = [json.loads((tmp / f"out-{s}" / "manifest.json").read_text())["nodes"] for s in ("sync", "auto")]
-        assert [n["content_sha256"] for n in outputs[0]] == [n["content_sha256"] for n in outputs[1]]
+        outputs = [json.loads((tmp / f"out-{s}" / "manifest.json").read_text())["nodes"] for s in schedulers]
+        assert all([n["content_sha256"] for n in o] == [n["content_sha256"] for n in outputs[0]] for o in outputs)
 
         pipeline = str(REPO / "pipelines" / "retrofit.yaml")
         cache = tmp / "cache-default"
@@ -122,6 +123,8 @@ def main() -> None:
     print(json.dumps({"map_speedup_vs_sync": round(speedup, 3), "map_speedup_vs_sync_wall": round(speedup_wall, 3),
                       "map_branches": args.branches, "map_sync_s": round(timings["sync"][1], 3),
                       "map_default_s": round(timings["auto"][1], 3), "map_parallel_overhead_s": round(overhead, 3),
+                      "map_local_cluster_speedup_vs_sync": round(timings["sync"][1] / timings["local-cluster"][1], 3),
+                      "map_local_cluster_overhead_s": round(fixed["local-cluster"] - fixed["sync"], 3),
                       "map_ideal_speedup": round(ideal, 3), "warm_rerun_s": round(warm_wall, 3),
                       "cold_run_s": round(cold_wall, 3), "cores": os.cpu_count(),
                       "load_average": round(os.getloadavg()[0], 2)}))

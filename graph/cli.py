@@ -46,7 +46,8 @@ def run(
     overrides: Optional[list[str]] = SetOption,
     out: Optional[str] = typer.Option(None, "--out", help="Output folder (default: out/<pipeline name>)."),
     scheduler: str = typer.Option("auto", "--scheduler",
-                                  help="auto | sync | threads | processes | tcp://HOST:PORT (a dask.distributed scheduler)."),
+                                  help="auto | sync | threads | processes | local-cluster | tcp://HOST:PORT (a dask.distributed "
+                                       "scheduler)."),
     explain: bool = typer.Option(False, "--explain", help="Say why each node that runs is not a cache hit."),
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:

@@ -6,13 +6,15 @@ embeds arrays. A per-key file lock makes concurrent runs sharing a cache compute
 
 Schedulers (``--scheduler``):
 
-* ``auto`` (default): a ``dask.distributed.LocalCluster`` of worker processes (one per core, one
-  thread each; forked on Linux so they start fast with the node modules already imported) when at
-  least two instances could run at once, otherwise in-process. Nothing of dask is imported when
-  everything is cached.
+* ``auto`` (default): when at least two instances could run at once, dask's multiprocessing
+  scheduler with one worker process per core (forked on Linux, so the pool starts in ~0.1 s with the
+  node modules already imported); otherwise in-process. Nothing of dask is imported when everything
+  is cached. (A ``dask.distributed.LocalCluster`` costs ~0.45 s more to start and stop, which on
+  2 cores eats most of the gain of a sweep of half-second branches: see bench/engine.py.)
 * ``sync``: in-process, one instance at a time (debugging, profiling).
-* ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers (the process pool
-  is forked on Linux, like the local cluster's workers).
+* ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers.
+* ``local-cluster``: a ``dask.distributed.LocalCluster`` (one single-threaded worker process per
+  core), started for this run only.
 * ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need retrotouch installed
   and the cache dir at the same path (a shared filesystem).
 """
@@ -34,7 +36,7 @@ from retrotouch.graph.node import REGISTRY, Files
 from retrotouch.graph.plan import Instance, Plan
 from retrotouch.graph.store import ArtifactRef, Store
 
-SCHEDULERS = ("auto", "sync", "threads", "processes")
+SCHEDULERS = ("auto", "sync", "threads", "processes", "local-cluster")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,7 +173,7 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done) -> dict[str,
     if not tasks:
         return {}
     if scheduler == "auto":
-        scheduler = "local-cluster" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
+        scheduler = "processes" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
     if scheduler == "sync":
         return _run_sync(tasks, on_done)
     if scheduler in ("threads", "processes"):

@@ -73,7 +73,7 @@ def test_errors_are_one_line(tmp_path, capsys, monkeypatch):
     assert code == 2 and err.count("\n") == 1 and "No such command" in err
     code, _, err = main(capsys, "run", "p.yaml", "--scheduler", "gpu")
     assert code == 2 and err == "retrotouch: error: --scheduler 'gpu': expected one of auto, sync, threads, " \
-                                "processes or tcp://HOST:PORT\n"
+                                "processes, local-cluster or tcp://HOST:PORT\n"
 
 
 def test_extension_modules_add_commands_and_missing_ones_are_skipped(tmp_path, monkeypatch):

@@ -101,14 +101,18 @@ def test_node_errors_are_one_line(tmp_path, cli, test_nodes):
     result = cli("run", "p.yaml", "--scheduler", "sync")
     assert result.returncode == 2
     assert result.stderr.strip() == "retrotouch: error: node bad: the input is unusable; pick another one"
-    # mapped: two branches can run at once, so this goes to a local dask cluster (worker logs silenced)
-    result = cli("run", "p.yaml", "-S", "bad.kind=crash", "-S", "nodes.src.map={scale: [1, 2]}")
+    # on a dask.distributed LocalCluster, whose worker logs must not add lines
+    result = cli("run", "p.yaml", "-S", "bad.kind=crash", "-S", "nodes.src.map={scale: [1, 2]}",
+                 "--scheduler", "local-cluster")
     assert result.returncode == 1
     line = result.stderr.strip()
     assert re.match(r"retrotouch: error: node bad\[scale=[12]\] failed: ZeroDivisionError", line) and "\n" not in line
     log = line.split("(traceback: ")[1].rstrip(")")
     assert "Traceback" in Path(log).read_text() and "Traceback" not in result.stderr
     assert cli("run", "p.yaml", "--scheduler", "fast").returncode == 2
+    result = cli("run", "p.yaml", "-S", "nodes.src.map={scale: [1, 2]}")  # auto: forked process pool
+    assert result.returncode == 2 and re.fullmatch(r"retrotouch: error: node bad\[scale=[12]\]: the input is "
+                                                   r"unusable; pick another one\n", result.stderr)
 
 
 def test_out_dir_not_written_by_retrotouch_is_refused(tmp_path, test_nodes):
