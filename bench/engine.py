@@ -32,14 +32,14 @@ import engine_nodes  # noqa: E402  (bench node types, also imported by the runs 
 
 
 def calibrate(seconds: float) -> int:
-    """Loop iterations that take about ``seconds`` here (median of three timings)."""
+    """Loop iterations that take about ``seconds`` on an unloaded core (fastest of five timings)."""
     probe = 300_000
     times = []
-    for _ in range(3):
+    for _ in range(5):
         start = time.perf_counter()
         engine_nodes.python_work(engine_nodes.WorkParams(iterations=probe))
         times.append(time.perf_counter() - start)
-    return int(probe * seconds / sorted(times)[1])
+    return int(probe * seconds / min(times))
 
 
 def cli() -> list[str]:
