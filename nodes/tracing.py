@@ -713,8 +713,9 @@ def adaptive_tx_traces(params: TraceTxParams, tables: MeshTables, regions, field
 
     ``uniform_share`` measured on the bunny (170 mm, 19k vertices, bench/layout.py sweep): 0.25 / 0.5
     / 0.75 give Voronoi CV 0.270 / 0.285 / 0.263 at the chosen Rx angle and 0.317 / 0.318 / 0.304
-    averaged over the ten angles other than -10 deg (uniform sampling: 0.378 and 0.369), differences
-    at the level of the solver's run-to-run spread; the largest Euclidean gap is 6.1 / 4.9 / 5.3 mm.
+    averaged over the ten angles other than -10 deg (uniform sampling: 0.378 and 0.369); small next to
+    the spread of the chosen CV between reseeding variants of equal coverage (0.25 to 0.30), so not
+    tuned further. The largest Euclidean gap is 6.1 / 4.9 / 5.3 mm.
     """
     import potpourri3d as pp3d  # heavy: imported when used, not on node discovery
 
