@@ -644,7 +644,9 @@ def pick_curves(traces: Traces, order: np.ndarray) -> Traces:
     curve = rank[traces.curve]
     rows = np.flatnonzero(curve >= 0)
     rows = rows[np.argsort(curve[rows], kind="stable")]
-    return dataclasses.replace(traces, curve=curve[rows], faces=traces.faces[rows], bary=traces.bary[rows], end_reason=traces.end_reason[order])
+    return dataclasses.replace(
+        traces, curve=curve[rows], faces=traces.faces[rows], bary=traces.bary[rows], end_reason=traces.end_reason[order]
+    )
 
 
 def field_lines_through(
