@@ -74,4 +74,4 @@ def fail(params: FailParams, x: np.ndarray) -> np.ndarray:
     """Raises: a UserError (kind=user) or a ZeroDivisionError (kind=crash)."""
     if params.kind == "user":
         raise UserError("the input is unusable; pick another one")
-    return x / 0 if False else 1 // 0
+    return x * (1 // 0)  # a genuine bug: ZeroDivisionError
