@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import Field
 
 from retrotouch.graph.node import Files, NodeParams, node
-from retrotouch.nodes.datatypes import Crossings, CurveSet, Mesh, SurfaceRegions
+from retrotouch.nodes.datatypes import CurveSet, Layout, Mesh, SurfaceRegions
 
 TX_RGB = (230, 70, 20)
 RX_RGB = (20, 110, 235)
@@ -398,21 +398,14 @@ def render_preview(params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, t
     )
 
 
-@node(
-    "preview.render_with_crossings",
-    params=PreviewParams,
-    inputs=("mesh", "regions", "tx", "rx", "crossings"),
-    outputs=("files",),
-    sink=True,
-)
-def render_preview_with_crossings(
-    params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, tx: CurveSet, rx: CurveSet, crossings: Crossings
-) -> Files:
-    """As ``preview.render``, with the Tx x Rx crossings marked as yellow dots."""
-    points = np.asarray(crossings.points, dtype=np.float64).reshape(-1, 3)
+@node("preview.layout", params=PreviewParams, inputs=("mesh", "regions", "layout"), outputs=("files",), sink=True)
+def render_layout_preview(params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout) -> Files:
+    """As ``preview.render`` for the optimised layout: the selected curves, with the crossings that
+    carry an electrode pad marked as yellow dots."""
+    pads = np.asarray(layout.cells.points, dtype=np.float64).reshape(-1, 3)[np.asarray(layout.pad, dtype=bool)]
     return Files(
         contents={
-            params.png: render_png(mesh, regions, tx, rx, points, params.view_px, params.line_px),
-            params.html: render_html(mesh, regions, tx, rx, points),
+            params.png: render_png(mesh, regions, layout.tx, layout.rx, pads, params.view_px, params.line_px),
+            params.html: render_html(mesh, regions, layout.tx, layout.rx, pads),
         }
     )

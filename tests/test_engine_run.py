@@ -179,32 +179,41 @@ def test_two_concurrent_runs_share_one_cache(tmp_path, cli, test_nodes):
 
 
 def test_default_pipeline_end_to_end(repo, tmp_path, cli):
+    """The README's main job: every output of the full pipeline, then a warm rerun and a downstream tweak."""
     pipeline = repo / "pipelines" / "retrofit.yaml"
     result = cli("run", pipeline, "--out", "out")
     assert result.returncode == 0, result.stderr
-    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
-    ply = (tmp_path / "out" / "mesh.ply").read_bytes()
-    assert ply.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    out = tmp_path / "out"
+    manifest = json.loads((out / "manifest.json").read_text())
     import hashlib
 
-    assert manifest["files"]["mesh.ply"]["sha256"] == hashlib.sha256(ply).hexdigest()
+    for name in ("mesh.ply", "sensing_map.json", "metrics.json", "preview.png", "preview.html",
+                 "sheets/sheet_1.svg", "sheets/sheet_1.pdf", "sheets/sheet_1.dxf", "assembly_guide.pdf",
+                 "projection/bunny_layout.glb", "projection/bunny_layout.obj"):
+        assert manifest["files"][name]["sha256"] == hashlib.sha256((out / name).read_bytes()).hexdigest(), name
     assert manifest["pipeline"]["sha256"] == hashlib.sha256(pipeline.read_bytes()).hexdigest()
-    assert {n["node"] for n in manifest["nodes"]} >= {"load", "scaled", "remesh", "export"}
     assert all(n["status"] == "ran" for n in manifest["nodes"])
+    assert sum(n["node"] == "select" for n in manifest["nodes"]) == 11  # one branch per Rx angle
+
+    ply = (out / "mesh.ply").read_bytes()
+    assert ply.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    sensing_map = json.loads((out / "sensing_map.json").read_text())
+    assert sensing_map["mesh"]["sha256"] == hashlib.sha256(ply).hexdigest()
+    assert sensing_map["tx_channels"] <= 21 and sensing_map["rx_channels"] <= 12
+    assert len({(c["tx"], c["rx"]) for c in sensing_map["cells"]}) == len(sensing_map["cells"]) > 50
     import trimesh
 
-    mesh = trimesh.load(tmp_path / "out" / "mesh.ply", process=False)
+    mesh = trimesh.load(out / "mesh.ply", process=False)
     diagonal = float(((mesh.bounds[1] - mesh.bounds[0]) ** 2).sum() ** 0.5)
     assert diagonal == pytest.approx(170, rel=0.02)  # remeshing moves the surface a little
 
     again = cli("run", pipeline, "--out", "out")
     assert again.returncode == 0 and "0 ran," in again.stdout
-    downstream = cli("run", pipeline, "--out", "out", "-S", "export.filename=bunny.ply")
-    assert downstream.returncode == 0
-    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
-    assert [n["node"] for n in manifest["nodes"] if n["status"] == "ran"] == ["export"]
-    assert manifest["overrides"] == ["export.filename=bunny.ply"]
-    assert list(manifest["files"]) == ["bunny.ply"]
+    downstream = cli("run", pipeline, "--out", "out", "-S", "nest.nester=shelf")
+    assert downstream.returncode == 0, downstream.stderr
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert sorted(n["node"] for n in manifest["nodes"] if n["status"] == "ran") == ["nest", "sheets"]
+    assert manifest["overrides"] == ["nest.nester=shelf"]
 
 
 def test_run_on_a_dask_distributed_cluster(tmp_path, cli, test_nodes):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from retrotouch.nodes.datatypes import Crossings, CurveSet, CurveEnd, Mesh, SurfaceRegions
+from retrotouch.nodes.datatypes import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.preview import (
     RX_RGB,
     TX_RGB,
@@ -19,7 +19,7 @@ from retrotouch.nodes.preview import (
     camera,
     face_colours,
     render_preview,
-    render_preview_with_crossings,
+    render_layout_preview,
     render_view,
     segments,
 )
@@ -108,16 +108,17 @@ def test_curves_behind_the_object_are_hidden(sphere: Mesh, regions: SurfaceRegio
     assert colour_pixels(hidden, RX_RGB) == 0
 
 
-def test_crossings_are_marked(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
+def test_pads_of_a_layout_are_marked(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
     tx, rx = layers
-    point = np.array([[RADIUS * np.sqrt(1 - (10 / RADIUS) ** 2), 0.0, 10.0]])
-    crossings = Crossings(
-        "tx", "rx", np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
-        np.zeros(1), np.zeros(1), point, np.zeros(1, np.int64), np.full((1, 3), 1 / 3),
-    )
-    files = render_preview_with_crossings(PreviewParams(view_px=200), sphere, regions, tx, rx, crossings)
-    rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    assert colour_pixels(rgb, CROSSING_RGB) > 5
+    point = np.array([[RADIUS * np.sqrt(1 - (10 / RADIUS) ** 2), 0.0, 10.0]] * 2)
+    one = np.zeros(2, np.int64)
+    cells = Crossings("tx", "rx", one, one, one, one, np.zeros(2), np.zeros(2), point, one, np.full((2, 3), 1 / 3))
+    def draw(pad: list[bool]) -> np.ndarray:
+        layout = Layout(tx, rx, cells, np.array(pad), np.arange(tx.count), np.arange(rx.count))
+        files = render_layout_preview(PreviewParams(view_px=200), sphere, regions, layout)
+        return cv2.cvtColor(cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert colour_pixels(draw([True, False]), CROSSING_RGB) > 5
+    assert colour_pixels(draw([False, False]), CROSSING_RGB) == 0
 
 
 def test_html_is_self_contained_and_embeds_the_data(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
