@@ -167,7 +167,13 @@ def _pads_with_ladder(
     return result, keep, radius, relaxations
 
 
-def optimize_angle(
+@node(
+    "layout.optimize",
+    params=OptimizeParams,
+    inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx"),
+    outputs=("candidate",),
+)
+def optimize(
     params: OptimizeParams,
     mesh: Mesh,
     samples: SurfaceSamples,
@@ -177,7 +183,7 @@ def optimize_angle(
     tx_tx: Crossings,
     rx_rx: Crossings,
 ) -> AngleLayout:
-    """Both phases and the metrics for one Rx family (see the module docstring)."""
+    """Phase 1 (curve selection) + phase 2 (pads) + metrics for one Rx-angle branch (see the module docstring)."""
     t0 = time.perf_counter()
     angle_deg = float(np.rad2deg(rx.angle))
     geo = geodesics_for(mesh)
@@ -267,25 +273,6 @@ def optimize_angle(
     }
     return AngleLayout(angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
 
-
-@node(
-    "layout.optimize",
-    params=OptimizeParams,
-    inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx"),
-    outputs=("candidate",),
-)
-def optimize(
-    params: OptimizeParams,
-    mesh: Mesh,
-    samples: SurfaceSamples,
-    tx: CurveSet,
-    rx: CurveSet,
-    tx_rx: Crossings,
-    tx_tx: Crossings,
-    rx_rx: Crossings,
-) -> AngleLayout:
-    """Phase 1 (curve selection) + phase 2 (pads) + metrics for one Rx-angle branch."""
-    return optimize_angle(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
 
 
 class PickParams(NodeParams):
