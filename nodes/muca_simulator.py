@@ -378,18 +378,34 @@ class ScriptBuilder:
             t += float(step.get("gap_ms", 600)) / 1000.0
         return Script(tuple(strokes), tuple(labels), t + tail_s)
 
-    def _surface_path(self, at: Any, direction: Any, length: float) -> np.ndarray:
+    def _starts(self, at: Any, direction: Any) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Start points and tangent directions to try: 200 random draws, then (for ``"random"``)
+        every crossing (in 12 directions unless one is given), so a gesture that fits somewhere is
+        always found."""
         for _ in range(200):
             start = self.location(at)
-            path = self.march(start, self._tangent(start, direction), length)
+            yield start, self._tangent(start, direction)
+        if at in (None, "random"):
+            for start in self.map.cell_points:
+                if direction is not None:
+                    yield start.copy(), self._tangent(start, direction)
+                    continue
+                normal = self.projector.face_normals[self.projector.project(start)[1][0]]
+                u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+                u /= np.linalg.norm(u)
+                v = np.cross(normal, u)
+                for angle in np.linspace(0, 2 * np.pi, 12, endpoint=False):
+                    yield start.copy(), np.cos(angle) * u + np.sin(angle) * v
+
+    def _surface_path(self, at: Any, direction: Any, length: float) -> np.ndarray:
+        for start, tangent in self._starts(at, direction):
+            path = self.march(start, tangent, length)
             if self.fits(path, length):
                 return path
         raise UserError(f"no {length:g} mm swipe fits inside the sensed region from {at!r}: shorten length_mm")
 
     def _pinch_centre(self, at: Any, direction: Any, half: float) -> tuple[np.ndarray, np.ndarray]:
-        for _ in range(200):
-            centre = self.location(at)
-            d = self._tangent(centre, direction)
+        for centre, d in self._starts(at, direction):
             ahead, behind = self.march(centre, d, half), self.march(centre, -d, half)
             if self.fits(np.concatenate([behind[::-1], ahead[1:]]), 2 * half):
                 return centre, d

@@ -45,3 +45,16 @@ def cli(tmp_path: Path):
                               env=full_env, capture_output=True, text=True, timeout=timeout)
 
     return run
+
+
+@pytest.fixture(scope="session")
+def default_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The README's main job, run once per test session with a fresh cache: ``retrotouch run
+    pipelines/retrofit.yaml`` in a new folder (cache in ``./cache``, outputs in ``./out``).
+    Returns that folder; tests that run more commands in it must leave ``out/sensing_map.json``."""
+    workdir = tmp_path_factory.mktemp("default_run")
+    result = subprocess.run([sys.executable, "-m", "retrotouch.graph.cli", "run", str(REPO / "pipelines" / "retrofit.yaml"),
+                             "--out", "out"], cwd=workdir, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    (workdir / "first_run.stdout").write_text(result.stdout)
+    return workdir

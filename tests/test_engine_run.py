@@ -178,12 +178,10 @@ def test_two_concurrent_runs_share_one_cache(tmp_path, cli, test_nodes):
     assert json.loads((tmp_path / "out0" / "value.json").read_text()) == SWEEP_TOTAL
 
 
-def test_default_pipeline_end_to_end(repo, tmp_path, cli):
+def test_default_pipeline_end_to_end(repo, default_run, cli):
     """The README's main job: every output of the full pipeline, then a warm rerun and a downstream tweak."""
     pipeline = repo / "pipelines" / "retrofit.yaml"
-    result = cli("run", pipeline, "--out", "out")
-    assert result.returncode == 0, result.stderr
-    out = tmp_path / "out"
+    out = default_run / "out"
     manifest = json.loads((out / "manifest.json").read_text())
     import hashlib
 
@@ -207,9 +205,9 @@ def test_default_pipeline_end_to_end(repo, tmp_path, cli):
     diagonal = float(((mesh.bounds[1] - mesh.bounds[0]) ** 2).sum() ** 0.5)
     assert diagonal == pytest.approx(170, rel=0.02)  # remeshing moves the surface a little
 
-    again = cli("run", pipeline, "--out", "out")
+    again = cli("run", pipeline, "--out", "out", cwd=default_run)
     assert again.returncode == 0 and "0 ran," in again.stdout
-    downstream = cli("run", pipeline, "--out", "out", "-S", "nest.nester=shelf")
+    downstream = cli("run", pipeline, "--out", "out", "-S", "nest.nester=shelf", cwd=default_run)
     assert downstream.returncode == 0, downstream.stderr
     manifest = json.loads((out / "manifest.json").read_text())
     assert sorted(n["node"] for n in manifest["nodes"] if n["status"] == "ran") == ["nest", "sheets"]
