@@ -227,7 +227,9 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
 
     names = list(tasks)
     context = "fork" if kind == "processes" and _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
-    with Progress(), dask.config.set({"multiprocessing.context": context}):
+    # chunksize=1: one node instance per submission, so uneven branches balance across workers and
+    # progress is reported per instance (dask's multiprocessing default batches 6 tasks at a time).
+    with Progress(), dask.config.set({"multiprocessing.context": context, "chunksize": 1}):
         values = get(_dask_graph(tasks), names)
     return dict(zip(names, values))
 
