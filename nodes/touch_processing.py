@@ -53,11 +53,14 @@ from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
 from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
-REFINE_ITERATIONS = 2  # re-linearisations of the coupling fit (the second one absorbs curvature)
+FIT_ITERATIONS = 12  # Levenberg-Marquardt iterations of the coupling fit (it stops earlier once steps are < 0.01 mm)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
 COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
 COUPLING_MIN_ESTIMATES = 30  # estimates needed before the learned width replaces the initial one
 COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
+AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
+AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
+AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,6 +375,8 @@ class TouchProcessor:
         self.coupling_sigma = params.coupling_sigma_mm or float(np.hypot(params.finger_radius_mm, self.pitch / 2))
         self.initial_coupling_sigma = self.coupling_sigma
         self._width_estimates: collections.deque[float] = collections.deque(maxlen=COUPLING_WINDOW)
+        self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
+        self._amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
         self.hold_radius = params.hold_radius_mm or 2.5 * self.pitch
         self.peak_radius = params.peak_radius_mm or 1.5 * self.pitch
         interpolation_radius = params.interpolation_radius_mm or 1.5 * self.pitch
@@ -538,7 +543,7 @@ class TouchProcessor:
             area = float(self.areas[region[mine]][field[mine] >= 0.5 * peak_field].sum())
             found.append([int(cell), None, None, None, area, centroid])
         if self.params.refine:
-            self._refine_all(found, positive, sigma)
+            self._refine_all(found, delta, sigma)
         for entry in found:
             if entry[1] is None:
                 entry[1:4] = self._coarse_point(entry[5], entry[0])
@@ -575,7 +580,7 @@ class TouchProcessor:
             learned = float(np.median(self._width_estimates))
             self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
 
-    def _refine_all(self, found: list[list[Any]], positive: np.ndarray, sigma: np.ndarray) -> None:
+    def _refine_all(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> None:
         """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
         within a pitch of the finger); with several touches the first pass fits each one to its own
         cells (nearest to its peak) and a second pass to all deltas minus the other touches' fitted
@@ -586,7 +591,7 @@ class TouchProcessor:
         nearest_peak = np.argmin(self.cell_distance[:, peaks], axis=1)
         for j, entry in enumerate(found):
             cell = entry[0]
-            own_cells = positive if len(found) == 1 else np.where(nearest_peak == j, positive, 0.0)
+            own_cells = delta if len(found) == 1 else np.where(nearest_peak == j, delta, np.nan)
             refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma)
             fits.append(None if refined is None else (refined[0], refined[3]))
             if refined is not None:
@@ -595,64 +600,120 @@ class TouchProcessor:
             return
         two_s2 = 2 * self.coupling_sigma**2
         cells = self.map.cell_points
-        modelled = [np.zeros(len(cells)) if fit is None else fit[1] * np.exp(-np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
+        modelled = [np.zeros(len(cells)) if fit is None else fit[1] * self.cell_gain * np.exp(-np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
                     for fit in fits]
         total = np.sum(modelled, axis=0)
         for entry, fit, own in zip(found, fits, modelled):
             if fit is None:
                 continue
-            residual = np.maximum(positive - (total - own), 0.0)
+            residual = delta - (total - own)
             refined = self._refine(entry[1], entry[2], residual, sigma)
             if refined is not None:
                 entry[1:4] = refined[:3]
 
-    def _refine(self, point, face, positive, sigma):
-        """Gaussian coupling fit around ``point``; returns (point, face, bary) on the surface and the
-        fitted amplitude A (counts), or None when fewer than 3 cells carry signal.
+    def _refine(self, point, face, values, sigma):
+        """Maximum-likelihood Gaussian coupling fit around ``point`` (the peak crossing); returns
+        (point, face, bary) on the surface and the fitted amplitude A (counts), or None when no
+        crossing near ``point`` carries signal above 2 sigma.
 
-        With ``p = point + u`` and ``y_i = x_i - point``:
-        ``log d_i + |y_i|^2 / (2 s^2) = c + u.y_i / s^2`` is linear in ``(c, u)``. It is solved by
-        least squares weighted with ``d_i^2`` (the log of a noisy delta has variance ``sigma^2 / d_i^2``)
-        in the frame (t1, t2, n) of the current face, with a weak ridge on the normal component: on a
-        flat patch the cells do not see it (the projection removes it anyway), while around thin or
-        sharply curved parts the cells on both sides pin the finger to its sheet.
+        Model ``delta_i = g_i exp(a - |p - x_i|^2 / (2 s^2))`` over every crossing within
+        ``3 s + pitch`` of the start, dark ones included (a crossing that reads nothing says the finger
+        is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is additive, so this
+        is the likelihood, unlike a log-linear fit that ignores the dark crossings).
+        ``p = point + u`` with ``u`` in the frame (t1, t2, n) of the start face; unknowns ``(u, a)``
+        solved by Levenberg-Marquardt. Priors keep directions the crossings do not resolve bounded
+        (on a sparse layout three crossings can be nearly collinear, or only two see the finger):
+
+        * ``u`` tangential ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;
+        * ``u`` normal: a ridge of ``NORMAL_RIDGE`` times the in-plane information (plus 1/pitch^2):
+          a flat patch does not see it, around thin parts the crossings on both sides pin the finger;
+        * ``a`` ~ N(a0, sigma_a^2), once learned (``_learn_amplitude``) from well-posed fits: the peak
+          crossing's delta then tells how far the finger is from it.
         """
         s2 = self.coupling_sigma**2
         cells = self.map.cell_points
-        reach2 = (3.0 * self.coupling_sigma) ** 2  # wider hurts: far crossings feel the curvature
-        strong = positive > 2.0 * sigma
-        fitted = None
-        for _ in range(REFINE_ITERATIONS):
-            near = np.flatnonzero(strong & (np.sum((cells - point) ** 2, axis=1) <= reach2))
-            if len(near) < 3:  # the ridge keeps three cells (c, two tangent offsets) solvable
-                break
-            frame = self.projector.face_frames[face]
-            y = cells[near] - point
-            d = positive[near] / self.cell_gain[near]
-            design = np.column_stack([np.ones(len(near)), y @ frame.T / s2])
-            target = np.log(d) + np.einsum("ij,ij->i", y, y) / (2 * s2)
-            weighted = design * (d * d)[:, None]
-            normal_matrix = design.T @ weighted
-            normal_matrix[3, 3] += NORMAL_RIDGE * 0.5 * (normal_matrix[1, 1] + normal_matrix[2, 2])
+        distance2 = np.sum((cells - point) ** 2, axis=1)
+        near = np.flatnonzero((distance2 <= (3.0 * self.coupling_sigma + self.pitch) ** 2) & np.isfinite(values))
+        d, g, x = values[near], self.cell_gain[near], cells[near]
+        weight = 1.0 / sigma[near] ** 2
+        strong = d > 2.0 * sigma[near]
+        if not strong.any():
+            return None
+        if self.params.adapt_coupling:
+            # Width estimates only from touches many crossings see around the peak (log-linear form).
+            learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
+            if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
+                frame = self.projector.face_frames[face]
+                y = x[learn] - point
+                dl = d[learn] / g[learn]
+                design = np.column_stack([np.ones(len(dl)), y @ frame.T / s2])
+                self._learn_coupling(design, design * (dl * dl)[:, None], np.log(dl), s2)
+        frame = self.projector.face_frames[face]
+        prior_mean = np.zeros(4)
+        prior = np.zeros(4)
+        prior[:2] = 1.0 / self.pitch**2
+        a = float(np.log(np.max(d[strong] / g[strong])))
+        if self._amplitude_prior is not None:
+            prior_mean[3], sigma_a = self._amplitude_prior
+            prior[3] = 1.0 / sigma_a**2
+            a = max(a, prior_mean[3])
+        theta = np.array([0.0, 0.0, 0.0, a])
+
+        def linearise(theta):
+            diff = x - (point + theta[:3] @ frame)
+            model = g * np.exp(theta[3] - np.einsum("ij,ij->i", diff, diff) / (2 * s2))
+            residual = d - model
+            offset = theta - prior_mean
+            cost = float(weight @ residual**2 + prior @ offset**2)
+            return cost, residual, np.column_stack([model[:, None] * (diff @ frame.T) / s2, model]), offset
+
+        cost, residual, jacobian, offset = linearise(theta)
+        information = jacobian.T @ (jacobian * weight[:, None])
+        prior[2] = NORMAL_RIDGE * 0.5 * (information[0, 0] + information[1, 1]) + 1.0 / self.pitch**2
+        cost += prior[2] * offset[2] ** 2
+        damping = 1e-3
+        for _ in range(FIT_ITERATIONS):
+            information = jacobian.T @ (jacobian * weight[:, None])
+            gradient = jacobian.T @ (weight * residual) - prior * offset
+            hessian = information + np.diag(prior)
             try:
-                solution = np.linalg.solve(normal_matrix, weighted.T @ target)
+                step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), gradient)
             except np.linalg.LinAlgError:
                 break
-            if fitted is None and self.params.adapt_coupling and len(near) >= COUPLING_MIN_CELLS:
-                self._learn_coupling(design, weighted, np.log(d), s2)
-            step = solution[1:] @ frame
-            amplitude = float(np.exp(min(solution[0] + solution[1:] @ solution[1:] / (2 * s2), 30.0)))
-            step_len = np.linalg.norm(step)
-            if step_len > self.pitch:
-                step *= self.pitch / step_len
-            # The model is exact about any reference point: iterating only re-selects the cells
-            # around the new estimate; the frame (for the ridge) stays that of the start face.
-            point = point + step
-            fitted = amplitude
-        if fitted is None:
-            return None
-        projected, faces, barys = self.projector.project(point)
-        return projected[0], int(faces[0]), barys[0], fitted
+            length = np.linalg.norm(step[:3])
+            if length > 0.5 * self.pitch:
+                step *= 0.5 * self.pitch / length
+            trial = linearise(theta + step)
+            if trial[0] <= cost:
+                theta = theta + step
+                cost, residual, jacobian, offset = trial
+                damping = max(damping / 3.0, 1e-6)
+                if length < 0.01:
+                    break
+            else:
+                damping *= 4.0
+        information = jacobian.T @ (jacobian * weight[:, None])
+        self._learn_amplitude(theta[3], information)
+        projected, faces, barys = self.projector.project(point + theta[:3] @ frame)
+        return projected[0], int(faces[0]), barys[0], float(np.exp(min(theta[3], 30.0)))
+
+    def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:
+        """Keep the log-amplitude of fits whose tangential position the data alone pin within
+        ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
+        spread (1.4826 MAD, at least 0.05) are the amplitude prior of later fits."""
+        tangential = information[np.ix_([0, 1, 3], [0, 1, 3])]
+        try:
+            covariance = np.linalg.inv(tangential)
+        except np.linalg.LinAlgError:
+            return
+        if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(covariance[:2, :2]).max() > AMPLITUDE_WELL_POSED_MM**2:
+            return
+        self._amplitude_estimates.append(float(log_amplitude))
+        if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES:
+            estimates = np.array(self._amplitude_estimates)
+            centre = float(np.median(estimates))
+            spread = max(1.4826 * float(np.median(np.abs(estimates - centre))), 0.05)
+            self._amplitude_prior = (centre, spread)
 
     # ---- tracking
 
