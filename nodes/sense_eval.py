@@ -25,10 +25,11 @@ import dataclasses
 import json
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
+from scipy.spatial import Delaunay, QhullError
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
@@ -40,7 +41,13 @@ from retrotouch.nodes.muca_simulator import (
     farthest_point_sampling,
     frames_through_pty,
 )
-from retrotouch.nodes.touch_processing import ProcessingParams, SensingMap, TouchProcessor, load_sensing_map
+from retrotouch.nodes.touch_processing import (
+    ProcessingParams,
+    SensingMap,
+    SurfaceProjector,
+    TouchProcessor,
+    load_sensing_map,
+)
 
 
 class EvalParams(NodeParams):
@@ -52,19 +59,66 @@ class EvalParams(NodeParams):
     gap_ms: float = Field(700.0, gt=0, description="pause after each press")
     settle_ms: float = Field(100.0, ge=0, description="frames this soon after a press starts are not measured")
     rest_margin_ms: float = Field(300.0, ge=0, description="frames this close to a press are neither touch nor rest")
+    location_rule: Literal["surrounded", "near"] = Field(
+        "surrounded", description="where locations may be: surrounded by crossings, or anywhere near one (evaluation_locations)")
     seed: int = 0
 
 
-def evaluation_steps(sensing_map: SensingMap, params: EvalParams = EvalParams(),
-                     board_params: BoardParams = BoardParams()) -> list[dict[str, Any]]:
-    """Script steps of the protocol: locations spread by farthest-point sampling over the sensed
-    region, each pressed ``repetitions`` times (presses interleaved location by location)."""
+def surrounded(sensing_map: SensingMap, points: np.ndarray, reach: float) -> np.ndarray:
+    """Whether each surface point (n, 3) lies inside the convex hull, in its tangent plane, of the
+    crossings within ``reach`` (mm) of it (at least three, not all collinear)."""
+    projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
+    _, faces, _ = projector.project(points)
+    inside = np.zeros(len(points), dtype=bool)
+    for k, (point, face) in enumerate(zip(points, faces)):
+        near = np.linalg.norm(sensing_map.cell_points - point, axis=1) <= reach
+        if np.count_nonzero(near) < 3:
+            continue
+        planar = (sensing_map.cell_points[near] - point) @ projector.face_frames[face][:2].T
+        try:
+            inside[k] = Delaunay(planar).find_simplex(np.zeros(2)) >= 0
+        except QhullError:  # all collinear (or coincident): nothing is enclosed
+            continue
+    return inside
+
+
+def evaluation_locations(sensing_map: SensingMap, params: EvalParams = EvalParams(),
+                         board_params: BoardParams = BoardParams()) -> tuple[np.ndarray, dict[str, Any]]:
+    """The protocol's touch locations (``params.locations``, mm) and how they were chosen.
+
+    Candidates: ``20 x locations`` random points of the sensed region (within 0.8 pitch of a
+    crossing, around crossings with at least the median number of neighbours;
+    :meth:`ScriptBuilder.location`). Rule ``"surrounded"`` (default) keeps the candidates inside the
+    tangent-plane convex hull of the crossings within two coupling widths ``2 s`` (``s`` the board's
+    finger coupling width): there a nominal finger reaches crossings on at least three sides with
+    >= exp(-2) = 13.5 % of its peak signal, so both tangent directions are measured, which is what
+    "a location on the instrumented surface" means on hardware (the paper touched 15 such
+    locations). Rule ``"near"`` keeps every candidate, including spots in gaps of a sparse layout
+    where only one or two crossings see the finger (one direction then rests on the fit's priors).
+    Either way the fraction of candidates the rule keeps is reported (``surrounded_fraction``), so a
+    layout that leaves much of its sensed region unsurrounded shows it; farthest-point sampling
+    spreads the locations over the kept candidates.
+    """
     builder = ScriptBuilder(sensing_map, board_params, params.seed)
     candidates = np.array([builder.location("random") for _ in range(20 * params.locations)])
-    points = candidates[farthest_point_sampling(candidates, params.locations, params.seed)]
+    pitch = sensing_map.pitch_mm()
+    width = board_params.coupling_sigma_mm or float(np.hypot(board_params.finger_radius_mm, pitch / 2))
+    inside = surrounded(sensing_map, candidates, 2.0 * width)
+    pool = candidates[inside] if params.location_rule == "surrounded" else candidates
+    if len(pool) < params.locations:
+        raise UserError(f"only {len(pool)} of {len(candidates)} candidate locations are surrounded by crossings: "
+                        "evaluate fewer locations or use location_rule 'near'")
+    points = pool[farthest_point_sampling(pool, params.locations, params.seed)]
+    return points, {"location_rule": params.location_rule, "candidates": len(candidates),
+                    "surrounded_fraction": round(float(inside.mean()), 4),
+                    "locations_surrounded": int(surrounded(sensing_map, points, 2.0 * width).sum())}
+
+
+def press_steps(points: np.ndarray, params: EvalParams) -> list[dict[str, Any]]:
+    """Press steps over ``points`` (mm), ``params.repetitions`` rounds of every location in order."""
     return [{"gesture": "press", "at": points[i].tolist(), "ms": params.press_ms, "gap_ms": params.gap_ms,
              "location": i, "repetition": r}
-            for r in range(params.repetitions) for i in range(params.locations)]
+            for r in range(params.repetitions) for i in range(len(points))]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,10 +127,11 @@ class EvalReport:
 
     errors_mm: np.ndarray  # (presses,) nan for a missed press
     press_location: np.ndarray  # (presses,) int
-    locations: tuple[dict[str, Any], ...]  # per location: point, cell, snr_sigma, snr_p2p, error_mm_mean
+    locations: tuple[dict[str, Any], ...]  # per location: point, cell, crossings_seen, snr_sigma, snr_p2p, error_mm_mean
     false_touches: int
     missed_presses: int
     frames: int
+    choice: dict[str, Any] = dataclasses.field(default_factory=dict)  # how the simulator chose the locations
 
     def summary(self) -> dict[str, Any]:
         e = self.errors_mm[np.isfinite(self.errors_mm)]
@@ -93,7 +148,9 @@ class EvalReport:
                 "snr_mean": round(float(snr_sigma.mean()), 2), "snr_std": round(float(snr_sigma.std()), 2),
                 "snr_p2p_mean": round(float(snr_p2p.mean()), 2), "snr_p2p_std": round(float(snr_p2p.std()), 2),
                 "presses": int(len(self.errors_mm)), "locations": len(self.locations),
-                "false_touches": self.false_touches, "missed_presses": self.missed_presses, "frames": self.frames}
+                "crossings_seen_min": min((loc["crossings_seen"] for loc in self.locations), default=0),
+                "false_touches": self.false_touches, "missed_presses": self.missed_presses, "frames": self.frames,
+                **self.choice}
 
 
 def evaluate(frames: Iterable[Frame], labels: list[tuple[float, dict[str, Any]]], processor: TouchProcessor,
@@ -148,8 +205,10 @@ def evaluate(frames: Iterable[Frame], labels: list[tuple[float, dict[str, Any]]]
         cell = int(np.argmax(mean_touch))
         rest_values = deltas_arr[rest_arr, cell]
         signal = float(mean_touch[cell] - rest_values.mean())
+        rest_sigma = np.maximum(deltas_arr[rest_arr].std(axis=0), 1e-9)
         report_locations.append({
             "location": int(i), "point": truth[location == i][0].round(3).tolist(), "cell": cell,
+            "crossings_seen": int(np.count_nonzero(mean_touch - deltas_arr[rest_arr].mean(axis=0) > 6.0 * rest_sigma)),
             "signal_counts": round(signal, 2),
             "snr_sigma": round(signal / max(float(rest_values.std()), 1e-9), 2),
             "snr_p2p": round(signal / max(float(np.ptp(rest_values)), 1e-9), 2),
@@ -170,8 +229,8 @@ def evaluate_simulator(
     the processor directly when ``through_pty`` is False)."""
     sensing_map = load_sensing_map(sensing_map_path)
     board = VirtualBoard(sensing_map, board_params)
-    script = ScriptBuilder(sensing_map, board_params, eval_params.seed).build(
-        evaluation_steps(sensing_map, eval_params, board_params))
+    points, choice = evaluation_locations(sensing_map, eval_params, board_params)
+    script = ScriptBuilder(sensing_map, board_params, eval_params.seed).build(press_steps(points, eval_params))
     processor = TouchProcessor(sensing_map, processing_params)
     if through_pty:
         frames: Iterable[Frame] = frames_through_pty(board, script, fast=True, record=record)
@@ -179,7 +238,7 @@ def evaluate_simulator(
         total = int(np.ceil(script.duration * board_params.rate_hz))
         frames = (Frame(board.frame(k / board_params.rate_hz, script.fingers_at(k / board_params.rate_hz)),
                         k / board_params.rate_hz, k) for k in range(total))
-    return evaluate(frames, list(script.labels), processor, eval_params)
+    return dataclasses.replace(evaluate(frames, list(script.labels), processor, eval_params), choice=choice)
 
 
 def load_protocol(path: str | Path) -> tuple[np.ndarray, int]:

@@ -19,11 +19,13 @@ Per frame (``TouchProcessor.process``):
    of its peak intensity is the contact area.
 4. **Sub-cell refinement** (``refine``): a Gaussian coupling model
    ``delta_i = g_i A exp(-|p - x_i|^2 / (2 s^2))`` (``g_i`` = 1 with a pad, ``no_pad_gain`` without)
-   fitted by weighted log-linear least squares to the crossings around the peak crossing, then
-   projected on the surface; with several touches each one is refitted to the deltas minus the
-   others' fitted coupling. The width ``s`` starts at ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is
-   learned from touches that many crossings see (``adapt_coupling``). Without enough crossings the
-   coarse point stays.
+   fitted by maximum likelihood (Levenberg-Marquardt on the deltas of every crossing near the peak,
+   dark ones included) with the finger kept on the surface; weak priors (offset ~ N(0, pitch^2),
+   amplitude learned from well-posed touches) keep directions that a sparse layout does not resolve
+   bounded. With several touches each one is refitted to the deltas minus the others' fitted
+   coupling. The width ``s`` starts at ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is learned from
+   touches that many crossings see (``adapt_coupling``). Without a crossing above 2 sigma near the
+   peak the coarse point stays.
 5. **Tracking**: touches are matched to the previous frame's tracks by minimum total distance
    (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
    ids, unmatched tracks end.
@@ -619,16 +621,19 @@ class TouchProcessor:
         Model ``delta_i = g_i exp(a - |p - x_i|^2 / (2 s^2))`` over every crossing within
         ``3 s + pitch`` of the start, dark ones included (a crossing that reads nothing says the finger
         is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is additive, so this
-        is the likelihood, unlike a log-linear fit that ignores the dark crossings).
-        ``p = point + u`` with ``u`` in the frame (t1, t2, n) of the start face; unknowns ``(u, a)``
-        solved by Levenberg-Marquardt. Priors keep directions the crossings do not resolve bounded
-        (on a sparse layout three crossings can be nearly collinear, or only two see the finger):
+        is the likelihood, unlike a log-linear fit that ignores the dark crossings). The finger ``p``
+        stays on the surface: Levenberg-Marquardt steps ``(u, a)`` with ``u`` in the tangent plane of
+        the current face, then ``p`` is projected back onto the surface on the side facing the same
+        way. Priors keep directions the crossings do not resolve bounded (on a sparse layout three
+        crossings can be nearly collinear, or only two see the finger):
 
-        * ``u`` tangential ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;
-        * ``u`` normal: a ridge of ``NORMAL_RIDGE`` times the in-plane information (plus 1/pitch^2):
-          a flat patch does not see it, around thin parts the crossings on both sides pin the finger;
+        * ``u`` (offset from the start) ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;
         * ``a`` ~ N(a0, sigma_a^2), once learned (``_learn_amplitude``) from well-posed fits: the peak
           crossing's delta then tells how far the finger is from it.
+
+        On thin parts (ears) and tips the strongest crossing can sit on the far side; the fit also
+        starts from the two strongest crossings facing away (normals > 60 degrees apart) and keeps the
+        lowest cost.
         """
         s2 = self.coupling_sigma**2
         cells = self.map.cell_points
@@ -648,62 +653,76 @@ class TouchProcessor:
                 dl = d[learn] / g[learn]
                 design = np.column_stack([np.ones(len(dl)), y @ frame.T / s2])
                 self._learn_coupling(design, design * (dl * dl)[:, None], np.log(dl), s2)
-        frame = self.projector.face_frames[face]
-        prior_mean = np.zeros(4)
-        prior = np.zeros(4)
+        starts = [(point, face)]
+        facing = self.projector.face_normals[face]
+        away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5))
+        for k in away[np.argsort(-(d / g)[away])][:2]:
+            starts.append((x[k], int(self.map.cell_faces[near[k]])))
+        fits = [self._fit_on_surface(p, f, x, d, g, weight, strong) for p, f in starts]
+        _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
+        self._learn_amplitude(log_amplitude, information)
+        return point, face, bary, float(np.exp(min(log_amplitude, 30.0)))
+
+    def _fit_on_surface(self, point, face, x, d, g, weight, strong):
+        """Levenberg-Marquardt of the coupling model from the surface point ``point`` on ``face``
+        (see :meth:`_refine`); returns (cost, point, face, bary, log amplitude, data information)."""
+        s2 = self.coupling_sigma**2
+        prior_mean = np.zeros(3)
+        prior = np.zeros(3)
         prior[:2] = 1.0 / self.pitch**2
-        a = float(np.log(np.max(d[strong] / g[strong])))
+        log_amplitude = float(np.log(np.max(d[strong] / g[strong])))
         if self._amplitude_prior is not None:
-            prior_mean[3], sigma_a = self._amplitude_prior
-            prior[3] = 1.0 / sigma_a**2
-            a = max(a, prior_mean[3])
-        theta = np.array([0.0, 0.0, 0.0, a])
+            prior_mean[2], sigma_a = self._amplitude_prior
+            prior[2] = 1.0 / sigma_a**2
+            log_amplitude = max(log_amplitude, prior_mean[2])
+        start = point
 
-        def linearise(theta):
-            diff = x - (point + theta[:3] @ frame)
-            model = g * np.exp(theta[3] - np.einsum("ij,ij->i", diff, diff) / (2 * s2))
+        def linearise(point, face, log_amplitude):
+            frame = self.projector.face_frames[face][:2]
+            diff = x - point
+            model = g * np.exp(log_amplitude - np.einsum("ij,ij->i", diff, diff) / (2 * s2))
             residual = d - model
-            offset = theta - prior_mean
+            offset = np.array([*((point - start) @ frame.T), log_amplitude]) - prior_mean
             cost = float(weight @ residual**2 + prior @ offset**2)
-            return cost, residual, np.column_stack([model[:, None] * (diff @ frame.T) / s2, model]), offset
+            jacobian = np.column_stack([model[:, None] * (diff @ frame.T) / s2, model])
+            return cost, residual, jacobian, offset, frame
 
-        cost, residual, jacobian, offset = linearise(theta)
-        information = jacobian.T @ (jacobian * weight[:, None])
-        prior[2] = NORMAL_RIDGE * 0.5 * (information[0, 0] + information[1, 1]) + 1.0 / self.pitch**2
-        cost += prior[2] * offset[2] ** 2
+        state = linearise(point, face, log_amplitude)
         damping = 1e-3
         for _ in range(FIT_ITERATIONS):
+            cost, residual, jacobian, offset, frame = state
             information = jacobian.T @ (jacobian * weight[:, None])
-            gradient = jacobian.T @ (weight * residual) - prior * offset
             hessian = information + np.diag(prior)
             try:
-                step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), gradient)
+                step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)),
+                                       jacobian.T @ (weight * residual) - prior * offset)
             except np.linalg.LinAlgError:
                 break
-            length = np.linalg.norm(step[:3])
+            length = np.linalg.norm(step[:2])
             if length > 0.5 * self.pitch:
                 step *= 0.5 * self.pitch / length
-            trial = linearise(theta + step)
+            # Move in the tangent plane, back onto the surface on the side facing the same way.
+            moved, faces, barys = self.projector.project(point + step[:2] @ frame, self.projector.face_normals[face])
+            trial = linearise(moved[0], int(faces[0]), log_amplitude + step[2])
             if trial[0] <= cost:
-                theta = theta + step
-                cost, residual, jacobian, offset = trial
+                point, face, bary, log_amplitude, state = moved[0], int(faces[0]), barys[0], log_amplitude + step[2], trial
                 damping = max(damping / 3.0, 1e-6)
                 if length < 0.01:
                     break
             else:
                 damping *= 4.0
-        information = jacobian.T @ (jacobian * weight[:, None])
-        self._learn_amplitude(theta[3], information)
-        projected, faces, barys = self.projector.project(point + theta[:3] @ frame)
-        return projected[0], int(faces[0]), barys[0], float(np.exp(min(theta[3], 30.0)))
+        cost, _, jacobian, _, _ = state
+        if point is start:
+            _, faces, barys = self.projector.project(point)
+            face, bary = int(faces[0]), barys[0]
+        return cost, point, face, bary, log_amplitude, jacobian.T @ (jacobian * weight[:, None])
 
     def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
         spread (1.4826 MAD, at least 0.05) are the amplitude prior of later fits."""
-        tangential = information[np.ix_([0, 1, 3], [0, 1, 3])]
         try:
-            covariance = np.linalg.inv(tangential)
+            covariance = np.linalg.inv(information)
         except np.linalg.LinAlgError:
             return
         if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(covariance[:2, :2]).max() > AMPLITUDE_WELL_POSED_MM**2:
