@@ -8,7 +8,9 @@ Layout: ``--layout`` (a sensing_map.json or its run folder), else the default pi
 Prints a table, then as its LAST line one JSON object. ``frames_per_s`` is end to end through the
 pty (board process -> pty -> reader -> parser -> processing -> gestures) in wall time, so other load
 on the machine lowers it: ``frames_per_cpu_s`` (the reading thread's CPU time) and the load average
-are printed next to it.
+are printed next to it. The localization protocol places its 15 locations where crossings surround
+the finger (``sense_eval.evaluation_locations``, rule "surrounded"); it is run a second time with
+locations anywhere near a crossing (rule "near", gaps of a sparse layout included) and both are reported.
 """
 from __future__ import annotations
 
@@ -111,6 +113,8 @@ def main() -> None:
     started = time.perf_counter()
     report = evaluate_simulator(path, BoardParams(snr=args.snr), EvalParams()).summary()
     eval_s = time.perf_counter() - started
+    # The same protocol with locations anywhere near a crossing, gaps of a sparse layout included.
+    near = evaluate_simulator(path, BoardParams(snr=args.snr), EvalParams(location_rule="near")).summary()
     at_rest = rest(sensing_map, args.rest_minutes)
     rows = [
         ("throughput (pty, fast mode)", f"{speed['frames_per_s']:.0f} frames/s", f"{speed['frames']} frames, "
@@ -125,6 +129,9 @@ def main() -> None:
         ("localization error mean / max", f"{report['localization_error_mm_mean']:.3f} / "
          f"{report['localization_error_mm_max']:.3f} mm", f"{report['locations']} locations x "
          f"{report['presses'] // report['locations']} presses, SNR {args.snr:g}"),
+        ("  locations near any crossing", f"{near['localization_error_mm_mean']:.3f} / "
+         f"{near['localization_error_mm_max']:.3f} mm", f"rule 'near' (gaps included); {100 * report['surrounded_fraction']:.0f} % "
+         "of the sensed region is surrounded by crossings"),
         ("localization RMSE / std", f"{report['localization_error_mm_rmse']:.3f} / {report['localization_error_mm_std']:.3f} mm", ""),
         ("SNR sigma form mean / std", f"{report['snr_mean']:.1f} / {report['snr_std']:.1f}", "per location"),
         ("SNR peak-to-peak form mean / std", f"{report['snr_p2p_mean']:.1f} / {report['snr_p2p_std']:.1f}", "per location"),
@@ -147,6 +154,10 @@ def main() -> None:
         "latency_touch_cpu_ms_p50": round(speed["latency_touch_cpu_ms_p50"], 4), "load_average": round(os.getloadavg()[0], 2),
         "localization_error_mm_mean": report["localization_error_mm_mean"],
         "localization_error_mm_max": report["localization_error_mm_max"],
+        "localization_error_mm_rmse": report["localization_error_mm_rmse"],
+        "location_rule": report["location_rule"], "surrounded_fraction": report["surrounded_fraction"],
+        "localization_error_mm_mean_near_rule": near["localization_error_mm_mean"],
+        "localization_error_mm_max_near_rule": near["localization_error_mm_max"],
         "snr_mean": report["snr_mean"], "snr_p2p_mean": report["snr_p2p_mean"],
         "missed_presses": report["missed_presses"], "false_touches_eval": report["false_touches"],
         "false_touches_at_rest": at_rest["false_touches"], "rest_frames": at_rest["frames"],

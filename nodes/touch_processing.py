@@ -55,7 +55,8 @@ from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
 from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
-FIT_ITERATIONS = 12  # Levenberg-Marquardt iterations of the coupling fit (it stops earlier once steps are < 0.01 mm)
+FIT_ITERATIONS = 8  # Levenberg-Marquardt iterations per tangent plane (it stops earlier once steps are < 0.02 mm)
+SURFACE_ROUNDS = 3  # tangent planes the coupling fit re-linearises in (it stops once the projection moves < 0.01 mm)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
 COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
 COUPLING_MIN_ESTIMATES = 30  # estimates needed before the learned width replaces the initial one
@@ -490,12 +491,15 @@ class TouchProcessor:
     # ---- contact areas and touch points
 
     def _peaks(self, delta: np.ndarray) -> np.ndarray:
-        """Active cells that are local maxima and not explained by a stronger peak's coupling tail.
+        """Active cells that are local maxima and not explained by a stronger peak's coupling tail,
+        both on gain-normalised deltas ``delta / g`` (a crossing without a pad reads less for the same
+        finger: two padded crossings on either side of a finger over pad-less ones are not two touches).
 
         A finger at distance ``a`` from a peak cell gives a cell ``D`` farther on at most
         ``exp(-(D^2 - 2 a D) / (2 s^2))`` times the peak's delta; ``a`` is at most 0.6 pitch inside
         the sensed region. A candidate must exceed twice that bound for every stronger peak.
         """
+        delta = delta / self.cell_gain
         candidates = np.flatnonzero(self.active & (delta >= delta[self.peak_neighbours].max(axis=1)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[int] = []
@@ -608,8 +612,10 @@ class TouchProcessor:
         for entry, fit, own in zip(found, fits, modelled):
             if fit is None:
                 continue
-            residual = delta - (total - own)
-            refined = self._refine(entry[1], entry[2], residual, sigma)
+            others = total - own
+            if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
+                continue
+            refined = self._refine(entry[1], entry[2], delta - others, sigma)
             if refined is not None:
                 entry[1:4] = refined[:3]
 
@@ -624,7 +630,7 @@ class TouchProcessor:
         is the likelihood, unlike a log-linear fit that ignores the dark crossings). The finger ``p``
         stays on the surface: Levenberg-Marquardt steps ``(u, a)`` with ``u`` in the tangent plane of
         the current face, then ``p`` is projected back onto the surface on the side facing the same
-        way. Priors keep directions the crossings do not resolve bounded (on a sparse layout three
+        way and the fit repeats in the new tangent plane (``SURFACE_ROUNDS``). Priors keep directions the crossings do not resolve bounded (on a sparse layout three
         crossings can be nearly collinear, or only two see the finger):
 
         * ``u`` (offset from the start) ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;
@@ -632,8 +638,8 @@ class TouchProcessor:
           crossing's delta then tells how far the finger is from it.
 
         On thin parts (ears) and tips the strongest crossing can sit on the far side; the fit also
-        starts from the two strongest crossings facing away (normals > 60 degrees apart) and keeps the
-        lowest cost.
+        starts from the two strongest crossings facing away (normals > 60 degrees apart, at least half
+        the strongest gain-normalised delta) and keeps the lowest cost.
         """
         s2 = self.coupling_sigma**2
         cells = self.map.cell_points
@@ -655,8 +661,10 @@ class TouchProcessor:
                 self._learn_coupling(design, design * (dl * dl)[:, None], np.log(dl), s2)
         starts = [(point, face)]
         facing = self.projector.face_normals[face]
-        away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5))
-        for k in away[np.argsort(-(d / g)[away])][:2]:
+        normalised = d / g
+        away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5)
+                              & (normalised >= 0.5 * normalised[strong].max()))
+        for k in away[np.argsort(-normalised[away])][:2]:
             starts.append((x[k], int(self.map.cell_faces[near[k]])))
         fits = [self._fit_on_surface(p, f, x, d, g, weight, strong) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
@@ -677,44 +685,48 @@ class TouchProcessor:
             log_amplitude = max(log_amplitude, prior_mean[2])
         start = point
 
-        def linearise(point, face, log_amplitude):
-            frame = self.projector.face_frames[face][:2]
+        def linearise(point, frame, log_amplitude):
             diff = x - point
             model = g * np.exp(log_amplitude - np.einsum("ij,ij->i", diff, diff) / (2 * s2))
             residual = d - model
             offset = np.array([*((point - start) @ frame.T), log_amplitude]) - prior_mean
             cost = float(weight @ residual**2 + prior @ offset**2)
             jacobian = np.column_stack([model[:, None] * (diff @ frame.T) / s2, model])
-            return cost, residual, jacobian, offset, frame
+            return cost, residual, jacobian, offset
 
-        state = linearise(point, face, log_amplitude)
-        damping = 1e-3
-        for _ in range(FIT_ITERATIONS):
-            cost, residual, jacobian, offset, frame = state
-            information = jacobian.T @ (jacobian * weight[:, None])
-            hessian = information + np.diag(prior)
-            try:
-                step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)),
-                                       jacobian.T @ (weight * residual) - prior * offset)
-            except np.linalg.LinAlgError:
-                break
-            length = np.linalg.norm(step[:2])
-            if length > 0.5 * self.pitch:
-                step *= 0.5 * self.pitch / length
-            # Move in the tangent plane, back onto the surface on the side facing the same way.
-            moved, faces, barys = self.projector.project(point + step[:2] @ frame, self.projector.face_normals[face])
-            trial = linearise(moved[0], int(faces[0]), log_amplitude + step[2])
-            if trial[0] <= cost:
-                point, face, bary, log_amplitude, state = moved[0], int(faces[0]), barys[0], log_amplitude + step[2], trial
-                damping = max(damping / 3.0, 1e-6)
-                if length < 0.01:
+        bary = None
+        diagonal = np.diag_indices(3)
+        for _ in range(SURFACE_ROUNDS):
+            # Levenberg-Marquardt in the tangent plane of the current face, then back onto the
+            # surface on the side facing the same way; the next round starts in the new plane.
+            frame = self.projector.face_frames[face][:2]
+            state = linearise(point, frame, log_amplitude)
+            damping = 1e-3
+            for _ in range(FIT_ITERATIONS):
+                cost, residual, jacobian, offset = state
+                hessian = jacobian.T @ (jacobian * weight[:, None])
+                hessian[diagonal] = (hessian[diagonal] + prior) * (1.0 + damping)
+                try:
+                    step = np.linalg.solve(hessian, jacobian.T @ (weight * residual) - prior * offset)
+                except np.linalg.LinAlgError:
                     break
-            else:
-                damping *= 4.0
-        cost, _, jacobian, _, _ = state
-        if point is start:
-            _, faces, barys = self.projector.project(point)
-            face, bary = int(faces[0]), barys[0]
+                length = np.linalg.norm(step[:2])
+                if length > 0.5 * self.pitch:
+                    step *= 0.5 * self.pitch / length
+                trial = linearise(point + step[:2] @ frame, frame, log_amplitude + step[2])
+                if trial[0] <= cost:
+                    point, log_amplitude, state = point + step[:2] @ frame, log_amplitude + step[2], trial
+                    damping = max(damping / 3.0, 1e-6)
+                    if length < 0.02:
+                        break
+                else:
+                    damping *= 4.0
+            moved, faces, barys = self.projector.project(point, self.projector.face_normals[face])
+            shift = np.linalg.norm(moved[0] - point)
+            point, face, bary = moved[0], int(faces[0]), barys[0]
+            if shift < 0.01:
+                break
+        cost, _, jacobian, _ = linearise(point, self.projector.face_frames[face][:2], log_amplitude)
         return cost, point, face, bary, log_amplitude, jacobian.T @ (jacobian * weight[:, None])
 
     def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:

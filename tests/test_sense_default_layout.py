@@ -1,0 +1,67 @@
+"""Sensing on the REAL default layout (``retrotouch run pipelines/retrofit.yaml``: 108 crossings,
+unevenly spread, with gaps), end to end through the pseudo-terminal: the issue's localization bar,
+no false touches, and scripted gestures recognised."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from retrotouch.nodes.gestures import GestureRecognizer
+from retrotouch.nodes.muca_simulator import DEMO_SCRIPT, BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty
+from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
+from retrotouch.nodes.touch_processing import TouchProcessor, load_sensing_map
+
+
+@pytest.fixture(scope="module")
+def layout(default_run):
+    return default_run / "out" / "sensing_map.json"
+
+
+def test_localization_on_the_default_layout_through_the_pty_at_snr_60(layout):
+    """15 locations surrounded by crossings x 10 presses (sense_eval.evaluation_locations)."""
+    report = evaluate_simulator(layout, BoardParams(snr=60), EvalParams())
+    summary = report.summary()
+    assert summary["presses"] == 150 and summary["locations"] == 15
+    assert summary["missed_presses"] == 0 and summary["false_touches"] == 0
+    assert summary["localization_error_mm_mean"] < 1.5
+    assert summary["localization_error_mm_max"] < load_sensing_map(layout).pitch_mm() / 2
+    assert summary["locations_surrounded"] == 15 and 0.0 < summary["surrounded_fraction"] <= 1.0
+    assert summary["crossings_seen_min"] >= 3  # surrounded: at least three crossings see every press
+
+
+def test_locations_in_gaps_of_the_default_layout_are_scored_too(layout):
+    """Rule 'near' also touches gaps where only one or two crossings see the finger (reported, not
+    dropped): the fit's priors keep the mean within the bar; a finger seen by two crossings can land
+    on the mirror side of the line through them, so the worst press is bounded by 1.5 pitch only
+    (fed directly, the pty path is covered above)."""
+    summary = evaluate_simulator(layout, BoardParams(snr=60, seed=5), EvalParams(location_rule="near", seed=5),
+                                 through_pty=False).summary()
+    assert summary["missed_presses"] == 0 and summary["false_touches"] == 0
+    assert summary["surrounded_fraction"] < 0.9 and summary["locations_surrounded"] < 15
+    assert summary["crossings_seen_min"] <= 2
+    assert summary["localization_error_mm_mean"] < 1.5
+    assert summary["localization_error_mm_max"] < 1.5 * load_sensing_map(layout).pitch_mm()
+
+
+def test_scripted_gestures_on_the_default_layout_through_the_pty(layout):
+    """Tap, double tap, long press, a 40 mm swipe, a 45 -> 20 mm pinch and its spread, placed where
+    they fit on the layout's sensed region."""
+    sensing_map = load_sensing_map(layout)
+    board = VirtualBoard(sensing_map, BoardParams(seed=3))
+    script = ScriptBuilder(sensing_map, seed=3).build(DEMO_SCRIPT)
+    processor = TouchProcessor(sensing_map)
+    recognizer = GestureRecognizer()
+    events = []
+    for frame in frames_through_pty(board, script, fast=True):
+        result = processor.process(frame.values, frame.t)
+        events.extend(recognizer.feed(result))
+    assert [e["type"] for e in events] == [
+        "tap", "tap", "tap", "double_tap", "long_press", "swipe", "pinch", "spread"]
+    labels = {label["gesture"]: label for _, label in script.labels}
+    by_type = {e["type"]: e for e in reversed(events)}  # the first of each type (the double tap's taps come later)
+    # Taps land anywhere near a crossing, gaps included, and are seen in one or two frames.
+    half_pitch = sensing_map.pitch_mm() / 2
+    assert np.linalg.norm(np.array(by_type["tap"]["point"]) - labels["tap"]["point"]) < half_pitch
+    assert np.linalg.norm(np.array(by_type["double_tap"]["point"]) - labels["double_tap"]["point"]) < half_pitch
+    assert by_type["swipe"]["distance_mm"] > 25.0  # 40 mm scripted, seen from its first to its last frame
+    assert by_type["pinch"]["scale"] < 0.75 and by_type["spread"]["scale"] > 1.35
