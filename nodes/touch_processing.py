@@ -13,8 +13,9 @@ Per frame (``TouchProcessor.process``):
    A cell turns on above ``on_sigma`` noise sigmas and stays on above ``off_sigma`` (hysteresis).
 3. **Contact areas**: the deltas are interpolated over the vertices of a simplified copy of the mesh
    (``contact_mesh_faces``; Gaussian kernel, Nadaraya-Watson); vertices above the off threshold form
-   connected components over the mesh edges. Each component is split among its touch peaks (active cells that are local maxima and are
-   not explained by a stronger peak's coupling tail); the intensity-weighted, area-weighted centroid
+   connected components over the mesh edges. Each component is split among its touch peaks (active
+   cells whose gain-normalised deltas are local maxima and are not explained by a stronger peak's
+   coupling tail); the intensity-weighted, area-weighted centroid
    of each part, projected on the surface, is the coarse touch point, and the part's area above half
    of its peak intensity is the contact area.
 4. **Sub-cell refinement** (``refine``): a Gaussian coupling model
@@ -55,8 +56,8 @@ from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
 from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
-FIT_ITERATIONS = 8  # Levenberg-Marquardt iterations per tangent plane (it stops earlier once steps are < 0.02 mm)
-SURFACE_ROUNDS = 3  # tangent planes the coupling fit re-linearises in (it stops once the projection moves < 0.01 mm)
+FIT_ITERATIONS = 8  # Levenberg-Marquardt iterations per tangent plane (it stops earlier once steps are < 0.05 mm)
+SURFACE_ROUNDS = 2  # tangent planes the coupling fit re-linearises in (it stops once the projection moves < 0.05 mm)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
 COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
 COUPLING_MIN_ESTIMATES = 30  # estimates needed before the learned width replaces the initial one
@@ -380,6 +381,7 @@ class TouchProcessor:
         self._width_estimates: collections.deque[float] = collections.deque(maxlen=COUPLING_WINDOW)
         self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
         self._amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
+        self._amplitude_count = 0  # well-posed fits seen
         self.hold_radius = params.hold_radius_mm or 2.5 * self.pitch
         self.peak_radius = params.peak_radius_mm or 1.5 * self.pitch
         interpolation_radius = params.interpolation_radius_mm or 1.5 * self.pitch
@@ -717,14 +719,14 @@ class TouchProcessor:
                 if trial[0] <= cost:
                     point, log_amplitude, state = point + step[:2] @ frame, log_amplitude + step[2], trial
                     damping = max(damping / 3.0, 1e-6)
-                    if length < 0.02:
+                    if length < 0.05:
                         break
                 else:
                     damping *= 4.0
             moved, faces, barys = self.projector.project(point, self.projector.face_normals[face])
             shift = np.linalg.norm(moved[0] - point)
             point, face, bary = moved[0], int(faces[0]), barys[0]
-            if shift < 0.01:
+            if shift < 0.05:
                 break
         cost, _, jacobian, _ = linearise(point, self.projector.face_frames[face][:2], log_amplitude)
         return cost, point, face, bary, log_amplitude, jacobian.T @ (jacobian * weight[:, None])
@@ -732,7 +734,8 @@ class TouchProcessor:
     def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
-        spread (1.4826 MAD, at least 0.05) are the amplitude prior of later fits."""
+        spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
+        later fits."""
         try:
             covariance = np.linalg.inv(information)
         except np.linalg.LinAlgError:
@@ -740,7 +743,8 @@ class TouchProcessor:
         if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(covariance[:2, :2]).max() > AMPLITUDE_WELL_POSED_MM**2:
             return
         self._amplitude_estimates.append(float(log_amplitude))
-        if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES:
+        self._amplitude_count += 1
+        if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES and self._amplitude_count % 10 == 0:
             estimates = np.array(self._amplitude_estimates)
             centre = float(np.median(estimates))
             spread = max(1.4826 * float(np.median(np.abs(estimates - centre))), 0.05)
