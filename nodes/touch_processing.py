@@ -223,12 +223,18 @@ def _channel_length(points: np.ndarray) -> float:
 def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Barycentrics (n, 3) of the closest point on triangle ``triangles[i]`` (n, 3, 3) to
     ``points[i]`` (n, 3) (Ericson's region test, vectorised)."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    ab, ac = b - a, c - a
-    ap, bp, cp = points - a, points - b, points - c
+    a = triangles[:, 0]
+    ab, ac = triangles[:, 1] - a, triangles[:, 2] - a
+    return _closest_barycentrics(points - a, ab, ac, np.einsum("ij,ij->i", ab, ab), np.einsum("ij,ij->i", ab, ac),
+                                 np.einsum("ij,ij->i", ac, ac))
+
+
+def _closest_barycentrics(ap, ab, ac, ab_ab, ab_ac, ac_ac) -> np.ndarray:
+    """:func:`closest_points_on_triangles` from the offsets ``ap = p - a`` (n, 3), the edges ``ab``,
+    ``ac`` (n, 3) and their dot products (n,) (a projector precomputes the last five per face)."""
     d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    d3, d4 = d1 - ab_ab, d2 - ab_ac  # ab.(p - b), ac.(p - b)
+    d5, d6 = d1 - ab_ac, d2 - ac_ac  # ab.(p - c), ac.(p - c)
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     with np.errstate(divide="ignore", invalid="ignore"):
         v_ab = d1 / (d1 - d3)
@@ -260,6 +266,11 @@ class SurfaceProjector:
         self.vertices, self.faces = vertices, faces
         self.triangles = vertices[faces]
         self.tree = cKDTree(self.triangles.mean(axis=1))
+        self._origin = self.triangles[:, 0]
+        self._ab, self._ac = self.triangles[:, 1] - self._origin, self.triangles[:, 2] - self._origin
+        self._ab_ab = np.einsum("ij,ij->i", self._ab, self._ab)
+        self._ab_ac = np.einsum("ij,ij->i", self._ab, self._ac)
+        self._ac_ac = np.einsum("ij,ij->i", self._ac, self._ac)
         self.k = min(k, len(faces))
         normals = np.cross(self.triangles[:, 1] - self.triangles[:, 0], self.triangles[:, 2] - self.triangles[:, 0])
         self.face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
@@ -276,9 +287,11 @@ class SurfaceProjector:
         points = np.atleast_2d(points)
         _, candidates = self.tree.query(points, k=self.k)
         candidates = candidates.reshape(len(points), self.k)
-        triangles = self.triangles[candidates].reshape(-1, 3, 3)
-        bary = closest_points_on_triangles(np.repeat(points, self.k, axis=0), triangles)
-        closest = np.einsum("ij,ijd->id", bary, triangles).reshape(len(points), self.k, 3)
+        flat = candidates.ravel()
+        origin, ab, ac = self._origin[flat], self._ab[flat], self._ac[flat]
+        ap = (points[:, None] - origin.reshape(len(points), self.k, 3)).reshape(-1, 3)
+        bary = _closest_barycentrics(ap, ab, ac, self._ab_ab[flat], self._ab_ac[flat], self._ac_ac[flat])
+        closest = (origin + bary[:, 1:2] * ab + bary[:, 2:3] * ac).reshape(len(points), self.k, 3)
         distance2 = np.sum((closest - points[:, None]) ** 2, axis=2)
         if facing is not None:
             away = self.face_normals[candidates] @ facing <= 0.0
@@ -286,6 +299,14 @@ class SurfaceProjector:
         best = np.argmin(distance2, axis=1)
         rows = np.arange(len(points))
         return closest[rows, best], candidates[rows, best], bary.reshape(len(points), self.k, 3)[rows, best]
+
+
+def median(values: np.ndarray) -> float:
+    """Median of a small 1-D array of finite values (what ``np.median`` returns, at a tenth of its
+    per-call overhead)."""
+    ordered = np.sort(values)
+    middle = len(ordered) // 2
+    return float(ordered[middle]) if len(ordered) % 2 else float((ordered[middle - 1] + ordered[middle]) / 2)
 
 
 def processing_mesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -442,7 +463,7 @@ class TouchProcessor:
         delta = raw - self.baseline
         quiet = valid & (np.abs(delta) < p.update_sigma * sigma) & ~self.active & (self.baseline > 0)
         if np.count_nonzero(quiet) >= 3:
-            common = float(np.median(delta[quiet] / self.baseline[quiet]))
+            common = median(delta[quiet] / self.baseline[quiet])
             delta = raw - self.baseline * (1.0 + common)
         delta[~valid] = 0.0
         threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
@@ -466,7 +487,7 @@ class TouchProcessor:
         return FrameResult(t, self.calibrated, (), (), np.zeros(k), np.zeros(k, dtype=bool))
 
     def _sigma(self) -> np.ndarray:
-        floor = max(self.params.min_noise_counts, 0.5 * float(np.median(self.noise)))
+        floor = max(self.params.min_noise_counts, 0.5 * median(self.noise))
         return np.maximum(self.noise, floor)
 
     def _update_baseline(self, raw, delta, valid, sigma, touches, t, dt) -> None:
@@ -520,7 +541,7 @@ class TouchProcessor:
             return []
         positive = np.maximum(delta, 0.0)
         field = self.vertex_to_cell @ positive
-        floor = self.params.off_sigma * float(np.median(sigma))
+        floor = self.params.off_sigma * median(sigma)
         inside = field > floor
         region = np.flatnonzero(inside)
         if len(region) == 0:
@@ -529,7 +550,9 @@ class TouchProcessor:
         local = np.cumsum(inside) - 1
         kept = inside[self.edges[:, 0]] & inside[self.edges[:, 1]]
         a, b = local[self.edges[kept, 0]], local[self.edges[kept, 1]]
-        graph = sp.coo_matrix((np.ones(len(a), dtype=bool), (a, b)), shape=(len(region), len(region)))
+        # Edges are sorted by their first vertex (np.unique), so the kept ones form CSR rows directly.
+        graph = sp.csr_matrix((np.ones(len(a)), b, np.searchsorted(a, np.arange(len(region) + 1))),
+                              shape=(len(region), len(region)))
         _, labels = connected_components(graph, directed=False)
         vertices = self.contact_vertices[region]
         # Each vertex belongs to the nearest peak of its own component (components without a peak drop).
@@ -675,72 +698,107 @@ class TouchProcessor:
 
     def _fit_on_surface(self, point, face, x, d, g, weight, strong):
         """Levenberg-Marquardt of the coupling model from the surface point ``point`` on ``face``
-        (see :meth:`_refine`); returns (cost, point, face, bary, log amplitude, data information)."""
-        s2 = self.coupling_sigma**2
-        prior_mean = np.zeros(3)
-        prior = np.zeros(3)
-        prior[:2] = 1.0 / self.pitch**2
+        (see :meth:`_refine`); returns (cost, point, face, bary, log amplitude, data information).
+
+        Within one tangent plane (rows ``t1, t2`` of the face frame) the finger is ``p_r + u0 t1 + u1 t2``,
+        so ``|x_i - p|^2 = r2_i - 2 u.y_i + |u|^2`` with ``y_i = frame (x_i - p_r)`` and ``r2_i = |x_i - p_r|^2``
+        computed once per plane; the 3 x 3 normal equations are solved in plain floats (numpy's
+        per-call overhead dominates on systems this small)."""
+        two_s2 = 2.0 * self.coupling_sigma**2
+        inv_s2 = 2.0 / two_s2
+        prior_u = 1.0 / self.pitch**2
+        prior_mean_a, prior_a = 0.0, 0.0
         log_amplitude = float(np.log(np.max(d[strong] / g[strong])))
         if self._amplitude_prior is not None:
-            prior_mean[2], sigma_a = self._amplitude_prior
-            prior[2] = 1.0 / sigma_a**2
-            log_amplitude = max(log_amplitude, prior_mean[2])
+            prior_mean_a, sigma_a = self._amplitude_prior
+            prior_a = 1.0 / sigma_a**2
+            log_amplitude = max(log_amplitude, prior_mean_a)
         start = point
-
-        def linearise(point, frame, log_amplitude):
-            diff = x - point
-            model = g * np.exp(log_amplitude - np.einsum("ij,ij->i", diff, diff) / (2 * s2))
-            residual = d - model
-            offset = np.array([*((point - start) @ frame.T), log_amplitude]) - prior_mean
-            cost = float(weight @ residual**2 + prior @ offset**2)
-            jacobian = np.column_stack([model[:, None] * (diff @ frame.T) / s2, model])
-            return cost, residual, jacobian, offset
-
+        max_step = 0.5 * self.pitch
         bary = None
-        diagonal = np.diag_indices(3)
         for _ in range(SURFACE_ROUNDS):
             # Levenberg-Marquardt in the tangent plane of the current face, then back onto the
             # surface on the side facing the same way; the next round starts in the new plane.
             frame = self.projector.face_frames[face][:2]
-            state = linearise(point, frame, log_amplitude)
+            q = x - point
+            y0, y1 = frame @ q.T
+            r2 = np.einsum("ij,ij->i", q, q)
+            o0, o1 = ((point - start) @ frame.T).tolist()
+
+            def evaluate(u0, u1, la):
+                model = g * np.exp(la - (r2 - 2.0 * (u0 * y0 + u1 * y1) + (u0 * u0 + u1 * u1)) / two_s2)
+                residual = d - model
+                cost = (float(weight @ (residual * residual)) + prior_u * ((o0 + u0) ** 2 + (o1 + u1) ** 2)
+                        + prior_a * (la - prior_mean_a) ** 2)
+                return cost, residual, model
+
+            u0 = u1 = 0.0
+            cost, residual, model = evaluate(u0, u1, log_amplitude)
             damping = 1e-3
+            jacobian = np.empty((3, len(d)))
             for _ in range(FIT_ITERATIONS):
-                cost, residual, jacobian, offset = state
-                hessian = jacobian.T @ (jacobian * weight[:, None])
-                hessian[diagonal] = (hessian[diagonal] + prior) * (1.0 + damping)
-                try:
-                    step = np.linalg.solve(hessian, jacobian.T @ (weight * residual) - prior * offset)
-                except np.linalg.LinAlgError:
+                jacobian[0] = model * (y0 - u0) * inv_s2
+                jacobian[1] = model * (y1 - u1) * inv_s2
+                jacobian[2] = model
+                weighted = jacobian * weight
+                (h00, h01, h02), (_, h11, h12), (_, _, h22) = (weighted @ jacobian.T).tolist()
+                b0, b1, b2 = (weighted @ residual).tolist()
+                b0 -= prior_u * (o0 + u0)
+                b1 -= prior_u * (o1 + u1)
+                b2 -= prior_a * (log_amplitude - prior_mean_a)
+                scale = 1.0 + damping
+                h00, h11, h22 = (h00 + prior_u) * scale, (h11 + prior_u) * scale, (h22 + prior_a) * scale
+                # Symmetric 3 x 3 solve by cofactors.
+                c00, c01, c02 = h11 * h22 - h12 * h12, h02 * h12 - h01 * h22, h01 * h12 - h02 * h11
+                determinant = h00 * c00 + h01 * c01 + h02 * c02
+                if determinant == 0.0 or not np.isfinite(determinant):
                     break
-                length = np.linalg.norm(step[:2])
-                if length > 0.5 * self.pitch:
-                    step *= 0.5 * self.pitch / length
-                trial = linearise(point + step[:2] @ frame, frame, log_amplitude + step[2])
+                c11, c12, c22 = h00 * h22 - h02 * h02, h01 * h02 - h00 * h12, h00 * h11 - h01 * h01
+                s0 = (c00 * b0 + c01 * b1 + c02 * b2) / determinant
+                s1 = (c01 * b0 + c11 * b1 + c12 * b2) / determinant
+                s2 = (c02 * b0 + c12 * b1 + c22 * b2) / determinant
+                length = float(np.hypot(s0, s1))
+                if length > max_step:
+                    shrink = max_step / length
+                    s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
+                trial = evaluate(u0 + s0, u1 + s1, log_amplitude + s2)
                 if trial[0] <= cost:
-                    point, log_amplitude, state = point + step[:2] @ frame, log_amplitude + step[2], trial
+                    u0, u1, log_amplitude = u0 + s0, u1 + s1, log_amplitude + s2
+                    cost, residual, model = trial
                     damping = max(damping / 3.0, 1e-6)
                     if length < 0.05:
                         break
                 else:
                     damping *= 4.0
+            point = point + u0 * frame[0] + u1 * frame[1]
             moved, faces, barys = self.projector.project(point, self.projector.face_normals[face])
             shift = np.linalg.norm(moved[0] - point)
             point, face, bary = moved[0], int(faces[0]), barys[0]
             if shift < 0.05:
                 break
-        cost, _, jacobian, _ = linearise(point, self.projector.face_frames[face][:2], log_amplitude)
-        return cost, point, face, bary, log_amplitude, jacobian.T @ (jacobian * weight[:, None])
+        frame = self.projector.face_frames[face][:2]
+        diff = x - point
+        model = g * np.exp(log_amplitude - np.einsum("ij,ij->i", diff, diff) / two_s2)
+        residual = d - model
+        offset = (point - start) @ frame.T
+        cost = float(weight @ residual**2 + prior_u * (offset @ offset) + prior_a * (log_amplitude - prior_mean_a) ** 2)
+        jacobian = np.vstack([model * (diff @ frame.T).T * inv_s2, model])
+        return cost, point, face, bary, log_amplitude, (jacobian * weight) @ jacobian.T
 
     def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
         spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
         later fits."""
-        try:
-            covariance = np.linalg.inv(information)
-        except np.linalg.LinAlgError:
+        # Tangential 2 x 2 block of the inverse by cofactors, its largest eigenvalue in closed form.
+        (i00, i01, i02), (_, i11, i12), (_, _, i22) = information.tolist()
+        c00, c01, c11 = i11 * i22 - i12 * i12, i02 * i12 - i01 * i22, i00 * i22 - i02 * i02
+        determinant = i00 * c00 + i01 * c01 + i02 * (i01 * i12 - i02 * i11)
+        if determinant == 0.0 or not np.isfinite(determinant):
             return
-        if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(covariance[:2, :2]).max() > AMPLITUDE_WELL_POSED_MM**2:
+        v00, v01, v11 = c00 / determinant, c01 / determinant, c11 / determinant
+        largest = 0.5 * (v00 + v11) + float(np.hypot(0.5 * (v00 - v11), v01))
+        if not np.isfinite(largest) or largest > AMPLITUDE_WELL_POSED_MM**2:
             return
         self._amplitude_estimates.append(float(log_amplitude))
         self._amplitude_count += 1
