@@ -1,6 +1,6 @@
 """Engine benchmark: parallel speed-up of a map: sweep, and the warm rerun of the default pipeline.
 
-1. An 11-branch ``map:`` of pure-Python work (``bench.python_work``, calibrated to about 0.5 s per
+1. An 11-branch ``map:`` of pure-Python work (``bench.python_work``, calibrated to about 1 s per
    branch on this machine) run by the CLI with the default scheduler, ``--scheduler sync`` and
    ``--scheduler local-cluster`` (dask.distributed), each with a fresh cache. Speed-up = sync time / default time, from the run time the CLI reports
    (planning, cluster start-up, execution and outputs; the interpreter start-up, identical for both,
@@ -9,7 +9,7 @@
    cached) timed as subprocess wall time, interpreter start-up included.
 
 Prints a table; the LAST line is one JSON object (``map_speedup_vs_sync``, ``warm_rerun_s``, ...).
-Usage: ``python bench/engine.py [--branches 11] [--seconds-per-branch 0.5] [--repeat 2]``.
+Usage: ``python bench/engine.py [--branches 11] [--seconds-per-branch 1.0] [--repeat 2]``.
 """
 from __future__ import annotations
 
@@ -32,14 +32,15 @@ import engine_nodes  # noqa: E402  (bench node types, also imported by the runs 
 
 
 def calibrate(seconds: float) -> int:
-    """Loop iterations that take about ``seconds`` on an unloaded core (fastest of five timings)."""
-    probe = 300_000
+    """Loop iterations that take about ``seconds`` here (median of three 0.1 s-scale probes: a
+    30 ms probe's fastest run overestimated the speed and gave 0.33 s branches)."""
+    probe = 1_000_000
     times = []
-    for _ in range(5):
+    for _ in range(3):
         start = time.perf_counter()
         engine_nodes.python_work(engine_nodes.WorkParams(iterations=probe))
         times.append(time.perf_counter() - start)
-    return int(probe * seconds / min(times))
+    return int(probe * seconds / sorted(times)[1])
 
 
 def cli() -> list[str]:
@@ -61,7 +62,7 @@ def run(args: list[str], cwd: Path, env: dict[str, str]) -> tuple[float, float, 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--branches", type=int, default=11)
-    parser.add_argument("--seconds-per-branch", type=float, default=0.5)
+    parser.add_argument("--seconds-per-branch", type=float, default=1.0, help="pure-Python work per branch (the per-angle layout branches of the default pipeline take 1.5-3.5 s)")
     parser.add_argument("--repeat", type=int, default=2, help="map runs per scheduler (best is kept)")
     args = parser.parse_args()
 
