@@ -278,6 +278,10 @@ class SurfaceProjector:
         t1 = np.cross(self.face_normals, helper)
         t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
         self.face_frames = np.stack([t1, np.cross(self.face_normals, t1), self.face_normals], axis=1)  # rows t1, t2, n
+        # Per-face rows as plain floats for the single-point path (numpy's per-call overhead dominates
+        # on the k candidates of one point): origin, ab, ac, ab.ab, ab.ac, ac.ac, normal.
+        self._face_rows = np.column_stack([self._origin, self._ab, self._ac, self._ab_ab, self._ab_ac, self._ac_ac,
+                                           self.face_normals]).tolist()
 
     def project(self, points: np.ndarray, facing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(n, 3) points -> closest surface points (n, 3), their faces (n,), barycentrics (n, 3).
@@ -285,6 +289,10 @@ class SurfaceProjector:
         With ``facing`` (3,), faces whose normal points away from it are skipped when others are
         near: on thin parts (ears, handles) the point lands on the side facing that way."""
         points = np.atleast_2d(points)
+        if len(points) == 1:
+            single = self._project_one(points[0], facing)
+            if single is not None:
+                return single
         _, candidates = self.tree.query(points, k=self.k)
         candidates = candidates.reshape(len(points), self.k)
         flat = candidates.ravel()
@@ -299,6 +307,72 @@ class SurfaceProjector:
         best = np.argmin(distance2, axis=1)
         rows = np.arange(len(points))
         return closest[rows, best], candidates[rows, best], bary.reshape(len(points), self.k, 3)[rows, best]
+
+    def _project_one(self, point: np.ndarray, facing: np.ndarray | None):
+        """:meth:`project` of one point in plain floats: the same region tests (Ericson's order),
+        products and sums as the vectorised path. None on a degenerate candidate (division by
+        zero), which the vectorised path handles with its nan/inf semantics."""
+        px, py, pz = point.tolist()
+        _, candidates = self.tree.query(point, k=self.k)
+        candidates = np.atleast_1d(candidates).tolist()
+        rows = self._face_rows
+        if facing is not None:
+            fx, fy, fz = np.asarray(facing, dtype=float).tolist()
+            away = []
+            for f in candidates:
+                r = rows[f]
+                away.append(r[12] * fx + r[13] * fy + r[14] * fz <= 0.0)
+            if all(away):
+                away = None
+        else:
+            away = None
+        best = None
+        best_d2 = np.inf
+        try:
+            for i, f in enumerate(candidates):
+                ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = rows[f][:12]
+                apx, apy, apz = px - ox, py - oy, pz - oz
+                # Summed in the order numpy's einsum uses for rows of 3, so the two paths agree bit for
+                # bit (ties between faces sharing an edge then break the same way).
+                d1 = (abx * apx + abz * apz) + aby * apy
+                d2 = (acx * apx + acz * apz) + acy * apy
+                d3, d4 = d1 - ab_ab, d2 - ab_ac
+                d5, d6 = d1 - ab_ac, d2 - ac_ac
+                if d1 <= 0 and d2 <= 0:
+                    v = w = 0.0
+                elif d3 >= 0 and d4 <= d3:
+                    v, w = 1.0, 0.0
+                else:
+                    vc = d1 * d4 - d3 * d2
+                    if vc <= 0 and d1 >= 0 and d3 <= 0:
+                        v, w = d1 / (d1 - d3), 0.0
+                    elif d6 >= 0 and d5 <= d6:
+                        v, w = 0.0, 1.0
+                    else:
+                        vb = d5 * d2 - d1 * d6
+                        if vb <= 0 and d2 >= 0 and d6 <= 0:
+                            v, w = 0.0, d2 / (d2 - d6)
+                        else:
+                            va = d3 * d6 - d5 * d4
+                            if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+                                w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+                                v = 1 - w
+                            else:
+                                total = va + vb + vc
+                                v, w = vb / total, vc / total
+                cx, cy, cz = ox + v * abx + w * acx, oy + v * aby + w * acy, oz + v * abz + w * acz
+                ex, ey, ez = cx - px, cy - py, cz - pz
+                d2_point = ex * ex + ey * ey + ez * ez
+                if away is not None and away[i]:
+                    d2_point = np.inf
+                if best is None or d2_point < best_d2:
+                    best, best_d2 = (f, cx, cy, cz, 1 - v - w, v, w), d2_point
+        except ZeroDivisionError:
+            return None
+        if best is None or not np.isfinite(best_d2):
+            return None
+        f, cx, cy, cz, b0, b1, b2 = best
+        return np.array([[cx, cy, cz]]), np.array([f], dtype=np.intp), np.array([[b0, b1, b2]])
 
 
 def median(values: np.ndarray) -> float:
