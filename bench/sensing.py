@@ -10,7 +10,8 @@ pty (board process -> pty -> reader -> parser -> processing -> gestures) in wall
 on the machine lowers it: ``frames_per_cpu_s`` (the reading thread's CPU time) and the load average
 are printed next to it. The localization protocol places its 15 locations where crossings surround
 the finger (``sense_eval.evaluation_locations``, rule "surrounded"); it is run a second time with
-locations anywhere near a crossing (rule "near", gaps of a sparse layout included) and both are reported.
+locations anywhere near a crossing (rule "near", gaps of a sparse layout included), and a third time
+with the board's coupling profile unlike the processing's Gaussian (``coupling_model="disc"``).
 """
 from __future__ import annotations
 
@@ -115,6 +116,8 @@ def main() -> None:
     eval_s = time.perf_counter() - started
     # The same protocol with locations anywhere near a crossing, gaps of a sparse layout included.
     near = evaluate_simulator(path, BoardParams(snr=args.snr), EvalParams(location_rule="near")).summary()
+    # The same protocol when the board's coupling is not the processing's Gaussian (model mismatch).
+    disc = evaluate_simulator(path, BoardParams(snr=args.snr, coupling_model="disc"), EvalParams()).summary()
     at_rest = rest(sensing_map, args.rest_minutes)
     rows = [
         ("throughput (pty, fast mode)", f"{speed['frames_per_s']:.0f} frames/s", f"{speed['frames']} frames, "
@@ -132,6 +135,9 @@ def main() -> None:
         ("  locations near any crossing", f"{near['localization_error_mm_mean']:.3f} / "
          f"{near['localization_error_mm_max']:.3f} mm", f"rule 'near' (gaps included); {100 * report['surrounded_fraction']:.0f} % "
          "of the sensed region is surrounded by crossings"),
+        ("  disc coupling (model mismatch)", f"{disc['localization_error_mm_mean']:.3f} / "
+         f"{disc['localization_error_mm_max']:.3f} mm", "board coupling: contact disc, power-law tail "
+         "(BoardParams.coupling_model)"),
         ("localization RMSE / std", f"{report['localization_error_mm_rmse']:.3f} / {report['localization_error_mm_std']:.3f} mm", ""),
         ("SNR sigma form mean / std", f"{report['snr_mean']:.1f} / {report['snr_std']:.1f}", "per location"),
         ("SNR peak-to-peak form mean / std", f"{report['snr_p2p_mean']:.1f} / {report['snr_p2p_std']:.1f}", "per location"),
@@ -158,6 +164,8 @@ def main() -> None:
         "location_rule": report["location_rule"], "surrounded_fraction": report["surrounded_fraction"],
         "localization_error_mm_mean_near_rule": near["localization_error_mm_mean"],
         "localization_error_mm_max_near_rule": near["localization_error_mm_max"],
+        "localization_error_mm_mean_disc_coupling": disc["localization_error_mm_mean"],
+        "localization_error_mm_max_disc_coupling": disc["localization_error_mm_max"],
         "snr_mean": report["snr_mean"], "snr_p2p_mean": report["snr_p2p_mean"],
         "missed_presses": report["missed_presses"], "false_touches_eval": report["false_touches"],
         "false_touches_at_rest": at_rest["false_touches"], "rest_frames": at_rest["frames"],

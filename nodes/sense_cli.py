@@ -138,6 +138,8 @@ def sense(
     loop: bool = typer.Option(False, "--loop", help="Simulator: repeat the script until stopped."),
     snr: float = typer.Option(60.0, "--snr", help="Simulator: peak signal over noise sigma."),
     seed: int = typer.Option(0, "--seed", help="Simulator: random seed."),
+    coupling: str = typer.Option("gaussian", "--coupling", help="Simulator: finger coupling profile, gaussian (the "
+                                 "processing's model) or disc (flat top, power-law tail: a model mismatch)."),
     replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
     speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
     record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
@@ -162,6 +164,7 @@ def sense(
     """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
     from retrotouch.nodes.gestures import GestureRecognizer
     from retrotouch.nodes.muca_serial import FrameOptions, MucaReader, replay_frames
+    from retrotouch.nodes.muca_simulator import BoardParams
     from retrotouch.nodes.touch_processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
 
     sources = [name for name, on in (("--port", port), ("--simulate", simulate), ("--replay", replay)) if on]
@@ -175,6 +178,8 @@ def sense(
         raise UserError("--evaluate needs --simulate or a labelled --replay recording")
     if protocol and not (evaluate and replay):
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
+    if coupling not in ("gaussian", "disc"):
+        raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
     if frame_format not in ("ascii", "binary"):
         raise UserError(f"--format {frame_format!r}: use ascii or binary")
     if layout is None:
@@ -184,7 +189,7 @@ def sense(
     else:
         layout_path = resolve_sensing_map_path(layout)
     if evaluate:
-        _evaluate(layout_path, replay, snr, seed, record, protocol)
+        _evaluate(layout_path, replay, BoardParams(snr=snr, seed=seed, coupling_model=coupling), record, protocol)
         return
     sensing_map = load_sensing_map(layout_path)
     options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
@@ -212,7 +217,8 @@ def sense(
             frames = replay_frames(replay, options=options if (flip_tx or flip_rx or skip_tx or skip_rx) else None,
                                    speed=speed)
         else:
-            frames = _simulated(sensing_map, steps, snr, seed, fast, loop, frame_format, record)
+            board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
+            frames = _simulated(sensing_map, steps, board_params, fast, loop, frame_format, record)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
     except KeyboardInterrupt:
@@ -240,25 +246,23 @@ def _steps(script: Optional[str]) -> list[dict[str, Any]]:
     return DEMO_SCRIPT if script is None else load_script(script)
 
 
-def _simulated(sensing_map, steps, snr, seed, fast, loop, frame_format, record) -> Iterator[Any]:
-    from retrotouch.nodes.muca_simulator import BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty
+def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> Iterator[Any]:
+    from retrotouch.nodes.muca_simulator import ScriptBuilder, VirtualBoard, frames_through_pty
 
-    params = BoardParams(snr=snr, seed=seed)
     board = VirtualBoard(sensing_map, params)
-    built = ScriptBuilder(sensing_map, params, seed).build(steps)
+    built = ScriptBuilder(sensing_map, params, params.seed).build(steps)
     return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
 
 
-def _evaluate(layout_path: Path, replay: Optional[str], snr: float, seed: int, record: Optional[str],
+def _evaluate(layout_path: Path, replay: Optional[str], board_params, record: Optional[str],
               protocol: Optional[str]) -> None:
-    from retrotouch.nodes.muca_simulator import BoardParams
     from retrotouch.nodes.sense_eval import EvalParams, evaluate_recording, evaluate_simulator
 
     started = time.perf_counter()
     if replay:
         report = evaluate_recording(replay, layout_path, protocol=protocol)
     else:
-        report = evaluate_simulator(layout_path, BoardParams(snr=snr, seed=seed), EvalParams(seed=seed), record=record)
+        report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record)
     print(json.dumps({**report.summary(), "per_location": list(report.locations),
                       "seconds": round(time.perf_counter() - started, 2)}))
 

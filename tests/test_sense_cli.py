@@ -83,6 +83,14 @@ def test_evaluate_a_labelled_recording_prints_one_json_report(app, layout, tmp_p
     assert report["localization_error_mm_mean"] < 1.5 and report["snr_mean"] > report["snr_p2p_mean"] > 0
 
 
+def test_evaluate_the_simulator_with_a_mismatched_coupling_profile(app, layout):
+    """``--coupling disc`` reaches the board: the simulated presses are still all found."""
+    report = json.loads(invoke(app, "--simulate", "--evaluate", "--coupling", "disc", "--layout", layout).stdout)
+    assert report["presses"] == 150 and report["missed_presses"] == 0 and report["false_touches"] == 0
+    gaussian = json.loads(invoke(app, "--simulate", "--evaluate", "--layout", layout).stdout)
+    assert report["localization_error_mm_mean"] != gaussian["localization_error_mm_mean"]
+
+
 def test_udp_receives_the_same_lines(app, layout, tmp_path):
     receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     receiver.bind(("127.0.0.1", 0))
@@ -120,6 +128,7 @@ def test_websocket_clients_get_events():
     (["--simulate", "--layout", "MISSING"], "not found"),
     (["--simulate", "--udp", "nowhere", "--layout", "LAYOUT"], "give HOST:PORT"),
     (["--replay", "MISSING", "--layout", "LAYOUT"], "recording MISSING not found"),
+    (["--simulate", "--coupling", "lorentz", "--layout", "LAYOUT"], "--coupling 'lorentz': use gaussian or disc"),
 ])
 def test_operator_errors_are_user_errors(app, layout, tmp_path, args, message):
     args = [str(layout) if a == "LAYOUT" else str(tmp_path / "missing") if a == "MISSING" else a for a in args]

@@ -128,6 +128,22 @@ def test_low_snr_still_localizes_within_a_pitch(bunny_map_path, bunny_map):
     assert summary["localization_error_mm_mean"] < bunny_map.pitch_mm() / 2
 
 
+def test_disc_coupling_profile_has_the_gaussians_reach_and_a_heavier_tail(bunny_map):
+    """K(0) = 1, K = 1/2 where the nominal Gaussian is 1/2, decreasing, and at three widths about
+    7 x the Gaussian (flat top over the finger disc, power-law tail)."""
+    board = VirtualBoard(bunny_map, BoardParams(coupling_model="disc"))
+    distances, values = board.disc_profile
+    s = board.coupling_sigma
+    assert values[0] == 1.0 and np.all(np.diff(values) < 0)
+    assert np.interp(s * np.sqrt(2 * np.log(2)), distances, values) == pytest.approx(0.5, abs=2e-3)
+    assert np.interp(3 * s, distances, values) > 5 * np.exp(-4.5)
+    finger = bunny_map.cell_points[7]
+    signal = board.signal([(finger, 100.0)]) / board.gain
+    assert signal[7] == pytest.approx(100.0) and np.all(signal <= 100.0 + 1e-9)
+    with pytest.raises(UserError, match="finger disc reaches past the half-maximum distance"):
+        VirtualBoard(bunny_map, BoardParams(coupling_model="disc", finger_radius_mm=8.0, coupling_sigma_mm=3.0))
+
+
 def test_coupling_width_is_learned_from_touches(bunny_map, bunny_map_path):
     """The board couples 25 % wider than the processing assumes at start: it learns the width."""
     processor = TouchProcessor(bunny_map)
