@@ -24,8 +24,9 @@ Per frame (``TouchProcessor.process``):
    dark ones included) with the finger kept on the surface; weak priors (offset ~ N(0, pitch^2),
    amplitude learned from well-posed touches) keep directions that a sparse layout does not resolve
    bounded. With several touches each one is refitted to the deltas minus the others' fitted
-   coupling. The width ``s`` starts at ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is learned from
-   touches that many crossings see (``adapt_coupling``). Without a crossing above 2 sigma near the
+   coupling, starting from its first fit. The width ``s`` starts at
+   ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is learned from touches that many crossings see
+   (``adapt_coupling``). Without a crossing above 2 sigma near the
    peak the coarse point stays.
 5. **Tracking**: touches are matched to the previous frame's tracks by minimum total distance
    (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
@@ -40,6 +41,7 @@ import collections
 import dataclasses
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +52,11 @@ from pydantic import Field
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+try:  # the routine behind connected_components, without its per-call validation and transposition
+    from scipy.sparse.csgraph._traversal import _connected_components_undirected
+except ImportError:  # pragma: no cover - a scipy that moved it
+    _connected_components_undirected = None
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
@@ -283,6 +290,21 @@ class SurfaceProjector:
         self._face_rows = np.column_stack([self._origin, self._ab, self._ac, self._ab_ab, self._ab_ac, self._ac_ac,
                                            self.face_normals]).tolist()
 
+    def barycentrics_in_face(self, point: np.ndarray, face: int) -> np.ndarray | None:
+        """Barycentrics (3,) of ``point`` (mm, in the plane of ``face``) when it lies inside the face,
+        so that it is its own closest surface point; else None."""
+        ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = self._face_rows[face][:12]
+        px, py, pz = point.tolist()
+        apx, apy, apz = px - ox, py - oy, pz - oz
+        d1, d2 = abx * apx + aby * apy + abz * apz, acx * apx + acy * apy + acz * apz
+        determinant = ab_ab * ac_ac - ab_ac * ab_ac
+        if not determinant > 0.0:
+            return None
+        v, w = (ac_ac * d1 - ab_ac * d2) / determinant, (ab_ab * d2 - ab_ac * d1) / determinant
+        if v < 0.0 or w < 0.0 or v + w > 1.0:
+            return None
+        return np.array([1.0 - v - w, v, w])
+
     def project(self, points: np.ndarray, facing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(n, 3) points -> closest surface points (n, 3), their faces (n,), barycentrics (n, 3).
 
@@ -447,8 +469,8 @@ class Touch:
     peak_cell: int  # index into the sensing map's cells
 
     def as_json(self) -> dict[str, Any]:
-        return {"id": self.id, "point": [round(float(x), 3) for x in self.point], "face": self.face,
-                "bary": [round(float(x), 5) for x in self.bary], "normal": [round(float(x), 4) for x in self.normal],
+        return {"id": self.id, "point": [round(x, 3) for x in self.point.tolist()], "face": self.face,
+                "bary": [round(x, 5) for x in self.bary.tolist()], "normal": [round(x, 4) for x in self.normal.tolist()],
                 "intensity": round(self.intensity, 1), "area_mm2": round(self.area_mm2, 1), "cell": self.peak_cell}
 
 
@@ -483,13 +505,19 @@ class TouchProcessor:
         cells = sensing_map.cell_points
         self.frame_index = sensing_map.frame_index
         self.cell_gain = np.where(sensing_map.cell_pad, 1.0, params.no_pad_gain)
+        self.cell_log_gain = np.log(self.cell_gain)
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
+        self._cell_distance_rows = self.cell_distance.tolist()  # plain floats for the per-peak loop
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
                                                                     params.contact_mesh_faces)
         self.areas = vertex_areas(self.contact_vertices, self.contact_faces)
         edges = self.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-        self.edges = np.unique(np.sort(edges, axis=1), axis=0)  # (E, 2) undirected mesh edges
+        source, target = np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0).T  # sorted by source
+        degree = np.bincount(source, minlength=len(self.contact_vertices))
+        # (n, max degree) mesh neighbours of each contact vertex, padded with the vertex itself.
+        self.vertex_neighbours = np.repeat(np.arange(len(degree))[:, None], max(int(degree.max()), 1), axis=1)
+        self.vertex_neighbours[source, np.arange(len(source)) - (np.cumsum(degree) - degree)[source]] = target
         self._build_interpolation(interpolation_radius)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
@@ -599,15 +627,15 @@ class TouchProcessor:
         delta = delta / self.cell_gain
         candidates = np.flatnonzero(self.active & (delta >= delta[self.peak_neighbours].max(axis=1)))
         candidates = candidates[np.argsort(-delta[candidates])]
-        kept: list[int] = []
+        kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
         two_s2 = 2 * self.coupling_sigma**2
         offset = 0.6 * self.pitch
-        for c in candidates:
-            distance = self.cell_distance[c, kept]
-            bound = delta[kept] * np.exp(-np.maximum(distance**2 - 2 * offset * distance, 0.0) / two_s2)
-            if np.all(delta[c] > 2.0 * bound):
-                kept.append(int(c))
-        return np.array(kept, dtype=np.int64)
+        for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
+            distances = self._cell_distance_rows[c]
+            if all(value > 2.0 * peak * math.exp(-max(distances[k] * (distances[k] - 2 * offset), 0.0) / two_s2)
+                   for k, peak in kept):
+                kept.append((c, value))
+        return np.array([c for c, _ in kept], dtype=np.int64)
 
     def _touches(self, delta: np.ndarray, sigma: np.ndarray) -> list[Touch]:
         peaks = self._peaks(delta)
@@ -621,32 +649,27 @@ class TouchProcessor:
         if len(region) == 0:
             return []
         field = field[region]
-        local = np.cumsum(inside) - 1
-        kept = inside[self.edges[:, 0]] & inside[self.edges[:, 1]]
-        a, b = local[self.edges[kept, 0]], local[self.edges[kept, 1]]
-        # Edges are sorted by their first vertex (np.unique), so the kept ones form CSR rows directly.
-        graph = sp.csr_matrix((np.ones(len(a)), b, np.searchsorted(a, np.arange(len(region) + 1))),
-                              shape=(len(region), len(region)))
-        _, labels = connected_components(graph, directed=False)
+        labels = self._component_labels(inside, region)
         vertices = self.contact_vertices[region]
-        # Each vertex belongs to the nearest peak of its own component (components without a peak drop).
+        # Each vertex belongs to the nearest peak of its own component (components without a peak
+        # drop); a peak's component is its nearest vertex's.
         peak_points = self.map.cell_points[peaks]
-        peak_vertex = np.array([region[np.argmin(np.sum((vertices - q) ** 2, axis=1))] for q in peak_points])
-        peak_label = labels[np.searchsorted(region, peak_vertex)]
         d2 = np.sum((vertices[:, None] - peak_points[None]) ** 2, axis=2)
+        peak_label = labels[np.argmin(d2, axis=0)]
         d2[labels[:, None] != peak_label[None]] = np.inf
         owner = np.argmin(d2, axis=1)
         owned = np.isfinite(d2[np.arange(len(region)), owner])
         found = []  # [cell, point, face, bary, area, centroid]; point/face/bary set by the refinement or below
-        for j, cell in enumerate(peaks):
-            mine = owned & (owner == j)
-            if not mine.any():
+        areas = self.areas[region]
+        for j, cell in enumerate(peaks.tolist()):
+            mine = np.flatnonzero(owned & (owner == j))
+            if len(mine) == 0:
                 continue
-            weights = self.areas[region[mine]] * (field[mine] - floor)
+            mine_field, mine_areas = field[mine], areas[mine]
+            weights = mine_areas * (mine_field - floor)
             centroid = weights @ vertices[mine] / weights.sum()
-            peak_field = field[mine].max()
-            area = float(self.areas[region[mine]][field[mine] >= 0.5 * peak_field].sum())
-            found.append([int(cell), None, None, None, area, centroid])
+            area = float(mine_areas[mine_field >= 0.5 * mine_field.max()].sum())
+            found.append([cell, None, None, None, area, centroid])
         if self.params.refine:
             self._refine_all(found, delta, sigma)
         for entry in found:
@@ -654,6 +677,23 @@ class TouchProcessor:
                 entry[1:4] = self._coarse_point(entry[5], entry[0])
         return [Touch(-1, point, face, bary, self.projector.face_normals[face], float(delta[cell]), area, cell)
                 for cell, point, face, bary, area, _ in found]
+
+    def _component_labels(self, inside: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """Connected-component labels of the contact vertices ``region`` (= ``flatnonzero(inside)``)
+        over the mesh edges between them."""
+        local = np.cumsum(inside, dtype=np.int32) - 1  # index in region
+        neighbours = self.vertex_neighbours[region]
+        linked = inside[neighbours]
+        # A symmetric graph in CSR form: row k lists region vertex k's neighbours inside (and itself).
+        targets = local[neighbours[linked]]
+        rows = np.zeros(len(region) + 1, dtype=np.int32)
+        np.cumsum(np.count_nonzero(linked, axis=1), out=rows[1:])
+        if _connected_components_undirected is None:
+            graph = sp.csr_matrix((np.ones(len(targets)), targets, rows), shape=(len(region), len(region)))
+            return connected_components(graph, directed=False)[1]
+        labels = np.empty(len(region), dtype=np.int32)
+        _connected_components_undirected(targets, rows, targets, rows, labels)  # the graph is its own transpose
+        return labels
 
     def _coarse_point(self, centroid: np.ndarray, cell: int) -> tuple[np.ndarray, int, np.ndarray]:
         """The contact centroid projected on the surface on the side facing like the peak cell."""
@@ -665,32 +705,36 @@ class TouchProcessor:
             return self.map.cell_points[cell], int(self.map.cell_faces[cell]), self.map.cell_bary[cell]
         return points[0], face, barys[0]
 
-    def _learn_coupling(self, design: np.ndarray, weighted: np.ndarray, log_d: np.ndarray, s2: float) -> None:
-        """One estimate of the coupling width from a touch: ``log d_i = c + b.y_i - a |y_i|^2`` is
-        linear in (c, b, a) and ``s = sqrt(1 / (2 a))``. The width in use becomes the median of the last
+    def _learn_coupling(self, offsets: np.ndarray, frame: np.ndarray, normalised: np.ndarray) -> None:
+        """One estimate of the coupling width from a touch's strong crossings at ``offsets`` (k, 3) (mm)
+        from its peak crossing, with gain-normalised deltas ``normalised`` (counts): with ``y_i`` the
+        offsets in the face ``frame`` (rows t1, t2, n), ``log d_i = c + b.y_i / s^2 - a |y_i|^2`` is linear
+        in (c, b, a) and ``s = sqrt(1 / (2 a))``. The width in use becomes the median of the last
         estimates (from the ``COUPLING_MIN_ESTIMATES``-th on), kept within half to twice the initial one."""
-        y2 = np.sum((design[:, 1:] * s2) ** 2, axis=1)
-        full = np.column_stack([design, -y2])
-        weights = weighted[:, 0]  # d_i^2
+        full = np.empty((len(normalised), 5))
+        full[:, 0] = 1.0
+        full[:, 1:4] = offsets @ frame.T / self.coupling_sigma**2
+        full[:, 4] = -np.einsum("ij,ij->i", offsets, offsets)
+        weights = normalised * normalised
         normal_matrix = full.T @ (full * weights[:, None])
         normal_matrix[3, 3] += NORMAL_RIDGE * 0.5 * (normal_matrix[1, 1] + normal_matrix[2, 2])
         try:
-            a = np.linalg.solve(normal_matrix, full.T @ (weights * log_d))[4]
+            a = np.linalg.solve(normal_matrix, full.T @ (weights * np.log(normalised)))[4]
         except np.linalg.LinAlgError:
             return
         if a <= 0:
             return
         self._width_estimates.append(float(np.sqrt(1.0 / (2.0 * a))))
         if len(self._width_estimates) >= COUPLING_MIN_ESTIMATES:
-            learned = float(np.median(self._width_estimates))
+            learned = median(np.fromiter(self._width_estimates, float, len(self._width_estimates)))
             self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
 
     def _refine_all(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> None:
         """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
         within a pitch of the finger); with several touches the first pass fits each one to its own
         cells (nearest to its peak) and a second pass to all deltas minus the other touches' fitted
-        coupling."""
-        fits: list[tuple[np.ndarray, float] | None] = []
+        coupling, starting from the first pass's point and amplitude."""
+        fits: list[tuple[np.ndarray, float] | None] = []  # (point, log amplitude) of each first-pass fit
         peaks = np.array([entry[0] for entry in found])
         # First pass: each touch sees only the cells nearer its own peak than any other peak.
         nearest_peak = np.argmin(self.cell_distance[:, peaks], axis=1)
@@ -698,14 +742,14 @@ class TouchProcessor:
             cell = entry[0]
             own_cells = delta if len(found) == 1 else np.where(nearest_peak == j, delta, np.nan)
             refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma)
-            fits.append(None if refined is None else (refined[0], refined[3]))
+            fits.append(None if refined is None else (refined[0], min(refined[3], 30.0)))
             if refined is not None:
                 entry[1:4] = refined[:3]
         if sum(fit is not None for fit in fits) < 2:
             return
         two_s2 = 2 * self.coupling_sigma**2
         cells = self.map.cell_points
-        modelled = [np.zeros(len(cells)) if fit is None else fit[1] * self.cell_gain * np.exp(-np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
+        modelled = [np.zeros(len(cells)) if fit is None else self.cell_gain * np.exp(fit[1] - np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
                     for fit in fits]
         total = np.sum(modelled, axis=0)
         for entry, fit, own in zip(found, fits, modelled):
@@ -714,14 +758,15 @@ class TouchProcessor:
             others = total - own
             if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
                 continue
-            refined = self._refine(entry[1], entry[2], delta - others, sigma)
+            refined = self._refine(entry[1], entry[2], delta - others, sigma, fit[1])
             if refined is not None:
                 entry[1:4] = refined[:3]
 
-    def _refine(self, point, face, values, sigma):
-        """Maximum-likelihood Gaussian coupling fit around ``point`` (the peak crossing); returns
-        (point, face, bary) on the surface and the fitted amplitude A (counts), or None when no
-        crossing near ``point`` carries signal above 2 sigma.
+    def _refine(self, point, face, values, sigma, log_amplitude=None):
+        """Maximum-likelihood Gaussian coupling fit around ``point`` (the peak crossing, or a first
+        fit's point refitted from its log-amplitude ``log_amplitude``); returns (point, face, bary) on
+        the surface and the fitted log-amplitude ``a`` (log counts), or None when no crossing near
+        ``point`` carries signal above 2 sigma.
 
         Model ``delta_i = g_i exp(a - |p - x_i|^2 / (2 s^2))`` over every crossing within
         ``3 s + pitch`` of the start, dark ones included (a crossing that reads nothing says the finger
@@ -736,87 +781,113 @@ class TouchProcessor:
         * ``a`` ~ N(a0, sigma_a^2), once learned (``_learn_amplitude``) from well-posed fits: the peak
           crossing's delta then tells how far the finger is from it.
 
-        On thin parts (ears) and tips the strongest crossing can sit on the far side; the fit also
-        starts from the two strongest crossings facing away (normals > 60 degrees apart, at least half
-        the strongest gain-normalised delta) and keeps the lowest cost.
+        A first fit (no ``log_amplitude``) starts ``a`` at the log of the largest gain-normalised
+        delta, or at the amplitude prior's mean if higher. On thin parts (ears) and tips the strongest
+        crossing can sit on the far side, so a first fit also starts from the two strongest crossings
+        facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta) and
+        keeps the lowest cost; a refit starts from its first fit only.
         """
-        s2 = self.coupling_sigma**2
         cells = self.map.cell_points
-        distance2 = np.sum((cells - point) ** 2, axis=1)
+        offsets = cells - point
+        distance2 = np.einsum("ij,ij->i", offsets, offsets)
         near = np.flatnonzero((distance2 <= (3.0 * self.coupling_sigma + self.pitch) ** 2) & np.isfinite(values))
-        d, g, x = values[near], self.cell_gain[near], cells[near]
-        weight = 1.0 / sigma[near] ** 2
-        strong = d > 2.0 * sigma[near]
+        d, g, x, noise = values[near], self.cell_gain[near], cells[near], sigma[near]
+        strong = d > 2.0 * noise
         if not strong.any():
             return None
         if self.params.adapt_coupling:
             # Width estimates only from touches many crossings see around the peak (log-linear form).
             learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
             if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
-                frame = self.projector.face_frames[face]
-                y = x[learn] - point
-                dl = d[learn] / g[learn]
-                design = np.column_stack([np.ones(len(dl)), y @ frame.T / s2])
-                self._learn_coupling(design, design * (dl * dl)[:, None], np.log(dl), s2)
+                self._learn_coupling(offsets[near[learn]], self.projector.face_frames[face], d[learn] / g[learn])
         starts = [(point, face)]
-        facing = self.projector.face_normals[face]
-        normalised = d / g
-        away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5)
-                              & (normalised >= 0.5 * normalised[strong].max()))
-        for k in away[np.argsort(-normalised[away])][:2]:
-            starts.append((x[k], int(self.map.cell_faces[near[k]])))
-        fits = [self._fit_on_surface(p, f, x, d, g, weight, strong) for p, f in starts]
+        if log_amplitude is None:
+            normalised = d / g
+            facing = self.projector.face_normals[face]
+            away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5)
+                                  & (normalised >= 0.5 * normalised[strong].max()))
+            if len(away):
+                for k in away[np.argsort(-normalised[away])][:2].tolist():
+                    starts.append((x[k], int(self.map.cell_faces[near[k]])))
+            log_amplitude = math.log(normalised[strong].max())
+            if self._amplitude_prior is not None:
+                log_amplitude = max(log_amplitude, self._amplitude_prior[0])
+        z, log_h = d / noise, self.cell_log_gain[near] - np.log(noise)  # in noise sigmas
+        fits = [self._fit_on_surface(p, f, x, z, log_h, log_amplitude) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
         self._learn_amplitude(log_amplitude, information)
-        return point, face, bary, float(np.exp(min(log_amplitude, 30.0)))
+        return point, face, bary, log_amplitude
 
-    def _fit_on_surface(self, point, face, x, d, g, weight, strong):
-        """Levenberg-Marquardt of the coupling model from the surface point ``point`` on ``face``
-        (see :meth:`_refine`); returns (cost, point, face, bary, log amplitude, data information).
+    def _fit_on_surface(self, point, face, x, z, log_h, log_amplitude):
+        """Levenberg-Marquardt of the coupling model from the surface point ``point`` on ``face`` and
+        the log-amplitude ``log_amplitude`` (see :meth:`_refine`) to the crossings at ``x`` (k, 3) (mm)
+        with deltas ``z`` and gains ``exp(log_h)`` both in units of each crossing's noise sigma (so
+        the residuals are weighted already); returns (cost, point, face, bary, log amplitude, data
+        information as its upper triangle ``(i00, i01, i02, i11, i12, i22)`` in ``(u0, u1, a)``).
 
-        Within one tangent plane (rows ``t1, t2`` of the face frame) the finger is ``p_r + u0 t1 + u1 t2``,
-        so ``|x_i - p|^2 = r2_i - 2 u.y_i + |u|^2`` with ``y_i = frame (x_i - p_r)`` and ``r2_i = |x_i - p_r|^2``
-        computed once per plane; the 3 x 3 normal equations are solved in plain floats (numpy's
-        per-call overhead dominates on systems this small)."""
+        Within one tangent plane (rows ``t1, t2`` of the face frame) the finger is ``p_r + u0 t1 + u1 t2``
+        and ``log model_i = b_i + a - |u|^2 / (2 s^2) + u.Y_i`` with ``Y_i = frame (x_i - p_r) / s^2``
+        (1/mm) and ``b_i = log h_i - |x_i - p_r|^2 / (2 s^2)``, both computed once per plane. The
+        normal equations' sums (``sum m^2 (Y0 - u0 / s^2)^2``, ...) expand into moments of
+        ``[1, Y0, Y1, Y0^2, Y0 Y1, Y1^2]`` weighted by ``m^2`` and ``m r``: one matrix product per
+        iteration, and the 3 x 3 system is solved in plain floats (numpy's per-call overhead
+        dominates on arrays of a few dozen crossings). A step that stays inside the face needs no
+        projection: the point is on the surface and the fit ends in that plane."""
         two_s2 = 2.0 * self.coupling_sigma**2
         inv_s2 = 2.0 / two_s2
         prior_u = 1.0 / self.pitch**2
         prior_mean_a, prior_a = 0.0, 0.0
-        log_amplitude = float(np.log(np.max(d[strong] / g[strong])))
         if self._amplitude_prior is not None:
             prior_mean_a, sigma_a = self._amplitude_prior
             prior_a = 1.0 / sigma_a**2
-            log_amplitude = max(log_amplitude, prior_mean_a)
         start = point
         max_step = 0.5 * self.pitch
-        bary = None
+        # Per-plane columns [b, 1, Y0, Y1, Y0^2, Y0 Y1, Y1^2]: the log-model is the first four times
+        # (1, a - |u|^2 / (2 s^2), u0, u1), the moments are taken over the last six.
+        columns = np.empty((len(z), 7))
+        columns[:, 1] = 1.0
+        exponent_columns, moment_columns = columns[:, :4], columns[:, 1:]
+
+        def set_plane(point, face):
+            """Fill the columns for the tangent plane at ``point`` on ``face``; returns its frame rows
+            (t1, t2) and the offset (o0, o1) (mm) of ``point`` from the start, which the prior sees."""
+            frame = self.projector.face_frames[face][:2]
+            q = x - point
+            columns[:, 2:4] = q @ frame.T * inv_s2
+            columns[:, 0] = log_h - np.einsum("ij,ij->i", q, q) / two_s2
+            np.multiply(columns[:, 2:3], columns[:, 2:4], out=columns[:, 4:6])
+            np.multiply(columns[:, 3], columns[:, 3], out=columns[:, 6])
+            return frame, ((point - start) @ frame.T).tolist()
+
+        def evaluate(u0, u1, la):
+            """(cost, residual, model), the last two in noise sigmas, at the in-plane offset (u0, u1)
+            (mm) and log-amplitude ``la`` in the current plane (origin offset (o0, o1))."""
+            model = np.exp(exponent_columns @ (1.0, la - (u0 * u0 + u1 * u1) / two_s2, u0, u1))
+            residual = z - model
+            cost = (float(residual @ residual) + prior_u * ((o0 + u0) ** 2 + (o1 + u1) ** 2)
+                    + prior_a * (la - prior_mean_a) ** 2)
+            return cost, residual, model
+
+        products = np.empty((2, len(z)))  # m^2 and m r
+
+        def normal_equations(model, residual, u0, u1):
+            """Upper triangle of J^T J and J^T r at the in-plane offset (u0, u1) (mm)."""
+            np.multiply(model, model, out=products[0])
+            np.multiply(model, residual, out=products[1])
+            (m, m0, m1, m00, m01, m11), (n, n0, n1, *_) = (products @ moment_columns).tolist()
+            v0, v1 = u0 * inv_s2, u1 * inv_s2
+            return ((m00 - 2.0 * v0 * m0 + v0 * v0 * m, m01 - v1 * m0 - v0 * m1 + v0 * v1 * m, m0 - v0 * m,
+                     m11 - 2.0 * v1 * m1 + v1 * v1 * m, m1 - v1 * m, m), (n0 - v0 * n, n1 - v1 * n, n))
+
         for _ in range(SURFACE_ROUNDS):
             # Levenberg-Marquardt in the tangent plane of the current face, then back onto the
             # surface on the side facing the same way; the next round starts in the new plane.
-            frame = self.projector.face_frames[face][:2]
-            q = x - point
-            y0, y1 = frame @ q.T
-            r2 = np.einsum("ij,ij->i", q, q)
-            o0, o1 = ((point - start) @ frame.T).tolist()
-
-            def evaluate(u0, u1, la):
-                model = g * np.exp(la - (r2 - 2.0 * (u0 * y0 + u1 * y1) + (u0 * u0 + u1 * u1)) / two_s2)
-                residual = d - model
-                cost = (float(weight @ (residual * residual)) + prior_u * ((o0 + u0) ** 2 + (o1 + u1) ** 2)
-                        + prior_a * (la - prior_mean_a) ** 2)
-                return cost, residual, model
-
+            frame, (o0, o1) = set_plane(point, face)
             u0 = u1 = 0.0
             cost, residual, model = evaluate(u0, u1, log_amplitude)
             damping = 1e-3
-            jacobian = np.empty((3, len(d)))
             for _ in range(FIT_ITERATIONS):
-                jacobian[0] = model * (y0 - u0) * inv_s2
-                jacobian[1] = model * (y1 - u1) * inv_s2
-                jacobian[2] = model
-                weighted = jacobian * weight
-                (h00, h01, h02), (_, h11, h12), (_, _, h22) = (weighted @ jacobian.T).tolist()
-                b0, b1, b2 = (weighted @ residual).tolist()
+                (h00, h01, h02, h11, h12, h22), (b0, b1, b2) = normal_equations(model, residual, u0, u1)
                 b0 -= prior_u * (o0 + u0)
                 b1 -= prior_u * (o1 + u1)
                 b2 -= prior_a * (log_amplitude - prior_mean_a)
@@ -825,13 +896,13 @@ class TouchProcessor:
                 # Symmetric 3 x 3 solve by cofactors.
                 c00, c01, c02 = h11 * h22 - h12 * h12, h02 * h12 - h01 * h22, h01 * h12 - h02 * h11
                 determinant = h00 * c00 + h01 * c01 + h02 * c02
-                if determinant == 0.0 or not np.isfinite(determinant):
+                if determinant == 0.0 or not math.isfinite(determinant):
                     break
                 c11, c12, c22 = h00 * h22 - h02 * h02, h01 * h02 - h00 * h12, h00 * h11 - h01 * h01
                 s0 = (c00 * b0 + c01 * b1 + c02 * b2) / determinant
                 s1 = (c01 * b0 + c11 * b1 + c12 * b2) / determinant
                 s2 = (c02 * b0 + c12 * b1 + c22 * b2) / determinant
-                length = float(np.hypot(s0, s1))
+                length = math.hypot(s0, s1)
                 if length > max_step:
                     shrink = max_step / length
                     s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
@@ -845,27 +916,25 @@ class TouchProcessor:
                 else:
                     damping *= 4.0
             point = point + u0 * frame[0] + u1 * frame[1]
+            bary = self.projector.barycentrics_in_face(point, face)
+            if bary is not None:
+                return cost, point, face, bary, log_amplitude, normal_equations(model, residual, u0, u1)[0]
             moved, faces, barys = self.projector.project(point, self.projector.face_normals[face])
-            shift = np.linalg.norm(moved[0] - point)
+            shift = math.dist(moved[0].tolist(), point.tolist())
             point, face, bary = moved[0], int(faces[0]), barys[0]
             if shift < 0.05:
                 break
-        frame = self.projector.face_frames[face][:2]
-        diff = x - point
-        model = g * np.exp(log_amplitude - np.einsum("ij,ij->i", diff, diff) / two_s2)
-        residual = d - model
-        offset = (point - start) @ frame.T
-        cost = float(weight @ residual**2 + prior_u * (offset @ offset) + prior_a * (log_amplitude - prior_mean_a) ** 2)
-        jacobian = np.vstack([model * (diff @ frame.T).T * inv_s2, model])
-        return cost, point, face, bary, log_amplitude, (jacobian * weight) @ jacobian.T
+        _, (o0, o1) = set_plane(point, face)
+        cost, residual, model = evaluate(0.0, 0.0, log_amplitude)
+        return cost, point, face, bary, log_amplitude, normal_equations(model, residual, 0.0, 0.0)[0]
 
-    def _learn_amplitude(self, log_amplitude: float, information: np.ndarray) -> None:
+    def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> None:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
         spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
         later fits."""
         # Tangential 2 x 2 block of the inverse by cofactors, its largest eigenvalue in closed form.
-        (i00, i01, i02), (_, i11, i12), (_, _, i22) = information.tolist()
+        i00, i01, i02, i11, i12, i22 = information  # upper triangle, in (u0, u1, log amplitude)
         c00, c01, c11 = i11 * i22 - i12 * i12, i02 * i12 - i01 * i22, i00 * i22 - i02 * i02
         determinant = i00 * c00 + i01 * c01 + i02 * (i01 * i12 - i02 * i11)
         if determinant == 0.0 or not np.isfinite(determinant):
