@@ -53,11 +53,6 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-try:  # the routine behind connected_components, without its per-call validation and transposition
-    from scipy.sparse.csgraph._traversal import _connected_components_undirected
-except ImportError:  # pragma: no cover - a scipy that moved it
-    _connected_components_undirected = None
-
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
@@ -688,12 +683,8 @@ class TouchProcessor:
         targets = local[neighbours[linked]]
         rows = np.zeros(len(region) + 1, dtype=np.int32)
         np.cumsum(np.count_nonzero(linked, axis=1), out=rows[1:])
-        if _connected_components_undirected is None:
-            graph = sp.csr_matrix((np.ones(len(targets)), targets, rows), shape=(len(region), len(region)))
-            return connected_components(graph, directed=False)[1]
-        labels = np.empty(len(region), dtype=np.int32)
-        _connected_components_undirected(targets, rows, targets, rows, labels)  # the graph is its own transpose
-        return labels
+        graph = sp.csr_matrix((np.ones(len(targets)), targets, rows), shape=(len(region), len(region)))
+        return connected_components(graph, directed=False)[1]
 
     def _coarse_point(self, centroid: np.ndarray, cell: int) -> tuple[np.ndarray, int, np.ndarray]:
         """The contact centroid projected on the surface on the side facing like the peak cell."""
