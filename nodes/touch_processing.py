@@ -15,19 +15,22 @@ Per frame (``TouchProcessor.process``):
    (``contact_mesh_faces``; Gaussian kernel, Nadaraya-Watson); vertices above the off threshold form
    connected components over the mesh edges. Each component is split among its touch peaks (active
    cells whose gain-normalised deltas are local maxima and are not explained by a stronger peak's
-   coupling tail); the intensity-weighted, area-weighted centroid
+   coupling tail under the current coupling profile); the intensity-weighted, area-weighted centroid
    of each part, projected on the surface, is the coarse touch point, and the part's area above half
    of its peak intensity is the contact area.
-4. **Sub-cell refinement** (``refine``): a Gaussian coupling model
-   ``delta_i = g_i A exp(-|p - x_i|^2 / (2 s^2))`` (``g_i`` = 1 with a pad, ``no_pad_gain`` without)
-   fitted by maximum likelihood (Levenberg-Marquardt on the deltas of every crossing near the peak,
-   dark ones included) with the finger kept on the surface; weak priors (offset ~ N(0, pitch^2),
-   amplitude learned from well-posed touches) keep directions that a sparse layout does not resolve
-   bounded. With several touches each one is refitted to the deltas minus the others' fitted
-   coupling, starting from its first fit. The width ``s`` starts at
-   ``sqrt(finger_radius^2 + (pitch/2)^2)`` and is learned from touches that many crossings see
-   (``adapt_coupling``). Without a crossing above 2 sigma near the
-   peak the coarse point stays.
+4. **Sub-cell refinement** (``refine``): the coupling model ``delta_i = g_i A K(|p - x_i|)``
+   (``g_i`` = 1 with a pad, ``no_pad_gain`` without; ``K`` the radial coupling profile,
+   :mod:`retrotouch.nodes.coupling_profile`) fitted by maximum likelihood (Levenberg-Marquardt on
+   the deltas of every crossing near the peak, dark ones included) with the finger kept on the
+   surface; weak priors (offset ~ N(0, pitch^2), amplitude learned from well-posed touches) keep
+   directions that a sparse layout does not resolve bounded. With several touches each one is
+   refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
+   whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's are one
+   finger. ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
+   with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
+   (log-quadratic fits), then the shape, in units of that width, is learned from well-posed single
+   touches: a board whose coupling is not a Gaussian (flat top, heavy tail) is localized without
+   the bias of the wrong shape. Without a crossing above 2 sigma near the peak the coarse point stays.
 5. **Tracking**: touches are matched to the previous frame's tracks by minimum total distance
    (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
    ids, unmatched tracks end.
@@ -55,14 +58,14 @@ from scipy.spatial import cKDTree
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import NodeParams
+from retrotouch.nodes.coupling_profile import CouplingProfile, ProfileLearner
 from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
 from retrotouch.nodes.muca_serial import NUM_RX, NUM_TX
 
 FIT_ITERATIONS = 8  # Levenberg-Marquardt iterations per tangent plane (it stops earlier once steps are < 0.05 mm)
 SURFACE_ROUNDS = 2  # tangent planes the coupling fit re-linearises in (it stops once the projection moves < 0.05 mm)
 NORMAL_RIDGE = 0.05  # ridge on the fit's normal component, relative to the in-plane information
-COUPLING_WINDOW = 300  # touch frames whose width estimates make up the learned coupling width
-COUPLING_MIN_ESTIMATES = 30  # estimates needed before the learned width replaces the initial one
+COUPLING_MIN_ESTIMATES = 30  # width estimates whose median becomes the coupling width
 COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
 AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
 AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
@@ -439,13 +442,13 @@ class ProcessingParams(NodeParams):
     hold_radius_mm: float | None = Field(None, gt=0, description="cells this close to a touch hold their baseline; None: 2.5 x pitch")
     max_hold_s: float = Field(60.0, gt=0, description="a cell held longer is re-baselined (stuck touch)")
     negative_reset_frames: int = Field(10, ge=1, description="frames below -on threshold before a re-baseline")
-    coupling_sigma_mm: float | None = Field(None, gt=0, description="finger coupling width; None: sqrt(finger_radius^2 + (pitch/2)^2)")
+    coupling_sigma_mm: float | None = Field(None, gt=0, description="width of the Gaussian the coupling profile starts from; None: sqrt(finger_radius^2 + (pitch/2)^2)")
     finger_radius_mm: float = Field(4.5, gt=0, description="finger contact radius used for the default coupling width")
     interpolation_radius_mm: float | None = Field(None, gt=0, description="vertex-to-cell interpolation radius; None: 1.5 x pitch")
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
-    refine: bool = Field(True, description="refine the centroid with the Gaussian coupling fit")
+    refine: bool = Field(True, description="refine the centroid with the coupling fit")
     no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
-    adapt_coupling: bool = Field(True, description="learn the coupling width from touches seen by >= 7 crossings")
+    adapt_coupling: bool = Field(True, description="learn the coupling width, then the profile's shape, from touches")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -490,7 +493,7 @@ class TouchProcessor:
         self.pitch = sensing_map.pitch_mm()
         self.coupling_sigma = params.coupling_sigma_mm or float(np.hypot(params.finger_radius_mm, self.pitch / 2))
         self.initial_coupling_sigma = self.coupling_sigma
-        self._width_estimates: collections.deque[float] = collections.deque(maxlen=COUPLING_WINDOW)
+        self._width_estimates: list[float] = []
         self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
         self._amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
         self._amplitude_count = 0  # well-posed fits seen
@@ -500,9 +503,9 @@ class TouchProcessor:
         cells = sensing_map.cell_points
         self.frame_index = sensing_map.frame_index
         self.cell_gain = np.where(sensing_map.cell_pad, 1.0, params.no_pad_gain)
-        self.cell_log_gain = np.log(self.cell_gain)
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
-        self._cell_distance_rows = self.cell_distance.tolist()  # plain floats for the per-peak loop
+        self.coupling = ProfileLearner(CouplingProfile.gaussian(1.0))  # the shape, in units of the width
+        self._use_profile()
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
                                                                     params.contact_mesh_faces)
@@ -518,6 +521,15 @@ class TouchProcessor:
         width = max(1, max(len(n) for n in neighbours))
         self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
         self.reset()
+
+    def _use_profile(self) -> None:
+        """Fit with the learned shape stretched to the learned width from now on; the peak test's
+        tail bounds follow: a finger at most ``a = 0.6 pitch`` from a peak crossing (inside the sensed
+        region) gives a crossing ``D`` from that peak at most ``K(max(D - a, 0)) / K(a)`` times the
+        peak's delta."""
+        profile = self.profile = self.coupling.profile.scaled(self.coupling_sigma)
+        offset = 0.6 * self.pitch
+        self._tail_bound = profile.at_distance(np.maximum(self.cell_distance - offset, 0.0)) / profile.at_distance(offset)
 
     def _build_interpolation(self, radius: float) -> None:
         """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell."""
@@ -615,20 +627,15 @@ class TouchProcessor:
         both on gain-normalised deltas ``delta / g`` (a crossing without a pad reads less for the same
         finger: two padded crossings on either side of a finger over pad-less ones are not two touches).
 
-        A finger at distance ``a`` from a peak cell gives a cell ``D`` farther on at most
-        ``exp(-(D^2 - 2 a D) / (2 s^2))`` times the peak's delta; ``a`` is at most 0.6 pitch inside
-        the sensed region. A candidate must exceed twice that bound for every stronger peak.
+        A candidate must exceed twice the tail bound (:meth:`_use_profile`) of every stronger peak.
         """
         delta = delta / self.cell_gain
         candidates = np.flatnonzero(self.active & (delta >= delta[self.peak_neighbours].max(axis=1)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
-        two_s2 = 2 * self.coupling_sigma**2
-        offset = 0.6 * self.pitch
         for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
-            distances = self._cell_distance_rows[c]
-            if all(value > 2.0 * peak * math.exp(-max(distances[k] * (distances[k] - 2 * offset), 0.0) / two_s2)
-                   for k, peak in kept):
+            bounds = self._tail_bound[c].tolist()  # plain floats for the loop
+            if all(value > 2.0 * peak * bounds[k] for k, peak in kept):
                 kept.append((c, value))
         return np.array([c for c, _ in kept], dtype=np.int64)
 
@@ -700,8 +707,9 @@ class TouchProcessor:
         """One estimate of the coupling width from a touch's strong crossings at ``offsets`` (k, 3) (mm)
         from its peak crossing, with gain-normalised deltas ``normalised`` (counts): with ``y_i`` the
         offsets in the face ``frame`` (rows t1, t2, n), ``log d_i = c + b.y_i / s^2 - a |y_i|^2`` is linear
-        in (c, b, a) and ``s = sqrt(1 / (2 a))``. The width in use becomes the median of the last
-        estimates (from the ``COUPLING_MIN_ESTIMATES``-th on), kept within half to twice the initial one."""
+        in (c, b, a) and ``s = sqrt(1 / (2 a))``. The median of the first ``COUPLING_MIN_ESTIMATES``
+        estimates, kept within half to twice the initial width, becomes the width for good: the
+        profile's shape is learned in units of it from then on."""
         full = np.empty((len(normalised), 5))
         full[:, 0] = 1.0
         full[:, 1:4] = offsets @ frame.T / self.coupling_sigma**2
@@ -716,31 +724,59 @@ class TouchProcessor:
         if a <= 0:
             return
         self._width_estimates.append(float(np.sqrt(1.0 / (2.0 * a))))
-        if len(self._width_estimates) >= COUPLING_MIN_ESTIMATES:
-            learned = median(np.fromiter(self._width_estimates, float, len(self._width_estimates)))
+        if len(self._width_estimates) == COUPLING_MIN_ESTIMATES:
+            learned = median(np.array(self._width_estimates))
             self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
+            self._use_profile()
 
     def _refine_all(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> None:
-        """Refine every touch in place. Each fit starts at its peak crossing (on the touched side,
-        within a pitch of the finger); with several touches the first pass fits each one to its own
-        cells (nearest to its peak) and a second pass to all deltas minus the other touches' fitted
-        coupling, starting from the first pass's point and amplitude."""
+        """Refine every touch in place (entries of ``found`` that are one finger are merged out).
+        Each fit starts at its peak crossing (on the touched side, within a pitch of the finger);
+        with several touches the first pass fits each one to its own cells (nearest to its peak),
+        peaks whose fits land within ``2 finger_radius`` of a stronger one's are dropped (their area
+        added to it), and a second pass fits each remaining touch to all deltas minus the other
+        touches' fitted coupling, starting from its first fit's point and amplitude. The coupling
+        profile learns from single touches and from second-pass fits (a first pass beside another
+        touch carries that touch's tail)."""
+        single = len(found) == 1
         fits: list[tuple[np.ndarray, float] | None] = []  # (point, log amplitude) of each first-pass fit
         peaks = np.array([entry[0] for entry in found])
         # First pass: each touch sees only the cells nearer its own peak than any other peak.
         nearest_peak = np.argmin(self.cell_distance[:, peaks], axis=1)
         for j, entry in enumerate(found):
             cell = entry[0]
-            own_cells = delta if len(found) == 1 else np.where(nearest_peak == j, delta, np.nan)
-            refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma)
+            own_cells = delta if single else np.where(nearest_peak == j, delta, np.nan)
+            refined = self._refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma,
+                                   learn_profile=single)
             fits.append(None if refined is None else (refined[0], min(refined[3], 30.0)))
             if refined is not None:
                 entry[1:4] = refined[:3]
+        if single:
+            return
+        merge_mm = 2.0 * self.params.finger_radius_mm
+        kept: list[int] = []  # found is strongest peak first
+        for j, fit in enumerate(fits):
+            same = None if fit is None else next(
+                (k for k in kept if fits[k] is not None and math.dist(fits[k][0].tolist(), fit[0].tolist()) < merge_mm), None)
+            if same is None:
+                kept.append(j)
+            else:
+                found[same][4] += found[j][4]
+        if len(kept) < len(found):
+            found[:] = [found[j] for j in kept]
+            fits = [fits[j] for j in kept]
+            if len(found) == 1:  # one finger after all: fit it to every delta
+                entry = found[0]
+                refined = self._refine(self.map.cell_points[entry[0]], int(self.map.cell_faces[entry[0]]), delta, sigma,
+                                       learn_profile=True)
+                if refined is not None:
+                    entry[1:4] = refined[:3]
+                return
         if sum(fit is not None for fit in fits) < 2:
             return
-        two_s2 = 2 * self.coupling_sigma**2
         cells = self.map.cell_points
-        modelled = [np.zeros(len(cells)) if fit is None else self.cell_gain * np.exp(fit[1] - np.sum((cells - fit[0]) ** 2, axis=1) / two_s2)
+        modelled = [np.zeros(len(cells)) if fit is None else
+                    self.cell_gain * math.exp(fit[1]) * self.profile.at_squared(np.sum((cells - fit[0]) ** 2, axis=1))[0]
                     for fit in fits]
         total = np.sum(modelled, axis=0)
         for entry, fit, own in zip(found, fits, modelled):
@@ -749,24 +785,24 @@ class TouchProcessor:
             others = total - own
             if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
                 continue
-            refined = self._refine(entry[1], entry[2], delta - others, sigma, fit[1])
+            refined = self._refine(entry[1], entry[2], delta - others, sigma, fit[1], learn_profile=True)
             if refined is not None:
                 entry[1:4] = refined[:3]
 
-    def _refine(self, point, face, values, sigma, log_amplitude=None):
-        """Maximum-likelihood Gaussian coupling fit around ``point`` (the peak crossing, or a first
-        fit's point refitted from its log-amplitude ``log_amplitude``); returns (point, face, bary) on
-        the surface and the fitted log-amplitude ``a`` (log counts), or None when no crossing near
-        ``point`` carries signal above 2 sigma.
+    def _refine(self, point, face, values, sigma, log_amplitude=None, learn_profile=False):
+        """Maximum-likelihood coupling fit around ``point`` (the peak crossing, or a first fit's point
+        refitted from its log-amplitude ``log_amplitude``); returns (point, face, bary) on the surface
+        and the fitted log-amplitude ``a`` (log counts), or None when no crossing near ``point``
+        carries signal above 2 sigma.
 
-        Model ``delta_i = g_i exp(a - |p - x_i|^2 / (2 s^2))`` over every crossing within
-        ``3 s + pitch`` of the start, dark ones included (a crossing that reads nothing says the finger
-        is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is additive, so this
-        is the likelihood, unlike a log-linear fit that ignores the dark crossings). The finger ``p``
-        stays on the surface: Levenberg-Marquardt steps ``(u, a)`` with ``u`` in the tangent plane of
-        the current face, then ``p`` is projected back onto the surface on the side facing the same
-        way and the fit repeats in the new tangent plane (``SURFACE_ROUNDS``). Priors keep directions the crossings do not resolve bounded (on a sparse layout three
-        crossings can be nearly collinear, or only two see the finger):
+        Model ``delta_i = g_i exp(a) K(|p - x_i|)`` over every crossing within ``3 s + pitch`` of the
+        start (``s`` the coupling width), dark ones included (a crossing that reads nothing says the
+        finger is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is
+        additive, so this is the likelihood). The finger ``p`` stays on the surface: Levenberg-Marquardt steps
+        ``(u, a)`` with ``u`` in the tangent plane of the current face, then ``p`` is projected back
+        onto the surface on the side facing the same way and the fit repeats in the new tangent plane
+        (``SURFACE_ROUNDS``). Priors keep directions the crossings do not resolve bounded (on a sparse
+        layout three crossings can be nearly collinear, or only two see the finger):
 
         * ``u`` (offset from the start) ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;
         * ``a`` ~ N(a0, sigma_a^2), once learned (``_learn_amplitude``) from well-posed fits: the peak
@@ -776,7 +812,9 @@ class TouchProcessor:
         delta, or at the amplitude prior's mean if higher. On thin parts (ears) and tips the strongest
         crossing can sit on the far side, so a first fit also starts from the two strongest crossings
         facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta) and
-        keeps the lowest cost; a refit starts from its first fit only.
+        keeps the lowest cost; a refit starts from its first fit only. A well-posed fit with
+        ``learn_profile`` gives the coupling profile its (squared distance, delta / (g exp(a)),
+        weight) pairs (:class:`~retrotouch.nodes.coupling_profile.ProfileLearner`).
         """
         cells = self.map.cell_points
         offsets = cells - point
@@ -786,7 +824,8 @@ class TouchProcessor:
         strong = d > 2.0 * noise
         if not strong.any():
             return None
-        if self.params.adapt_coupling:
+        width_learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES
+        if self.params.adapt_coupling and not width_learned:
             # Width estimates only from touches many crossings see around the peak (log-linear form).
             learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
             if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
@@ -803,29 +842,31 @@ class TouchProcessor:
             log_amplitude = math.log(normalised[strong].max())
             if self._amplitude_prior is not None:
                 log_amplitude = max(log_amplitude, self._amplitude_prior[0])
-        z, log_h = d / noise, self.cell_log_gain[near] - np.log(noise)  # in noise sigmas
-        fits = [self._fit_on_surface(p, f, x, z, log_h, log_amplitude) for p, f in starts]
+        z, h = d / noise, g / noise  # in noise sigmas
+        fits = [self._fit_on_surface(p, f, x, z, h, log_amplitude) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
-        self._learn_amplitude(log_amplitude, information)
+        if self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
+            scale = h * math.exp(log_amplitude)
+            offsets = x - point
+            squared = np.einsum("ij,ij->i", offsets, offsets) / self.coupling_sigma**2  # in widths
+            if self.coupling.add(squared, z / scale, scale * scale):
+                self._use_profile()
         return point, face, bary, log_amplitude
 
-    def _fit_on_surface(self, point, face, x, z, log_h, log_amplitude):
+    def _fit_on_surface(self, point, face, x, z, h, log_amplitude):
         """Levenberg-Marquardt of the coupling model from the surface point ``point`` on ``face`` and
         the log-amplitude ``log_amplitude`` (see :meth:`_refine`) to the crossings at ``x`` (k, 3) (mm)
-        with deltas ``z`` and gains ``exp(log_h)`` both in units of each crossing's noise sigma (so
-        the residuals are weighted already); returns (cost, point, face, bary, log amplitude, data
+        with deltas ``z`` and gains ``h`` both in units of each crossing's noise sigma (so the
+        residuals are weighted already); returns (cost, point, face, bary, log amplitude, data
         information as its upper triangle ``(i00, i01, i02, i11, i12, i22)`` in ``(u0, u1, a)``).
 
-        Within one tangent plane (rows ``t1, t2`` of the face frame) the finger is ``p_r + u0 t1 + u1 t2``
-        and ``log model_i = b_i + a - |u|^2 / (2 s^2) + u.Y_i`` with ``Y_i = frame (x_i - p_r) / s^2``
-        (1/mm) and ``b_i = log h_i - |x_i - p_r|^2 / (2 s^2)``, both computed once per plane. The
-        normal equations' sums (``sum m^2 (Y0 - u0 / s^2)^2``, ...) expand into moments of
-        ``[1, Y0, Y1, Y0^2, Y0 Y1, Y1^2]`` weighted by ``m^2`` and ``m r``: one matrix product per
-        iteration, and the 3 x 3 system is solved in plain floats (numpy's per-call overhead
-        dominates on arrays of a few dozen crossings). A step that stays inside the face needs no
-        projection: the point is on the surface and the fit ends in that plane."""
-        two_s2 = 2.0 * self.coupling_sigma**2
-        inv_s2 = 2.0 / two_s2
+        Within one tangent plane (rows ``t1, t2`` of the face frame) the finger is ``p_r + u0 t1 + u1 t2``,
+        so ``|x_i - p|^2 = r2_i - 2 u.y_i + |u|^2`` with ``y_i = frame (x_i - p_r)`` (mm) and
+        ``r2_i = |x_i - p_r|^2``, computed once per plane; ``d model_i / d u = 2 h_i exp(a) K'(q_i) (u - y_i)``
+        with ``K'`` the profile's slope in squared distance. The 3 x 3 system is solved in plain floats
+        (numpy's per-call overhead dominates on arrays of a few dozen crossings). A step that stays
+        inside the face needs no projection: the point is on the surface and the fit ends in that plane."""
+        profile = self.profile
         prior_u = 1.0 / self.pitch**2
         prior_mean_a, prior_a = 0.0, 0.0
         if self._amplitude_prior is not None:
@@ -833,52 +874,48 @@ class TouchProcessor:
             prior_a = 1.0 / sigma_a**2
         start = point
         max_step = 0.5 * self.pitch
-        # Per-plane columns [b, 1, Y0, Y1, Y0^2, Y0 Y1, Y1^2]: the log-model is the first four times
-        # (1, a - |u|^2 / (2 s^2), u0, u1), the moments are taken over the last six.
-        columns = np.empty((len(z), 7))
-        columns[:, 1] = 1.0
-        exponent_columns, moment_columns = columns[:, :4], columns[:, 1:]
+        columns = np.empty((len(z), 3))  # per plane: r2, -2 y0, -2 y1
+        rows = np.empty((4, len(z)))  # J (d model / d (u0, u1, a)) and the residual
 
         def set_plane(point, face):
             """Fill the columns for the tangent plane at ``point`` on ``face``; returns its frame rows
             (t1, t2) and the offset (o0, o1) (mm) of ``point`` from the start, which the prior sees."""
             frame = self.projector.face_frames[face][:2]
             q = x - point
-            columns[:, 2:4] = q @ frame.T * inv_s2
-            columns[:, 0] = log_h - np.einsum("ij,ij->i", q, q) / two_s2
-            np.multiply(columns[:, 2:3], columns[:, 2:4], out=columns[:, 4:6])
-            np.multiply(columns[:, 3], columns[:, 3], out=columns[:, 6])
+            columns[:, 0] = np.einsum("ij,ij->i", q, q)
+            columns[:, 1:] = q @ (-2.0 * frame.T)
             return frame, ((point - start) @ frame.T).tolist()
 
         def evaluate(u0, u1, la):
-            """(cost, residual, model), the last two in noise sigmas, at the in-plane offset (u0, u1)
-            (mm) and log-amplitude ``la`` in the current plane (origin offset (o0, o1))."""
-            model = np.exp(exponent_columns @ (1.0, la - (u0 * u0 + u1 * u1) / two_s2, u0, u1))
+            """(cost, residual, model, d model / d q), all but the cost in noise sigmas, at the
+            in-plane offset (u0, u1) (mm) and log-amplitude ``la`` in the current plane."""
+            k, slope = profile.at_squared(columns @ (1.0, u0, u1) + (u0 * u0 + u1 * u1))
+            scale = h * math.exp(la)
+            model = scale * k
             residual = z - model
             cost = (float(residual @ residual) + prior_u * ((o0 + u0) ** 2 + (o1 + u1) ** 2)
                     + prior_a * (la - prior_mean_a) ** 2)
-            return cost, residual, model
+            return cost, residual, model, scale * slope
 
-        products = np.empty((2, len(z)))  # m^2 and m r
-
-        def normal_equations(model, residual, u0, u1):
-            """Upper triangle of J^T J and J^T r at the in-plane offset (u0, u1) (mm)."""
-            np.multiply(model, model, out=products[0])
-            np.multiply(model, residual, out=products[1])
-            (m, m0, m1, m00, m01, m11), (n, n0, n1, *_) = (products @ moment_columns).tolist()
-            v0, v1 = u0 * inv_s2, u1 * inv_s2
-            return ((m00 - 2.0 * v0 * m0 + v0 * v0 * m, m01 - v1 * m0 - v0 * m1 + v0 * v1 * m, m0 - v0 * m,
-                     m11 - 2.0 * v1 * m1 + v1 * v1 * m, m1 - v1 * m, m), (n0 - v0 * n, n1 - v1 * n, n))
+        def normal_equations(model, residual, dmodel_dq, u0, u1):
+            """Upper triangle of J^T J and J^T r at the in-plane offset (u0, u1) (mm), from one
+            product of the rows [J; r] with themselves."""
+            np.multiply(dmodel_dq, columns[:, 1] + 2.0 * u0, out=rows[0])
+            np.multiply(dmodel_dq, columns[:, 2] + 2.0 * u1, out=rows[1])
+            rows[2] = model
+            rows[3] = residual
+            (h00, h01, h02, b0), (_, h11, h12, b1), (_, _, h22, b2), _ = (rows @ rows.T).tolist()
+            return (h00, h01, h02, h11, h12, h22), (b0, b1, b2)
 
         for _ in range(SURFACE_ROUNDS):
             # Levenberg-Marquardt in the tangent plane of the current face, then back onto the
             # surface on the side facing the same way; the next round starts in the new plane.
             frame, (o0, o1) = set_plane(point, face)
             u0 = u1 = 0.0
-            cost, residual, model = evaluate(u0, u1, log_amplitude)
+            cost, residual, model, dmodel_dq = evaluate(u0, u1, log_amplitude)
             damping = 1e-3
             for _ in range(FIT_ITERATIONS):
-                (h00, h01, h02, h11, h12, h22), (b0, b1, b2) = normal_equations(model, residual, u0, u1)
+                (h00, h01, h02, h11, h12, h22), (b0, b1, b2) = normal_equations(model, residual, dmodel_dq, u0, u1)
                 b0 -= prior_u * (o0 + u0)
                 b1 -= prior_u * (o1 + u1)
                 b2 -= prior_a * (log_amplitude - prior_mean_a)
@@ -900,7 +937,7 @@ class TouchProcessor:
                 trial = evaluate(u0 + s0, u1 + s1, log_amplitude + s2)
                 if trial[0] <= cost:
                     u0, u1, log_amplitude = u0 + s0, u1 + s1, log_amplitude + s2
-                    cost, residual, model = trial
+                    cost, residual, model, dmodel_dq = trial
                     damping = max(damping / 3.0, 1e-6)
                     if length < 0.05:
                         break
@@ -909,31 +946,31 @@ class TouchProcessor:
             point = point + u0 * frame[0] + u1 * frame[1]
             bary = self.projector.barycentrics_in_face(point, face)
             if bary is not None:
-                return cost, point, face, bary, log_amplitude, normal_equations(model, residual, u0, u1)[0]
+                return cost, point, face, bary, log_amplitude, normal_equations(model, residual, dmodel_dq, u0, u1)[0]
             moved, faces, barys = self.projector.project(point, self.projector.face_normals[face])
             shift = math.dist(moved[0].tolist(), point.tolist())
             point, face, bary = moved[0], int(faces[0]), barys[0]
             if shift < 0.05:
                 break
         _, (o0, o1) = set_plane(point, face)
-        cost, residual, model = evaluate(0.0, 0.0, log_amplitude)
-        return cost, point, face, bary, log_amplitude, normal_equations(model, residual, 0.0, 0.0)[0]
+        cost, residual, model, dmodel_dq = evaluate(0.0, 0.0, log_amplitude)
+        return cost, point, face, bary, log_amplitude, normal_equations(model, residual, dmodel_dq, 0.0, 0.0)[0]
 
-    def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> None:
+    def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> bool:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
         spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
-        later fits."""
+        later fits. Returns whether the fit was well posed."""
         # Tangential 2 x 2 block of the inverse by cofactors, its largest eigenvalue in closed form.
         i00, i01, i02, i11, i12, i22 = information  # upper triangle, in (u0, u1, log amplitude)
         c00, c01, c11 = i11 * i22 - i12 * i12, i02 * i12 - i01 * i22, i00 * i22 - i02 * i02
         determinant = i00 * c00 + i01 * c01 + i02 * (i01 * i12 - i02 * i11)
         if determinant == 0.0 or not np.isfinite(determinant):
-            return
+            return False
         v00, v01, v11 = c00 / determinant, c01 / determinant, c11 / determinant
         largest = 0.5 * (v00 + v11) + float(np.hypot(0.5 * (v00 - v11), v01))
         if not np.isfinite(largest) or largest > AMPLITUDE_WELL_POSED_MM**2:
-            return
+            return False
         self._amplitude_estimates.append(float(log_amplitude))
         self._amplitude_count += 1
         if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES and self._amplitude_count % 10 == 0:
@@ -941,6 +978,7 @@ class TouchProcessor:
             centre = float(np.median(estimates))
             spread = max(1.4826 * float(np.median(np.abs(estimates - centre))), 0.05)
             self._amplitude_prior = (centre, spread)
+        return True
 
     # ---- tracking
 

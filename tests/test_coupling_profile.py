@@ -10,44 +10,50 @@ from retrotouch.nodes.muca_simulator import disc_coupling_profile
 WIDTH = 6.3  # mm, the default layout's nominal coupling width
 
 
-def test_gaussian_start_matches_the_gaussian_at_the_knots_and_its_half_maximum():
+def test_gaussian_start_is_the_gaussian_everywhere():
+    """log K is linear in d^2 between knots, so the Gaussian start is exact, past the reach too."""
     profile = CouplingProfile.gaussian(WIDTH)
-    inside = profile.distances < profile.reach
-    assert np.allclose(profile.values[inside], np.exp(-profile.distances[inside] ** 2 / (2 * WIDTH**2)))
-    assert profile.values[-1] == 0.0 and profile.reach == pytest.approx(4 * WIDTH)
-    assert profile.half_maximum_mm() == pytest.approx(WIDTH * np.sqrt(2 * np.log(2)), rel=0.01)
-    assert profile.at_distance(profile.reach + 1.0) == 0.0
+    d = np.linspace(0, 7 * WIDTH, 500)
+    assert np.allclose(profile.at_distance(d), np.exp(-d**2 / (2 * WIDTH**2)), rtol=1e-9, atol=0)
+    assert profile.reach == pytest.approx(5 * WIDTH)
+    assert profile.half_maximum_mm() == pytest.approx(WIDTH * np.sqrt(2 * np.log(2)), rel=1e-9)
 
 
 def test_slope_is_the_derivative_in_squared_distance():
-    profile = CouplingProfile.gaussian(WIDTH)
-    squared = np.array([0.3, 10.0, 55.0, 200.0, 400.0])  # mm^2, inside segments
+    distances, values = disc_coupling_profile(4.5, WIDTH * np.sqrt(2 * np.log(2)))
+    profile = CouplingProfile(distances[::40], values[::40])  # uneven log-slopes
+    squared = np.array([0.3, 10.0, 55.0, 200.0, 410.0, 2000.0])  # mm^2, inside segments (knots every 4 mm) and past the reach
     value, slope = profile.at_squared(squared)
     step = 1e-4
     numeric = (profile.at_squared(squared + step)[0] - profile.at_squared(squared - step)[0]) / (2 * step)
     assert np.allclose(slope, numeric, rtol=1e-6)
     assert np.all(slope < 0) and np.all((value > 0) & (value < 1))
-    assert profile.at_squared(np.array([profile.reach**2 + 5.0]))[1][0] == 0.0
 
 
 def test_refit_recovers_a_disc_profile_from_noisy_pairs():
-    """4000 ratios with noise 0.02 drawn from the simulator's disc profile: every knot within 0.01."""
+    """4000 ratios with noise 0.02 drawn from the simulator's disc profile: within 0.01 of it
+    everywhere inside the reach."""
     distances, values = disc_coupling_profile(4.5, WIDTH * np.sqrt(2 * np.log(2)))
     rng = np.random.default_rng(0)
-    d = rng.uniform(0, 4 * WIDTH, 4000)
+    d = rng.uniform(0, 5 * WIDTH, 4000)
     ratios = np.interp(d, distances, values) + rng.normal(0, 0.02, len(d))
-    fitted = CouplingProfile.gaussian(WIDTH).fitted(d**2, ratios, np.full(len(d), 1 / 0.02**2))
-    truth = np.interp(fitted.distances[:-1], distances, values)
+    learner = ProfileLearner(CouplingProfile.gaussian(WIDTH), first=1)
+    assert learner.add(d**2, ratios, np.full(len(d), 1 / 0.02**2))
+    fitted = learner.profile
     assert fitted.values[0] == 1.0 and np.all(np.diff(fitted.values) <= 0)
-    assert np.max(np.abs(fitted.values[:-1] - truth)) < 0.01
+    inside = np.linspace(0, fitted.reach, 400)
+    assert np.max(np.abs(fitted.at_distance(inside) - np.interp(inside, distances, values))) < 0.01
     # The Gaussian start is 0.058 below the disc at two widths; the refit is not.
     assert abs(CouplingProfile.gaussian(WIDTH).at_distance(2 * WIDTH) - np.interp(2 * WIDTH, distances, values)) > 0.05
 
 
 def test_learner_refits_from_the_first_touch_count_then_periodically():
-    learner = ProfileLearner(CouplingProfile.gaussian(WIDTH), first=3, every=2)
+    """Touches of a Laplacian profile (heavier tail than the Gaussian start): refits at the 3rd
+    touch, then after 2, 4, 4 more (the interval doubles up to 4); the older touches fade (memory 5
+    touches) but the fit stays on the data."""
+    learner = ProfileLearner(CouplingProfile.gaussian(WIDTH), memory=5.0, first=3, every=2, longest=4)
     d = np.linspace(0, 3 * WIDTH, 20)
-    ratios = np.exp(-d / WIDTH)  # a Laplacian profile: heavier tail than the start
-    refits = [learner.add(d**2, ratios, np.ones_like(d)) for _ in range(7)]
-    assert refits == [False, False, True, False, True, False, True] and learner.updates == 3
+    ratios = np.exp(-d / WIDTH)
+    refits = [learner.add(d**2, ratios, np.ones_like(d)) for _ in range(13)]
+    assert np.flatnonzero(refits).tolist() == [2, 4, 8, 12] and learner.updates == 4
     assert learner.profile.at_distance(2.5 * WIDTH) == pytest.approx(np.exp(-2.5), abs=0.02)

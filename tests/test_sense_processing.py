@@ -144,8 +144,10 @@ def test_disc_coupling_profile_has_the_gaussians_reach_and_a_heavier_tail(bunny_
         VirtualBoard(bunny_map, BoardParams(coupling_model="disc", finger_radius_mm=8.0, coupling_sigma_mm=3.0))
 
 
-def test_coupling_width_is_learned_from_touches(bunny_map, bunny_map_path):
-    """The board couples 25 % wider than the processing assumes at start: it learns the width."""
+def test_coupling_profile_is_learned_from_touches(bunny_map, bunny_map_path):
+    """The board couples 25 % wider than the processing's starting Gaussian: 20 presses teach it
+    the width, then the shape, to the board's half-maximum distance; with adapt_coupling off the
+    start stays."""
     processor = TouchProcessor(bunny_map)
     true_width = 1.25 * processor.coupling_sigma
     params = BoardParams(coupling_sigma_mm=true_width, seed=12)
@@ -153,10 +155,13 @@ def test_coupling_width_is_learned_from_touches(bunny_map, bunny_map_path):
     steps = [{"gesture": "press", "at": "random", "ms": 500} for _ in range(20)]
     script = ScriptBuilder(bunny_map, params, seed=12).build(steps)
     feed(processor, board, script.fingers_at, script.duration)
-    assert processor.coupling_sigma == pytest.approx(true_width, rel=0.05)
+    half_maximum = true_width * np.sqrt(2 * np.log(2))
+    assert processor.coupling.updates >= 2
+    assert processor.profile.half_maximum_mm() == pytest.approx(half_maximum, rel=0.05)
     fixed = TouchProcessor(bunny_map, ProcessingParams(adapt_coupling=False))
     feed(fixed, board, script.fingers_at, script.duration)
-    assert fixed.coupling_sigma == pytest.approx(true_width / 1.25)
+    assert fixed.coupling.updates == 0
+    assert fixed.profile.half_maximum_mm() == pytest.approx(half_maximum / 1.25, rel=1e-9)
 
 
 def test_ten_minutes_at_rest_with_drift_give_no_touch(bunny_map):
