@@ -270,7 +270,8 @@ class SurfaceProjector:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 12):
         self.vertices, self.faces = vertices, faces
         self.triangles = vertices[faces]
-        self.tree = cKDTree(self.triangles.mean(axis=1))
+        centroids = self.triangles.mean(axis=1)
+        self.tree = cKDTree(centroids)
         self._origin = self.triangles[:, 0]
         self._ab, self._ac = self.triangles[:, 1] - self._origin, self.triangles[:, 2] - self._origin
         self._ab_ab = np.einsum("ij,ij->i", self._ab, self._ab)
@@ -284,9 +285,12 @@ class SurfaceProjector:
         t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
         self.face_frames = np.stack([t1, np.cross(self.face_normals, t1), self.face_normals], axis=1)  # rows t1, t2, n
         # Per-face rows as plain floats for the single-point path (numpy's per-call overhead dominates
-        # on the k candidates of one point): origin, ab, ac, ab.ab, ab.ac, ac.ac, normal.
+        # on the k candidates of one point): origin, ab, ac, ab.ab, ab.ac, ac.ac, normal, and the
+        # radius (largest vertex distance from the centroid: no point of the face is nearer a query
+        # than its centroid distance minus the radius).
+        radius = np.linalg.norm(self.triangles - centroids[:, None], axis=2).max(axis=1)
         self._face_rows = np.column_stack([self._origin, self._ab, self._ac, self._ab_ab, self._ab_ac, self._ac_ac,
-                                           self.face_normals]).tolist()
+                                           self.face_normals, radius]).tolist()
 
     def barycentrics_in_face(self, point: np.ndarray, face: int) -> np.ndarray | None:
         """Barycentrics (3,) of ``point`` (mm, in the plane of ``face``) when it lies inside the face,
@@ -333,8 +337,8 @@ class SurfaceProjector:
         products and sums as the vectorised path. None on a degenerate candidate (division by
         zero), which the vectorised path handles with its nan/inf semantics."""
         px, py, pz = point.tolist()
-        _, candidates = self.tree.query(point, k=self.k)
-        candidates = np.atleast_1d(candidates).tolist()
+        centroid_distances, candidates = self.tree.query(point, k=self.k)
+        centroid_distances, candidates = np.atleast_1d(centroid_distances).tolist(), np.atleast_1d(candidates).tolist()
         rows = self._face_rows
         if facing is not None:
             fx, fy, fz = np.asarray(facing, dtype=float).tolist()
@@ -350,7 +354,11 @@ class SurfaceProjector:
         best_d2 = np.inf
         try:
             for i, f in enumerate(candidates):
-                ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = rows[f][:12]
+                row = rows[f]
+                reach = centroid_distances[i] - row[15]
+                if reach > 0.0 and reach * reach > best_d2:  # this face cannot be nearer than the best
+                    continue
+                ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = row[:12]
                 apx, apy, apz = px - ox, py - oy, pz - oz
                 # Summed in the order numpy's einsum uses for rows of 3, so the two paths agree bit for
                 # bit (ties between faces sharing an edge then break the same way).
