@@ -50,7 +50,8 @@ class CouplingProfile:
         return cls(KNOTS_IN_WIDTHS * width, np.exp(-(KNOTS_IN_WIDTHS**2) / 2))
 
     def scaled(self, width: float) -> CouplingProfile:
-        """This profile with its knots in units of ``width`` (mm), for a profile learned in widths."""
+        """This profile's values on the knots ``KNOTS_IN_WIDTHS x width`` (mm): a shape learned in
+        units of a width (knots ``KNOTS_IN_WIDTHS``), stretched to that width."""
         return CouplingProfile(KNOTS_IN_WIDTHS * width, self.values)
 
     def at_squared(self, squared: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
