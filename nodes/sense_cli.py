@@ -180,6 +180,7 @@ def sense(
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
     if coupling not in ("gaussian", "disc"):
         raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
+    board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
     if frame_format not in ("ascii", "binary"):
         raise UserError(f"--format {frame_format!r}: use ascii or binary")
     if layout is None:
@@ -189,7 +190,7 @@ def sense(
     else:
         layout_path = resolve_sensing_map_path(layout)
     if evaluate:
-        _evaluate(layout_path, replay, BoardParams(snr=snr, seed=seed, coupling_model=coupling), record, protocol)
+        _evaluate(layout_path, replay, board_params, record, protocol)
         return
     sensing_map = load_sensing_map(layout_path)
     options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
@@ -217,7 +218,6 @@ def sense(
             frames = replay_frames(replay, options=options if (flip_tx or flip_rx or skip_tx or skip_rx) else None,
                                    speed=speed)
         else:
-            board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
             frames = _simulated(sensing_map, steps, board_params, fast, loop, frame_format, record)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)

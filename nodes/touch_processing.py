@@ -537,7 +537,8 @@ class TouchProcessor:
         peak's delta."""
         profile = self.profile = self.coupling.profile.scaled(self.coupling_sigma)
         offset = 0.6 * self.pitch
-        self._tail_bound = profile.at_distance(np.maximum(self.cell_distance - offset, 0.0)) / profile.at_distance(offset)
+        reach = profile.at_distance(np.maximum(self.cell_distance - offset, 0.0))
+        self._tail_bound = reach / profile.at_distance(offset)
 
     def _build_interpolation(self, radius: float) -> None:
         """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell."""
@@ -764,8 +765,8 @@ class TouchProcessor:
         merge_mm = 2.0 * self.params.finger_radius_mm
         kept: list[int] = []  # found is strongest peak first
         for j, fit in enumerate(fits):
-            same = None if fit is None else next(
-                (k for k in kept if fits[k] is not None and math.dist(fits[k][0].tolist(), fit[0].tolist()) < merge_mm), None)
+            same = None if fit is None else next((k for k in kept if fits[k] is not None
+                                                  and math.dist(fits[k][0].tolist(), fit[0].tolist()) < merge_mm), None)
             if same is None:
                 kept.append(j)
             else:
@@ -806,10 +807,10 @@ class TouchProcessor:
         Model ``delta_i = g_i exp(a) K(|p - x_i|)`` over every crossing within ``3 s + pitch`` of the
         start (``s`` the coupling width), dark ones included (a crossing that reads nothing says the
         finger is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is
-        additive, so this is the likelihood). The finger ``p`` stays on the surface: Levenberg-Marquardt steps
-        ``(u, a)`` with ``u`` in the tangent plane of the current face, then ``p`` is projected back
-        onto the surface on the side facing the same way and the fit repeats in the new tangent plane
-        (``SURFACE_ROUNDS``). Priors keep directions the crossings do not resolve bounded (on a sparse
+        additive, so this is the likelihood). The finger ``p`` stays on the surface: Levenberg-Marquardt
+        steps ``(u, a)`` with ``u`` in the tangent plane of the current face, then ``p`` is projected
+        back onto the surface on the side facing the same way and the fit repeats in the new tangent
+        plane (``SURFACE_ROUNDS``). Priors keep directions the crossings do not resolve bounded (on a sparse
         layout three crossings can be nearly collinear, or only two see the finger):
 
         * ``u`` (offset from the start) ~ N(0, pitch^2): an unresolved direction stays at the peak crossing;

@@ -22,7 +22,8 @@ def test_gaussian_start_is_the_gaussian_everywhere():
 def test_slope_is_the_derivative_in_squared_distance():
     distances, values = disc_coupling_profile(4.5, WIDTH * np.sqrt(2 * np.log(2)))
     profile = CouplingProfile(distances[::40], values[::40])  # uneven log-slopes
-    squared = np.array([0.3, 10.0, 55.0, 200.0, 410.0, 2000.0])  # mm^2, inside segments (knots every 4 mm) and past the reach
+    # mm^2: inside segments (knots every 4 mm) and past the reach
+    squared = np.array([0.3, 10.0, 55.0, 200.0, 410.0, 2000.0])
     value, slope = profile.at_squared(squared)
     step = 1e-4
     numeric = (profile.at_squared(squared + step)[0] - profile.at_squared(squared - step)[0]) / (2 * step)
@@ -43,7 +44,7 @@ def test_refit_recovers_a_disc_profile_from_noisy_pairs():
     assert fitted.values[0] == 1.0 and np.all(np.diff(fitted.values) <= 0)
     inside = np.linspace(0, fitted.reach, 400)
     assert np.max(np.abs(fitted.at_distance(inside) - np.interp(inside, distances, values))) < 0.01
-    # The Gaussian start is 0.058 below the disc at two widths; the refit is not.
+    # The Gaussian start is 0.072 below the disc at two widths; the refit is not.
     assert abs(CouplingProfile.gaussian(WIDTH).at_distance(2 * WIDTH) - np.interp(2 * WIDTH, distances, values)) > 0.05
 
 
