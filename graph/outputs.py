@@ -51,7 +51,7 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
     (overrides, scheduler, per-instance status and seconds) copied into the manifest.
     """
     out_dir = os.path.abspath(out_dir)
-    if os.path.isdir(out_dir) and os.listdir(out_dir) and not os.path.exists(os.path.join(out_dir, MANIFEST)):
+    if _foreign(out_dir):
         raise UserError(f"--out {out_dir} exists and was not written by retrotouch (no {MANIFEST}); "
                         "choose a new or empty folder")
     parent = os.path.dirname(out_dir)
@@ -82,6 +82,21 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return manifest
+
+
+def _foreign(out_dir: str) -> bool:
+    """Whether ``out_dir`` holds files but no manifest.json (not written by retrotouch). A run
+    swapping the same folder at that moment can make one listing look foreign (the old folder is
+    listed while it is deleted), so a foreign listing is confirmed twice, 50 ms apart."""
+    for _ in range(3):
+        try:
+            entries = os.listdir(out_dir)
+        except (FileNotFoundError, NotADirectoryError):
+            return False
+        if not entries or MANIFEST in entries:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def _branch_dir(inst: Any) -> str:
