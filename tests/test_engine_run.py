@@ -258,9 +258,10 @@ def test_runs_replacing_the_same_output_folder_at_once(tmp_path, test_nodes):
     run(tmp_path)
     errors = []
 
-    def again():
+    def again():  # the same pipeline file, not rewritten by each thread as run() does
         try:
-            run(tmp_path)
+            run_pipeline(str(tmp_path / "sweep.yaml"), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"),
+                         scheduler="sync")
         except Exception as exc:  # reported below
             errors.append(exc)
 
