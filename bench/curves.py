@@ -21,13 +21,13 @@ import time
 import numpy as np
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.connection import ConnectionParams, connection
-from retrotouch.nodes.crossings import CrossingsParams, crossings, pair_multiplicity
-from retrotouch.nodes.datatypes import CurveEnd
-from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
-from retrotouch.nodes.mesh_repair import RemeshParams, RepairParams, remesh, repair_mesh
-from retrotouch.nodes.regions import RegionParams, detect_regions
-from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+from retrotouch.nodes.curves.connection import ConnectionParams, connection
+from retrotouch.nodes.curves.crossings import CrossingsParams, crossings, pair_multiplicity
+from retrotouch.nodes.data.types import CurveEnd
+from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
+from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
 ANGLES = tuple(range(-50, 51, 10))
 

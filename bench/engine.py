@@ -45,7 +45,7 @@ def calibrate(seconds: float) -> int:
 
 def cli() -> list[str]:
     script = Path(sys.executable).with_name("retrotouch")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "retrotouch.graph.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "retrotouch.nodes"]
 
 
 def run(args: list[str], cwd: Path, env: dict[str, str]) -> tuple[float, float, str]:

@@ -39,17 +39,17 @@ sys.path.insert(0, str(REPO / "tests"))
 from fab_layouts import greedy_pads, section_layout  # noqa: E402
 
 from retrotouch.nodes import mesh_io, mesh_repair  # noqa: E402
-from retrotouch.nodes.assembly_guide import Params as GuideParams  # noqa: E402
-from retrotouch.nodes.assembly_guide import assembly_guide  # noqa: E402
-from retrotouch.nodes.cut_sheets import Params as SheetParams  # noqa: E402
-from retrotouch.nodes.cut_sheets import cut_sheets  # noqa: E402
-from retrotouch.nodes.datatypes import Mesh  # noqa: E402
-from retrotouch.nodes.nesting import Params as NestParams  # noqa: E402
-from retrotouch.nodes.nesting import nest  # noqa: E402
-from retrotouch.nodes.trace_outline import Params as OutlineParams  # noqa: E402
-from retrotouch.nodes.trace_outline import outline  # noqa: E402
-from retrotouch.nodes.unfold import Params as UnfoldParams  # noqa: E402
-from retrotouch.nodes.unfold import unfold  # noqa: E402
+from retrotouch.nodes.fab.assembly_guide import Params as GuideParams  # noqa: E402
+from retrotouch.nodes.fab.assembly_guide import assembly_guide  # noqa: E402
+from retrotouch.nodes.fab.cut_sheets import Params as SheetParams  # noqa: E402
+from retrotouch.nodes.fab.cut_sheets import cut_sheets  # noqa: E402
+from retrotouch.nodes.data.types import Mesh  # noqa: E402
+from retrotouch.nodes.fab.nesting import Params as NestParams  # noqa: E402
+from retrotouch.nodes.fab.nesting import nest  # noqa: E402
+from retrotouch.nodes.fab.outline import Params as OutlineParams  # noqa: E402
+from retrotouch.nodes.fab.outline import outline  # noqa: E402
+from retrotouch.nodes.fab.unfold import Params as UnfoldParams  # noqa: E402
+from retrotouch.nodes.fab.unfold import unfold  # noqa: E402
 
 
 def real_layout():
@@ -57,8 +57,11 @@ def real_layout():
     pipeline = REPO / "pipelines" / "retrofit.yaml"
     if "layout.pick_best" not in pipeline.read_text():
         return None
+    from retrotouch.graph.app import configure
     from retrotouch.graph.runner import run_pipeline
+    from retrotouch.nodes.app import APP
 
+    configure(APP)
     with tempfile.TemporaryDirectory() as out:
         result = run_pipeline(str(pipeline), out_dir=out, scheduler="sync")
     store = result.plan.store
@@ -79,9 +82,9 @@ def traced_layout():
 
     from curves_fixture import bunny
 
-    from retrotouch.nodes.crossings import find_crossings
-    from retrotouch.nodes.datatypes import CurveEnd, CurveSet, Layout
-    from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+    from retrotouch.nodes.curves.crossings import find_crossings
+    from retrotouch.nodes.data.types import CurveEnd, CurveSet, Layout
+    from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
     mesh, regions, _, tx_field, rx_field = bunny()
     families = (trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"],

@@ -25,16 +25,16 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.connection import ConnectionParams, connection
-from retrotouch.nodes.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curve_selection import candidate_crossings
-from retrotouch.nodes.layout_metrics import coefficient_of_variation, voronoi_cell_areas
-from retrotouch.nodes.layout_sweep import OptimizeParams, PickParams, optimize, pick_best
-from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
-from retrotouch.nodes.mesh_repair import RemeshParams, RepairParams, remesh, repair_mesh
-from retrotouch.nodes.regions import RegionParams, detect_regions
-from retrotouch.nodes.surface_samples import SamplesParams, geodesics_for, surface_samples
-from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+from retrotouch.nodes.curves.connection import ConnectionParams, connection
+from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.layout.selection import candidate_crossings
+from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
+from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
+from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
 ANGLES = tuple(range(-50, 51, 10))
 

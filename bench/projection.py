@@ -31,9 +31,9 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # synthetic scenes live with the tests
 
 from proj_fixtures import bunny_layout, bunny_mm, calibrate_synthetic  # noqa: E402
-from retrotouch.nodes.depth_tracking import DepthTracker, SyntheticDepthSource, demo_trajectory, pose_error  # noqa: E402
-from retrotouch.nodes.procam_calibration import demo_rig  # noqa: E402
-from retrotouch.nodes.projector_render import (  # noqa: E402
+from retrotouch.nodes.projection.tracking import DepthTracker, SyntheticDepthSource, demo_trajectory, pose_error  # noqa: E402
+from retrotouch.nodes.projection.calibration import demo_rig  # noqa: E402
+from retrotouch.nodes.projection.render import (  # noqa: E402
     RenderStyle,
     build_scene,
     landing_points,

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from retrotouch.nodes.gestures import GestureRecognizer
-from retrotouch.nodes.muca_simulator import (
+from retrotouch.nodes.sensing.gestures import GestureRecognizer
+from retrotouch.nodes.sensing.simulator import (
     DEMO_SCRIPT,
     BoardParams,
     ScriptBuilder,
@@ -33,8 +33,8 @@ from retrotouch.nodes.muca_simulator import (
     default_sensing_map_path,
     frames_through_pty,
 )
-from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
-from retrotouch.nodes.touch_processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
+from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+from retrotouch.nodes.sensing.processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,1 +1,1 @@
-"""retrotouch.graph: the cached node-graph dataflow engine."""
+"""The cached node-graph dataflow engine (application-independent: see :mod:`.app`)."""

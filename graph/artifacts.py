@@ -9,7 +9,8 @@ their names; :func:`decode` reads them back. The JSON tree tags every non-JSON v
 * ``{"$bytes": "b0.bin"}``, ``{"$files": {"mesh.ply": "b1.bin", ...}}`` (a sink's :class:`Files`)
 * ``{"$dataclass": "module:QualName", "fields": {...}}`` frozen dataclasses and
   ``{"$enum": "module:QualName", "value": 3}`` IntEnum members; decoding imports the class only if
-  its module is inside ``retrotouch`` (or one of the extra node modules the engine was told about).
+  its module is inside one of the app's node packages (or one of the extra node modules the engine
+  was told about).
 """
 from __future__ import annotations
 
@@ -23,14 +24,16 @@ from typing import Any, BinaryIO, Callable
 
 import numpy as np
 
-from retrotouch.graph.node import Files
+from .app import current
+from .node import Files
 
 VALUE_FILE = "value.json"
 MMAP_MIN_BYTES = 1 << 24
 """Arrays at least this large are memory-mapped on load instead of read into memory."""
 
-TRUSTED_PREFIXES: list[str] = ["retrotouch."]
-"""Module prefixes whose classes :func:`decode` may import (the engine appends extra node modules)."""
+TRUSTED_PREFIXES: list[str] = []
+"""Module prefixes whose classes :func:`decode` may import besides the app's node packages (the
+engine appends extra node modules)."""
 
 
 class ArtifactError(Exception):
@@ -42,13 +45,14 @@ def _qualname(cls: type) -> str:
 
 
 def _trusted(module: str) -> bool:
-    return any(module == p.rstrip(".") or module.startswith(p) for p in TRUSTED_PREFIXES)
+    prefixes = [*TRUSTED_PREFIXES, *(p + "." for p in current().node_packages)]
+    return any(module == p.rstrip(".") or module.startswith(p) for p in prefixes)
 
 
 def _import_class(qualified: str) -> type:
     module, _, qualname = qualified.partition(":")
     if not _trusted(module):
-        raise ArtifactError(f"refusing to import class {qualified!r}: not a retrotouch module")
+        raise ArtifactError(f"refusing to import class {qualified!r}: not from a {current().name} module")
     obj: Any = importlib.import_module(module)
     for part in qualname.split("."):
         obj = getattr(obj, part)
@@ -107,7 +111,7 @@ def encode(value: Any, folder: str) -> list[str]:
             if not cls.__dataclass_params__.frozen:  # type: ignore[attr-defined]
                 raise ArtifactError(f"{where}: dataclass {cls.__qualname__} must be frozen")
             if not _trusted(cls.__module__):
-                raise ArtifactError(f"{where}: dataclass {_qualname(cls)} is not from a retrotouch module")
+                raise ArtifactError(f"{where}: dataclass {_qualname(cls)} is not from a {current().name} module")
             fields = {f.name: walk(getattr(v, f.name), f"{where}.{f.name}") for f in dataclasses.fields(v)}
             return {"$dataclass": _qualname(cls), "fields": fields}
         raise ArtifactError(f"{where}: values of type {type(v).__qualname__} cannot be stored")

@@ -1,12 +1,12 @@
-"""The ``retrotouch`` command line: run/plan pipelines, list node types, manage the cache.
+"""The command line: run/plan pipelines, list node types, manage the cache.
 
 Every operator error ends as one line on stderr and a non-zero exit (2 for problems the operator
 can fix, 1 for unexpected failures, whose traceback goes to a log file). Imports are lazy so that a
 fully cached run stays fast: nothing heavy is imported before it is needed.
 
-Runtime commands written elsewhere (``retrotouch sense``, ``retrotouch project``) live in the
-modules listed in :data:`EXTENSIONS`; each exposes ``register(app)`` adding its commands to the
-typer app. A module that does not exist (yet) is skipped.
+The application's entry point calls :func:`main` with its :class:`.app.App`; the app's own
+commands live in the modules it lists in ``App.cli_extensions``, each exposing ``register(app)``
+that adds its commands to the typer app.
 """
 from __future__ import annotations
 
@@ -23,20 +23,20 @@ try:  # typer >= 0.20 vendors click as typer._click; older versions use click it
 except ImportError:  # pragma: no cover - depends on the installed typer
     import click  # type: ignore[no-redef]
 
-from retrotouch.graph.errors import NodeFailed, UserError
+from .app import App, configure, current
+from .errors import NodeFailed, UserError
 
-EXTENSIONS = ("retrotouch.nodes.sense_cli", "retrotouch.nodes.project_cli")
 CORE_COMMANDS = ("run", "plan", "nodes", "cache")
 
 SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
                          help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
                               "(short: -S diagonal_mm=200) or -S nodes.remesh.params.target_edge_mm=2 "
                               "(short: -S remesh.target_edge_mm=2).")
-CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: $RETROTOUCH_CACHE_DIR or ./cache).")
+CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: $<APP>_CACHE_DIR or ./cache).")
 
 
 def _store(cache_dir: Optional[str]):
-    from retrotouch.graph.store import Store, default_cache_dir
+    from .store import Store, default_cache_dir
 
     return Store(cache_dir or default_cache_dir())
 
@@ -52,7 +52,7 @@ def run(
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:
     """Run a pipeline: cached nodes are reused, the rest run on the scheduler; sinks write into --out."""
-    from retrotouch.graph.runner import run_pipeline
+    from .runner import run_pipeline
 
     result = run_pipeline(pipeline, overrides, out_dir=out, scheduler=scheduler, cache_dir=cache_dir,
                           explain=explain, on_plan=_print_explain if explain else None, progress=_progress)
@@ -67,8 +67,8 @@ def plan_command(
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:
     """Show what a run would do: every node instance, its cache key, hit or miss, and why it would run."""
-    from retrotouch.graph import plan as planning
-    from retrotouch.graph.runner import make_plan
+    from . import plan as planning
+    from .runner import make_plan
 
     plan = make_plan(pipeline, overrides, cache_dir)
     planning.explain(plan)
@@ -87,7 +87,7 @@ def nodes(name: Optional[str] = typer.Argument(None, help="Only node types conta
     """List the node types with their inputs, outputs, params (type, default, description) and docs."""
     from pydantic_core import PydanticUndefined
 
-    from retrotouch.graph import registry
+    from . import registry
 
     specs = registry.load()
     for type_name in sorted(specs):
@@ -113,7 +113,7 @@ cache_app = typer.Typer(help="Inspect and clean the cache.", no_args_is_help=Tru
 @cache_app.command("info")
 def cache_info(cache_dir: Optional[str] = CacheDirOption) -> None:
     """Where the cache is, how many entries, how big."""
-    from retrotouch.graph import maintenance
+    from . import maintenance
 
     for line in maintenance.info(_store(cache_dir)):
         print(line)
@@ -129,8 +129,8 @@ def cache_gc(
 ) -> None:
     """Drop stale temp dirs and corrupt entries; with PIPELINES, drop entries they do not use; with
     --older-than, drop entries unused for DAYS days (both given: unused by them AND old)."""
-    from retrotouch.graph import maintenance
-    from retrotouch.graph.runner import make_plan
+    from . import maintenance
+    from .runner import make_plan
 
     store = _store(cache_dir)
     keep = None
@@ -145,7 +145,7 @@ def cache_gc(
 @cache_app.command("clear")
 def cache_clear(cache_dir: Optional[str] = CacheDirOption) -> None:
     """Delete every entry, lock, run record, log and temp dir in the cache."""
-    from retrotouch.graph import maintenance
+    from . import maintenance
 
     print(maintenance.clear(_store(cache_dir)))
 
@@ -192,7 +192,7 @@ def _print_table(plan, status: dict[int, dict[str, Any]]) -> None:
 
 
 def build_app(with_extensions: bool = True) -> typer.Typer:
-    app = typer.Typer(help="retrotouch: retrofit 3D objects with surface-conforming touch sensing.",
+    app = typer.Typer(help=f"{current().name}: {current().description}",
                       no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                       rich_markup_mode=None)
     app.command("run")(run)
@@ -200,23 +200,24 @@ def build_app(with_extensions: bool = True) -> typer.Typer:
     app.command("nodes")(nodes)
     app.add_typer(cache_app, name="cache")
     if with_extensions:
-        for module in EXTENSIONS:
+        for module in current().cli_extensions:
             try:
                 found = importlib.util.find_spec(module) is not None
             except (ImportError, ValueError):
                 found = False
-            if found:
+            if found:  # an extension that is not installed (yet) is skipped
                 importlib.import_module(module).register(app)
     return app
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point: run the CLI, turning every error into one line and an exit code."""
+def main(application: App, argv: list[str] | None = None) -> None:
+    """Run the command line of ``application``, turning every error into one line and an exit code."""
+    configure(application)
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
         command = typer.main.get_command(app)
-        result = command.main(args=args, prog_name="retrotouch", standalone_mode=False)
+        result = command.main(args=args, prog_name=application.name, standalone_mode=False)
     except UserError as exc:
         _fail(str(exc), 2)
     except NodeFailed as exc:
@@ -224,10 +225,10 @@ def main(argv: list[str] | None = None) -> None:
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except click.ClickException as exc:
-        if type(exc).__name__ == "NoArgsIsHelpError":  # bare `retrotouch` or `retrotouch cache`: show help
+        if type(exc).__name__ == "NoArgsIsHelpError":  # bare `APP` or `APP cache`: show help
             print(exc.format_message())
             sys.exit(0)
-        _fail(exc.format_message() + "  (see retrotouch --help)", 2)
+        _fail(exc.format_message() + f"  (see {application.name} --help)", 2)
     except (typer.Abort, KeyboardInterrupt):
         _fail("interrupted", 130)
     except Exception as exc:  # an engine bug: keep the traceback, show one line
@@ -237,7 +238,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _fail(message: str, code: int) -> None:
     first = " ".join(str(message).split("\n"))
-    print(f"retrotouch: error: {first}", file=sys.stderr)
+    print(f"{current().name}: error: {first}", file=sys.stderr)
     sys.exit(code)
 
 
@@ -245,11 +246,8 @@ def _crash_log() -> str:
     import tempfile
     import traceback
 
-    fd, path = tempfile.mkstemp(prefix="retrotouch-crash-", suffix=".log")
+    fd, path = tempfile.mkstemp(prefix=f"{current().name}-crash-", suffix=".log")
     with os.fdopen(fd, "w") as f:
         traceback.print_exc(file=f)
     return path
 
-
-if __name__ == "__main__":
-    main()

@@ -1,9 +1,9 @@
 """Code versions: a node's recipe changes when its source does.
 
 The code version of a node type is the sha256 over the AST-normalised source (comments, docstrings
-and formatting do not count) of the module defining it and of every ``retrotouch`` module that
-module imports, transitively. The engine package ``retrotouch.graph`` is left out: engine changes
-that affect stored results bump :data:`retrotouch.graph.hashing.CACHE_FORMAT_SALT` instead. A node
+and formatting do not count) of the module defining it and of every module of the app's node packages
+(:attr:`.app.App.node_packages`) that it imports, transitively. The engine is left out: engine
+changes that affect stored results bump :data:`.hashing.CACHE_FORMAT_SALT` instead. A node
 declared with ``version="..."`` uses that string and nothing else.
 """
 from __future__ import annotations
@@ -13,10 +13,10 @@ import hashlib
 import importlib.util
 import inspect
 
-from retrotouch.graph.hashing import digest_fields
-from retrotouch.graph.node import NodeSpec
+from .app import current
+from .hashing import digest_fields
+from .node import NodeSpec
 
-_ENGINE = "retrotouch.graph"
 _module_cache: dict[str, tuple[str, tuple[str, ...]]] = {}
 
 
@@ -37,8 +37,7 @@ def normalised_source_hash(source: str) -> str:
 
 
 def _is_tracked(name: str) -> bool:
-    return (name == "retrotouch" or name.startswith("retrotouch.")) and not (
-        name == _ENGINE or name.startswith(_ENGINE + "."))
+    return any(name == p or name.startswith(p + ".") for p in current().node_packages)
 
 
 def _module_exists(name: str) -> bool:

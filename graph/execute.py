@@ -15,7 +15,7 @@ Schedulers (``--scheduler``):
 * ``threads`` / ``processes``: dask's local threaded / multiprocessing schedulers.
 * ``local-cluster``: a ``dask.distributed.LocalCluster`` (one single-threaded worker process per
   core), started for this run only.
-* ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need retrotouch installed
+* ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need the app installed
   and the cache dir at the same path (a shared filesystem).
 """
 from __future__ import annotations
@@ -30,11 +30,12 @@ from typing import Any, Callable
 
 from filelock import FileLock
 
-from retrotouch.graph import artifacts, registry
-from retrotouch.graph.errors import NodeFailed, UserError
-from retrotouch.graph.node import REGISTRY, Files
-from retrotouch.graph.plan import Instance, Plan
-from retrotouch.graph.store import ArtifactRef, Store
+from . import artifacts, registry
+from .app import App, configure, current
+from .errors import NodeFailed, UserError
+from .node import REGISTRY, Files
+from .plan import Instance, Plan
+from .store import ArtifactRef, Store
 
 SCHEDULERS = ("auto", "sync", "threads", "processes", "local-cluster")
 
@@ -50,6 +51,7 @@ class TaskSpec:
     cache_root: str
     cache_mode: str
     run_id: str
+    app: App
     extra_modules: tuple[str, ...]
     # input name -> fan-in?, [(positional ref index, output name, upstream has one output?)]
     inputs: tuple[tuple[str, bool, tuple[tuple[int, str, bool], ...]], ...]
@@ -64,6 +66,7 @@ class TaskResult:
 
 def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
     """Run one node instance (in whatever process the scheduler chose)."""
+    configure(spec.app)
     registry.load([spec.node_type], spec.extra_modules)
     artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
     node = REGISTRY[spec.node_type]
@@ -146,7 +149,7 @@ def build_tasks(plan: Plan, run_id: str) -> dict[str, tuple[TaskSpec, list[str |
                 items.append((slots[id(up)], output, len(up.decl.spec.outputs) == 1))
             inputs.append((name, inst.decl.inputs[name].fan_in, tuple(items)))
         spec = TaskSpec(inst.id, inst.decl.spec.name, inst.params.model_dump(mode="json"), inst.key,
-                        plan.store.root, inst.decl.cache, run_id, extra, tuple(inputs))
+                        plan.store.root, inst.decl.cache, run_id, current(), extra, tuple(inputs))
         tasks[task_name(inst)] = (spec, args)
     return tasks
 

@@ -13,7 +13,7 @@ import hashlib
 import json
 from typing import Any, Iterable
 
-CACHE_FORMAT_SALT = "retrotouch.cache/1"
+CACHE_FORMAT_SALT = "graph.cache/1"
 """Bump when the artifact layout or the key recipe changes: every old entry becomes a miss."""
 
 

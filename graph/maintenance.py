@@ -1,4 +1,4 @@
-"""``retrotouch cache info|gc|clear``.
+"""The ``cache info|gc|clear`` commands.
 
 ``gc`` always removes temp dirs and scratch areas older than an hour (left by killed runs) and
 entries that fail validation. With pipelines given it drops the entries those pipelines do not use
@@ -11,7 +11,7 @@ import os
 import shutil
 import time
 
-from retrotouch.graph.store import CorruptEntry, Store
+from .store import CorruptEntry, Store
 
 STALE_TMP_SECONDS = 3600.0
 

@@ -15,23 +15,21 @@ Conventions (the engine relies on them):
   declared. A fan-in input (``node[*]`` in YAML) receives a ``list`` in branch order.
 * One declared output: the function returns that value. Several outputs: it returns a ``dict``
   keyed by the declared output names.
-* Values passed between nodes are plain data that :mod:`retrotouch.graph.artifacts` can store
-  without pickle: ``None``/bool/int/float/str, lists/tuples/dicts of those, numpy arrays
-  (non-object dtype), numpy scalars, frozen dataclasses defined in ``retrotouch.*`` modules whose
-  fields are such values, and :class:`Files` (what sink nodes return).
+* Values passed between nodes are plain data that :mod:`.artifacts` can store without pickle:
+  ``None``/bool/int/float/str, lists/tuples/dicts of those, numpy arrays (non-object dtype), numpy
+  scalars, frozen dataclasses defined in the app's node packages whose fields are such values, and
+  :class:`Files` (what sink nodes return).
 * Sink nodes (``sink=True``) return :class:`Files`; the engine writes them into the run's output
   folder atomically and lists them in ``manifest.json``.
 * The code version is the sha256 of the AST-normalised source (docstrings and comments dropped) of
-  the node's module and of every ``retrotouch`` module it imports, transitively (the engine package
-  ``retrotouch.graph`` excepted: engine changes bump the cache-format salt instead); pass
-  ``version="..."`` to pin it by hand instead.
-* Discovery: every module of ``retrotouch.nodes`` (except ``*_cli`` modules) is imported by the
-  engine; keep module imports cheap (heavy libraries inside the functions). Modules outside the
-  package are added with ``RETROTOUCH_NODE_MODULES=mod1,mod2``.
+  the node's module and of every module of the app's node packages it imports, transitively (the
+  engine excepted: engine changes bump the cache-format salt instead); pass ``version="..."`` to
+  pin it by hand instead.
+* Discovery: every module of the app's node packages (:mod:`.registry`) is imported by the engine;
+  keep module imports cheap (heavy libraries inside the functions). Modules outside them are added
+  with ``<APP>_NODE_MODULES=mod1,mod2``.
 * A node that reads files names them in ``Params.input_files()``; their content is part of the
   cache key.
-* Units: millimetres for lengths after ingest; angles are degrees in ``Params`` (YAML) and
-  radians inside the functions.
 """
 from __future__ import annotations
 

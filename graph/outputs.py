@@ -18,18 +18,19 @@ import time
 import uuid
 from typing import Any
 
-from retrotouch.graph.errors import UserError
-from retrotouch.graph.node import Files
-from retrotouch.graph.store import ArtifactRef
+from .app import current
+from .errors import UserError
+from .node import Files
+from .store import ArtifactRef
 
 MANIFEST = "manifest.json"
-MANIFEST_FORMAT = "retrotouch.manifest/1"
-VERSIONED = ("retrotouch", "numpy", "scipy", "pydantic", "dask", "distributed", "trimesh", "pymeshlab", "pyyaml")
+ENGINE_VERSIONED = ("numpy", "pydantic", "dask", "distributed", "pyyaml")
+"""Distributions the engine itself runs on; the app adds its own (:attr:`.app.App.versioned`)."""
 
 
 def _versions() -> dict[str, str]:
     out = {"python": platform.python_version()}
-    for dist in VERSIONED:
+    for dist in dict.fromkeys((current().name, *current().versioned, *ENGINE_VERSIONED)):
         try:
             out[dist] = importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:
@@ -52,7 +53,7 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
     """
     out_dir = os.path.abspath(out_dir)
     if _foreign(out_dir):
-        raise UserError(f"--out {out_dir} exists and was not written by retrotouch (no {MANIFEST}); "
+        raise UserError(f"--out {out_dir} exists and was not written by {current().name} (no {MANIFEST}); "
                         "choose a new or empty folder")
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
@@ -85,7 +86,7 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
 
 
 def _foreign(out_dir: str) -> bool:
-    """Whether ``out_dir`` holds files but no manifest.json (not written by retrotouch). A run
+    """Whether ``out_dir`` holds files but no manifest.json (not written by this app). A run
     swapping the same folder at that moment can make one listing look foreign (the old folder is
     listed while it is deleted), so a foreign listing is confirmed twice, 50 ms apart."""
     for _ in range(3):
@@ -135,7 +136,7 @@ def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], ru
             "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
         })
     return {
-        "format": MANIFEST_FORMAT,
+        "format": f"{current().name}.manifest/1",
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "pipeline": {"path": os.path.abspath(plan.file), "sha256": plan.text_sha256},
         "overrides": plan.overrides,

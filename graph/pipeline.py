@@ -24,8 +24,9 @@ from typing import Any, Iterable
 
 import yaml
 
-from retrotouch.graph.errors import UserError
-from retrotouch.graph.node import NodeSpec
+from .app import current
+from .errors import UserError
+from .node import NodeSpec
 
 Path = tuple[str | int, ...]
 NODE_KEYS = ("type", "inputs", "params", "map", "cache")
@@ -275,7 +276,7 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
         apply_override(doc, override)
     raw_nodes: dict[str, Any] = doc.data["nodes"]
     if registry is None:
-        from retrotouch.graph import registry as discovery
+        from . import registry as discovery
 
         types = [n["type"] for n in raw_nodes.values() if isinstance(n, dict) and isinstance(n.get("type"), str)]
         registry = discovery.load(types)
@@ -294,7 +295,7 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
             raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
         type_name = body["type"]
         if not isinstance(type_name, str) or type_name not in registry:
-            hint = did_you_mean(str(type_name), registry) or " (list them with `retrotouch nodes`)"
+            hint = did_you_mean(str(type_name), registry) or f" (list them with `{current().name} nodes`)"
             raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
         spec = registry[type_name]
         fields = spec.params.model_fields

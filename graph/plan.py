@@ -18,12 +18,12 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from retrotouch.graph.codeversion import code_version
-from retrotouch.graph.errors import UserError
-from retrotouch.graph.hashing import canonical_json, file_sha256, instance_key
-from retrotouch.graph.node import NodeParams
-from retrotouch.graph.pipeline import NodeDecl, Pipeline, did_you_mean
-from retrotouch.graph.store import ArtifactRef, Store
+from .codeversion import code_version
+from .errors import UserError
+from .hashing import canonical_json, file_sha256, instance_key
+from .node import NodeParams
+from .pipeline import NodeDecl, Pipeline, did_you_mean
+from .store import ArtifactRef, Store
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,10 +1,11 @@
-"""Node discovery: every module of the ``retrotouch.nodes`` package registers its node types.
+"""Node discovery: every module of the app's node packages registers its node types.
 
-Nobody edits a list: :func:`load` imports the modules of ``retrotouch.nodes`` (found with
-``pkgutil.iter_modules``, so it works from a source checkout and from site-packages alike) and
-fills :data:`retrotouch.graph.node.REGISTRY`. Modules named ``*_cli`` are command-line extensions,
-not node modules, and are skipped. Extra node modules (tests, benchmarks, plugins) are named in the
-environment variable ``RETROTOUCH_NODE_MODULES`` (comma-separated importable module names).
+Nobody edits a list: :func:`load` walks the packages named in :attr:`.app.App.node_packages`
+(sub-packages included, found with ``pkgutil.walk_packages``, so it works from a source checkout and
+from site-packages alike) and fills :data:`.node.REGISTRY`. The app's command-line extension
+modules (:attr:`.app.App.cli_extensions`) are not node modules and are skipped. Extra node modules
+(tests, benchmarks, plugins) are named in the environment variable ``<APP>_NODE_MODULES``
+(comma-separated importable module names).
 
 To keep a fully cached run fast, :func:`load` can be told which node types a pipeline needs: it
 then imports only the modules whose source mentions those type names (a text scan), and falls
@@ -20,36 +21,44 @@ import pkgutil
 import re
 from typing import Iterable
 
-from retrotouch.graph.errors import UserError
-from retrotouch.graph.node import REGISTRY, NodeSpec
+from .app import current
+from .errors import UserError
+from .node import REGISTRY, NodeSpec
 
-NODE_PACKAGE = "retrotouch.nodes"
-EXTRA_MODULES_ENV = "RETROTOUCH_NODE_MODULES"
 _TYPE_NAME = re.compile(r"""\bnode\(\s*["']([A-Za-z0-9_.\-]+)["']""")
 _imported: set[str] = set()
 
 
 def extra_modules() -> list[str]:
-    """Module names from ``$RETROTOUCH_NODE_MODULES``."""
-    return [m.strip() for m in os.environ.get(EXTRA_MODULES_ENV, "").split(",") if m.strip()]
+    """Module names from ``$<APP>_NODE_MODULES``."""
+    return [m.strip() for m in os.environ.get(current().node_modules_env, "").split(",") if m.strip()]
+
+
+def package_sources(package_name: str) -> dict[str, str | None]:
+    """Every module of a package and its sub-packages -> its source file (None without .py source)."""
+    package = importlib.import_module(package_name)
+    out: dict[str, str | None] = {}
+    for info in pkgutil.walk_packages(package.__path__, package_name + "."):
+        if info.ispkg or info.name.rpartition(".")[2] == "__main__":
+            continue
+        source = os.path.join(getattr(info.module_finder, "path", ""), info.name.rpartition(".")[2] + ".py")
+        out[info.name] = source if os.path.isfile(source) else None
+    return out
 
 
 def node_module_sources() -> dict[str, str | None]:
     """Every node module name -> its source file (None when it has no readable .py source)."""
-    package = importlib.import_module(NODE_PACKAGE)
+    app = current()
     out: dict[str, str | None] = {}
-    for info in pkgutil.iter_modules(package.__path__, NODE_PACKAGE + "."):
-        if info.ispkg or info.name.endswith("_cli"):
-            continue
-        source = os.path.join(getattr(info.module_finder, "path", ""), info.name.rpartition(".")[2] + ".py")
-        out[info.name] = source if os.path.isfile(source) else None
+    for package_name in app.node_packages:
+        out.update({name: src for name, src in package_sources(package_name).items() if name not in app.cli_extensions})
     for name in extra_modules():
         try:
             spec = importlib.util.find_spec(name)
         except (ImportError, ValueError):
             spec = None
         if spec is None:
-            raise UserError(f"{EXTRA_MODULES_ENV} names module {name!r}, which cannot be found on sys.path")
+            raise UserError(f"{current().node_modules_env} names module {name!r}, which cannot be found on sys.path")
         out[name] = spec.origin if spec.origin and spec.origin.endswith(".py") else None
     return out
 

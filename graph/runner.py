@@ -1,4 +1,4 @@
-"""Running a pipeline end to end (what ``retrotouch run`` does), callable from Python too."""
+"""Running a pipeline end to end (what the ``run`` command does), callable from Python too."""
 from __future__ import annotations
 
 import contextlib
@@ -8,9 +8,9 @@ import time
 import uuid
 from typing import Any, Callable
 
-from retrotouch.graph import plan as planning
-from retrotouch.graph.errors import UserError
-from retrotouch.graph.store import Store, default_cache_dir
+from . import plan as planning
+from .errors import UserError
+from .store import Store, default_cache_dir
 
 
 @dataclasses.dataclass
@@ -31,14 +31,14 @@ def default_out_dir(pipeline: str) -> str:
 
 
 def check_scheduler(scheduler: str) -> None:
-    from retrotouch.graph.execute import SCHEDULERS
+    from .execute import SCHEDULERS
 
     if scheduler not in SCHEDULERS and not scheduler.startswith("tcp://"):
         raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
 
 
 def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str | None = None) -> planning.Plan:
-    from retrotouch.graph.pipeline import load_pipeline
+    from .pipeline import load_pipeline
 
     return planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
 
@@ -54,14 +54,14 @@ def run_pipeline(
     on_plan: Callable[[planning.Plan], None] | None = None,
     progress: Callable[[int], Any] | None = None,
 ) -> RunResult:
-    """Plan, run what is missing, write the output folder; see :mod:`retrotouch.graph.execute`.
+    """Plan, run what is missing, write the output folder; see :mod:`.execute`.
 
     ``on_plan`` sees the plan before anything runs (the CLI prints ``--explain`` there);
     ``progress(total)`` returns a context manager yielding ``advance(instance id)``.
     """
-    from retrotouch.graph import snapshot
-    from retrotouch.graph.execute import execute, task_name
-    from retrotouch.graph.outputs import write_outputs
+    from . import snapshot
+    from .execute import execute, task_name
+    from .outputs import write_outputs
 
     check_scheduler(scheduler)
     start = time.perf_counter()

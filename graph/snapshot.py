@@ -3,8 +3,8 @@
 After a successful run the engine saves what the plan resolved (keys, params, code versions) under
 ``cache/runs/plans/<fingerprint>.json``. The fingerprint covers everything planning reads: the
 pipeline file (path and bytes), the overrides, the working directory, the interpreter, the
-extra node modules, and the size and mtime of every source file of ``retrotouch.graph`` and
-``retrotouch.nodes``; the files nodes read (``input_files()``) are checked by size and mtime too.
+extra node modules, and the size and mtime of every source file of the engine and of the app's
+node packages (sub-packages included); the files nodes read (``input_files()``) are checked by size and mtime too.
 When the fingerprint matches and every entry is still in the cache, the run needs no planning at
 all; anything else (a change, a miss, a ``cache: recompute|disable`` node) plans in full.
 """
@@ -18,11 +18,10 @@ import os
 import sys
 from typing import Any
 
-from retrotouch.graph.hashing import CACHE_FORMAT_SALT, canonical_json, digest_fields
-from retrotouch.graph.store import ArtifactRef, Store
+from .app import current
+from .hashing import CACHE_FORMAT_SALT, canonical_json, digest_fields
+from .store import ArtifactRef, Store
 
-_PACKAGES = ("retrotouch.graph", "retrotouch.nodes")
-_EXTRA_ENV = "RETROTOUCH_NODE_MODULES"
 
 
 def _stat(path: str) -> list[Any]:
@@ -35,11 +34,13 @@ def _stat(path: str) -> list[Any]:
 
 def _source_files() -> list[str]:
     files: list[str] = []
-    for package in _PACKAGES:
+    for package in (__package__, *current().node_packages):
         spec = importlib.util.find_spec(package)
         for folder in (spec.submodule_search_locations or []) if spec else []:
-            files += sorted(os.path.join(folder, n) for n in os.listdir(folder) if n.endswith(".py"))
-    for name in filter(None, (m.strip() for m in os.environ.get(_EXTRA_ENV, "").split(","))):
+            for root, dirs, names in os.walk(folder):
+                dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+                files += sorted(os.path.join(root, n) for n in names if n.endswith(".py"))
+    for name in filter(None, (m.strip() for m in os.environ.get(current().node_modules_env, "").split(","))):
         try:
             spec = importlib.util.find_spec(name)
         except (ImportError, ValueError):
@@ -57,7 +58,7 @@ def fingerprint(pipeline: str, overrides: list[str]) -> str | None:
         return None
     fields = [CACHE_FORMAT_SALT, os.path.abspath(pipeline), hashlib.sha256(text).hexdigest(),
               canonical_json(overrides), os.getcwd(), sys.executable, sys.version,
-              os.environ.get(_EXTRA_ENV, ""), canonical_json([_stat(p) for p in _source_files()])]
+              os.environ.get(current().node_modules_env, ""), canonical_json([_stat(p) for p in _source_files()])]
     return digest_fields(fields)
 
 

@@ -29,17 +29,17 @@ import time
 import uuid
 from typing import Any
 
-from retrotouch.graph import artifacts
-from retrotouch.graph.hashing import file_sha256
+from . import artifacts
+from .app import current
+from .hashing import file_sha256
 
 META = "meta.json"
-META_FORMAT = "retrotouch.artifact/1"
-CACHE_ENV = "RETROTOUCH_CACHE_DIR"
+META_FORMAT = "graph.artifact/1"
 
 
 def default_cache_dir() -> str:
-    """``$RETROTOUCH_CACHE_DIR`` or ``./cache`` relative to the current directory."""
-    return os.path.abspath(os.environ.get(CACHE_ENV) or "cache")
+    """``$<APP>_CACHE_DIR`` (see :mod:`.app`) or ``./cache`` relative to the current directory."""
+    return os.path.abspath(os.environ.get(current().cache_env) or "cache")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,6 +13,11 @@ from pathlib import Path
 
 import pytest
 
+from retrotouch.graph.app import configure
+from retrotouch.nodes.app import APP
+
+configure(APP)  # in-process engine calls (run_pipeline, make_plan, registry) serve retrotouch
+
 REPO = Path(__file__).resolve().parents[1]
 ENGINE_NODES = REPO / "tests" / "engine_nodes"
 """Tiny node types for engine tests (module ``rt_testnodes``)."""
@@ -41,7 +46,7 @@ def cli(tmp_path: Path):
 
     def run(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None, timeout: float = 300):
         full_env = {**os.environ, **(env or {})}
-        return subprocess.run([sys.executable, "-m", "retrotouch.graph.cli", *map(str, args)], cwd=cwd or tmp_path,
+        return subprocess.run([sys.executable, "-m", "retrotouch.nodes", *map(str, args)], cwd=cwd or tmp_path,
                               env=full_env, capture_output=True, text=True, timeout=timeout)
 
     return run
@@ -53,7 +58,7 @@ def default_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     pipelines/retrofit.yaml`` in a new folder (cache in ``./cache``, outputs in ``./out``).
     Returns that folder; tests that run more commands in it must leave ``out/sensing_map.json``."""
     workdir = tmp_path_factory.mktemp("default_run")
-    result = subprocess.run([sys.executable, "-m", "retrotouch.graph.cli", "run", str(REPO / "pipelines" / "retrofit.yaml"),
+    result = subprocess.run([sys.executable, "-m", "retrotouch.nodes", "run", str(REPO / "pipelines" / "retrofit.yaml"),
                              "--out", "out"], cwd=workdir, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     (workdir / "first_run.stdout").write_text(result.stdout)

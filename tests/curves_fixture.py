@@ -12,10 +12,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.connection import compute_field
-from retrotouch.nodes.datatypes import Mesh
-from retrotouch.nodes.mesh_tables import build_tables
-from retrotouch.nodes.regions import RegionParams, detect_regions
+from retrotouch.nodes.curves.connection import compute_field
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.geometry.mesh_tables import build_tables
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 

@@ -2,14 +2,14 @@
 
 Tx curves are meridians (half-plane sections through the z axis, oriented top -> bottom), Rx curves
 are horizontal sections (z = const) opened into arcs; crossings are computed on shared faces. The
-rows follow the ``CurveSet`` convention of ``retrotouch.nodes.datatypes``: row k lies on the edge
+rows follow the ``CurveSet`` convention of ``retrotouch.nodes.data.types``: row k lies on the edge
 the curve crosses and carries barycentrics of the face it enters; segment k lies in ``faces[k]``.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from retrotouch.nodes.datatypes import CurveSet, Crossings, Layout, Mesh
+from retrotouch.nodes.data.types import CurveSet, Crossings, Layout, Mesh
 
 
 def _edge_point_bary(face: np.ndarray, a: int, b: int, t: float) -> np.ndarray:

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from curves_fixture import load_scaled, sample_mesh_path
 from fab_layouts import section_layout
-from retrotouch.nodes.datatypes import Layout, Mesh
-from retrotouch.nodes.procam_calibration import BoardCaptureSimulator, BoardSpec, ProCamCalibration, calibrate_procam
+from retrotouch.nodes.data.types import Layout, Mesh
+from retrotouch.nodes.projection.calibration import BoardCaptureSimulator, BoardSpec, ProCamCalibration, calibrate_procam
 
 BOARD = BoardSpec(cols=9, rows=7, square_mm=15.0)
 

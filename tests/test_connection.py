@@ -9,10 +9,10 @@ import trimesh
 
 from curves_fixture import SHARED_MESHES, bunny, prepared, sample_mesh_path
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.connection import ConnectionParams, compute_field, connection, genus_check
-from retrotouch.nodes.datatypes import Mesh
-from retrotouch.nodes.mesh_tables import angle_defects, build_tables, edge_transport, wrap_angle
-from retrotouch.nodes.regions import RegionParams, detect_regions
+from retrotouch.nodes.curves.connection import ConnectionParams, compute_field, connection, genus_check
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.geometry.mesh_tables import angle_defects, build_tables, edge_transport, wrap_angle
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 
 def icosphere_mesh() -> Mesh:

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from retrotouch.nodes.coupling_profile import CouplingProfile, ProfileLearner
-from retrotouch.nodes.muca_simulator import disc_coupling_profile
+from retrotouch.nodes.sensing.coupling_profile import CouplingProfile, ProfileLearner
+from retrotouch.nodes.sensing.simulator import disc_coupling_profile
 
 WIDTH = 6.3  # mm, the default layout's nominal coupling width
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from curves_fixture import bunny
-from retrotouch.nodes.crossings import CrossingsParams, crossings, drop_near, find_crossings, pair_multiplicity
-from retrotouch.nodes.datatypes import CurveEnd, CurveSet
-from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx_curves, trace_tx_curves
+from retrotouch.nodes.curves.crossings import CrossingsParams, crossings, drop_near, find_crossings, pair_multiplicity
+from retrotouch.nodes.data.types import CurveEnd, CurveSet
+from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx_curves, trace_tx_curves
 
 # unit square (mm) split along its diagonal: face 0 = lower right, face 1 = upper left
 SQUARE_V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])

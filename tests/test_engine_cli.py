@@ -8,6 +8,8 @@ import pytest
 import typer
 
 from retrotouch.graph import cli
+from retrotouch.graph.app import App, configure
+from retrotouch.nodes.app import APP, main as app_main
 from retrotouch.graph.runner import run_pipeline
 from retrotouch.graph.store import Store
 
@@ -21,7 +23,7 @@ nodes:
 
 def main(capsys, *args: str) -> tuple[int, str, str]:
     with pytest.raises(SystemExit) as info:
-        cli.main(list(args))
+        app_main(list(args))
     captured = capsys.readouterr()
     return info.value.code, captured.out, captured.err
 
@@ -80,8 +82,11 @@ def test_extension_modules_add_commands_and_missing_ones_are_skipped(tmp_path, m
     (tmp_path / "rt_ext_hello.py").write_text(
         "def register(app):\n    @app.command('hello')\n    def hello():\n        'Say hello.'\n        print('hi')\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(cli, "EXTENSIONS", ("rt_ext_not_written_yet", "rt_ext_hello"))
-    command = typer.main.get_command(cli.build_app())
+    configure(App(APP.name, APP.node_packages, cli_extensions=("rt_ext_not_written_yet", "rt_ext_hello")))
+    try:
+        command = typer.main.get_command(cli.build_app())
+    finally:
+        configure(APP)
     assert {"run", "plan", "nodes", "cache", "hello"} <= set(command.commands)
 
 

@@ -23,7 +23,10 @@ nodes:
 
 KEYS_SCRIPT = """
 import json, sys
+from retrotouch.graph.app import configure
 from retrotouch.graph.runner import make_plan
+from retrotouch.nodes.app import APP
+configure(APP)
 plan = make_plan(sys.argv[1], [], sys.argv[2])
 print(json.dumps({i.id: i.key for i in plan.instances}))
 """

@@ -9,8 +9,9 @@ import trimesh
 from pydantic import ValidationError
 
 from retrotouch.graph.node import Files
-from retrotouch.nodes.datatypes import Mesh
-from retrotouch.nodes.mesh_export import ExportParams, export_mesh, ply_bytes
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.data.ply import ply_bytes
+from retrotouch.nodes.mesh.export import ExportParams, export_mesh
 
 
 def tetrahedron() -> Mesh:

@@ -162,7 +162,7 @@ def test_code_change_invalidates_but_comments_do_not(tmp_path, cli, test_nodes):
 def test_two_concurrent_runs_share_one_cache(tmp_path, cli, test_nodes):
     (tmp_path / "p.yaml").write_text(SWEEP.replace("params: {n: 3}", "params: {n: 3, sleep_s: 0.3}"))
     env = {**os.environ}
-    procs = [subprocess.Popen([sys.executable, "-m", "retrotouch.graph.cli", "run", "p.yaml", "--scheduler", "sync",
+    procs = [subprocess.Popen([sys.executable, "-m", "retrotouch.nodes", "run", "p.yaml", "--scheduler", "sync",
                                "--out", f"out{k}", "--cache-dir", "cache"], cwd=tmp_path, env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in range(2)]
     outputs = [p.communicate(timeout=300) for p in procs]

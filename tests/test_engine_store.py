@@ -12,7 +12,7 @@ import pytest
 from retrotouch.graph.artifacts import ArtifactError
 from retrotouch.graph.node import Files
 from retrotouch.graph.store import CorruptEntry, Store
-from retrotouch.nodes.datatypes import CurveEnd, Mesh
+from retrotouch.nodes.data.types import CurveEnd, Mesh
 
 KEY = "ab" + "0" * 62
 

@@ -7,11 +7,11 @@ import numpy as np
 import trimesh
 from fab_layouts import mesh_from_trimesh, section_layout
 
-from retrotouch.nodes.assembly_guide import Params, assembly_guide, render
-from retrotouch.nodes.trace_outline import Params as OutlineParams
-from retrotouch.nodes.trace_outline import outline
-from retrotouch.nodes.unfold import Params as UnfoldParams
-from retrotouch.nodes.unfold import unfold
+from retrotouch.nodes.fab.assembly_guide import Params, assembly_guide, render
+from retrotouch.nodes.fab.outline import Params as OutlineParams
+from retrotouch.nodes.fab.outline import outline
+from retrotouch.nodes.fab.unfold import Params as UnfoldParams
+from retrotouch.nodes.fab.unfold import unfold
 
 SPHERE = mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3, radius=40.0), "icosphere r40")
 

@@ -16,9 +16,9 @@ from shapely.geometry import Polygon
 from test_fab_nesting import traces
 
 from retrotouch.graph.node import Files
-from retrotouch.nodes.cut_sheets import Params, cut_sheets
-from retrotouch.nodes.nesting import Params as NestParams
-from retrotouch.nodes.nesting import nest, placed_polygons
+from retrotouch.nodes.fab.cut_sheets import Params, cut_sheets
+from retrotouch.nodes.fab.nesting import Params as NestParams
+from retrotouch.nodes.fab.nesting import nest, placed_polygons
 
 SVG = "{http://www.w3.org/2000/svg}"
 MM_PER_PT = 25.4 / 72

@@ -9,9 +9,9 @@ import shapely
 from test_fab_outline import straight, unfolded_from_polylines
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.nesting import Params, nest, placed_polygons
-from retrotouch.nodes.trace_outline import Params as OutlineParams
-from retrotouch.nodes.trace_outline import outline
+from retrotouch.nodes.fab.nesting import Params, nest, placed_polygons
+from retrotouch.nodes.fab.outline import Params as OutlineParams
+from retrotouch.nodes.fab.outline import outline
 
 
 def traces(lengths, bend: float = 0.0):

@@ -9,9 +9,9 @@ from fab_layouts import mesh_from_trimesh, section_layout
 from shapely.geometry import LineString, Point, Polygon
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.trace_outline import Params, outline
-from retrotouch.nodes.unfold import Params as UnfoldParams
-from retrotouch.nodes.unfold import UnfoldedTraces, unfold
+from retrotouch.nodes.fab.outline import Params, outline
+from retrotouch.nodes.fab.unfold import Params as UnfoldParams
+from retrotouch.nodes.fab.unfold import UnfoldedTraces, unfold
 
 
 def unfolded_from_polylines(polylines: list[np.ndarray], marks: list[tuple[int, float, bool]] = (),

@@ -9,8 +9,8 @@ import trimesh
 from fab_layouts import curve_set, mesh_from_trimesh, section_layout
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.datatypes import Crossings, Layout, Mesh
-from retrotouch.nodes.unfold import Params, UnfoldedTraces, unfold
+from retrotouch.nodes.data.types import Crossings, Layout, Mesh
+from retrotouch.nodes.fab.unfold import Params, UnfoldedTraces, unfold
 
 
 @pytest.fixture(scope="module")

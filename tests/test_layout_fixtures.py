@@ -14,7 +14,7 @@ import functools
 import numpy as np
 import trimesh
 
-from retrotouch.nodes.datatypes import Crossings, CurveEnd, CurveSet, Mesh
+from retrotouch.nodes.data.types import Crossings, CurveEnd, CurveSet, Mesh
 
 RADIUS_MM = 50.0
 BASE_THETA = np.deg2rad(150.0)

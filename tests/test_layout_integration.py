@@ -9,11 +9,11 @@ import pytest
 from curves_fixture import bunny
 from test_layout_sensing_map import validate_sensing_map
 
-from retrotouch.nodes.crossings import CrossingsParams, crossings
-from retrotouch.nodes.layout_sweep import OptimizeParams, PickParams, optimize, pick_best
-from retrotouch.nodes.sensing_map import SensingMapParams, write_sensing_map
-from retrotouch.nodes.surface_samples import SamplesParams, geodesics_for, surface_samples
-from retrotouch.nodes.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
+from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
 
 @pytest.fixture(scope="module")

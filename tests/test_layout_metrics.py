@@ -6,8 +6,8 @@ import potpourri3d as pp3d
 import pytest
 from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
 
-from retrotouch.nodes.layout_metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
-from retrotouch.nodes.surface_samples import SamplesParams, face_areas, geodesics_for, surface_samples
+from retrotouch.nodes.layout.metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
+from retrotouch.nodes.layout.samples import SamplesParams, face_areas, geodesics_for, surface_samples
 
 
 def locate(mesh, directions):

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from retrotouch.nodes.layout_sweep import OptimizeParams, _pads_with_ladder, d_min_for
-from retrotouch.nodes.pad_placement import place_pads, sparseness
+from retrotouch.nodes.layout.sweep import OptimizeParams, _pads_with_ladder, d_min_for
+from retrotouch.nodes.layout.pads import place_pads, sparseness
 
 
 def sphere_points(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,9 +8,9 @@ import pytest
 from test_layout_fixtures import synthetic_instance
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.curve_selection import SelectionProblem, evaluate_selection, select_curves
-from retrotouch.nodes.layout_sweep import selection_problem
-from retrotouch.nodes.surface_samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.layout.selection import SelectionProblem, evaluate_selection, select_curves
+from retrotouch.nodes.layout.sweep import selection_problem
+from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 
 
 @pytest.fixture(scope="module")

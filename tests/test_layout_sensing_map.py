@@ -12,10 +12,10 @@ import trimesh
 from test_layout_fixtures import synthetic_instance
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.datatypes import SENSING_MAP_FORMAT
-from retrotouch.nodes.layout_sweep import OptimizeParams, PickParams, optimize, pick_best
-from retrotouch.nodes.sensing_map import SensingMapParams, write_sensing_map
-from retrotouch.nodes.surface_samples import SamplesParams, surface_samples
+from retrotouch.nodes.data.types import SENSING_MAP_FORMAT
+from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
+from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from retrotouch.nodes.layout_sweep import AngleLayout, PickParams, angle_table, best_branch, pick_best
+from retrotouch.nodes.layout.sweep import AngleLayout, PickParams, angle_table, best_branch, pick_best
 
 
 def branch(angle, radius, mean, cv, secondary=True, feasible=True):

@@ -9,16 +9,16 @@ import pytest
 import trimesh
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.datatypes import Mesh
-from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
-from retrotouch.nodes.mesh_repair import (
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
+from retrotouch.nodes.mesh.repair import (
     RemeshParams,
     RepairParams,
     remesh,
     repair_mesh,
     signed_volume,
 )
-from retrotouch.nodes.topology import CheckTopologyParams, check_topology
+from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 

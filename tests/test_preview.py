@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from retrotouch.nodes.datatypes import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
-from retrotouch.nodes.preview import (
+from retrotouch.nodes.data.types import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
+from retrotouch.nodes.preview.render import (
     RX_RGB,
     TX_RGB,
     CROSSING_RGB,
@@ -23,7 +23,7 @@ from retrotouch.nodes.preview import (
     render_view,
     segments,
 )
-from retrotouch.nodes.regions import RegionParams, detect_regions
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 RADIUS = 40.0
 

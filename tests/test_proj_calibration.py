@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from proj_fixtures import BOARD, bunny_layout, bunny_mm, calibrate_synthetic
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.depth_tracking import DepthTracker, SyntheticDepthSource, demo_trajectory
-from retrotouch.nodes.procam_calibration import (
+from retrotouch.nodes.projection.tracking import DepthTracker, SyntheticDepthSource, demo_trajectory
+from retrotouch.nodes.projection.calibration import (
     checkerboard_image,
     decode_gray_code,
     demo_rig,
@@ -19,7 +19,7 @@ from retrotouch.nodes.procam_calibration import (
     load_calibration,
     save_calibration,
 )
-from retrotouch.nodes.projector_render import (
+from retrotouch.nodes.projection.render import (
     RenderStyle,
     build_scene,
     landing_points,

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from proj_fixtures import BOARD, board_poses, bunny_layout, bunny_mm
-from retrotouch.nodes.depth_tracking import SyntheticDepthSource, demo_trajectory, write_depth_png
-from retrotouch.nodes.procam_calibration import (
+from retrotouch.nodes.projection.tracking import SyntheticDepthSource, demo_trajectory, write_depth_png
+from retrotouch.nodes.projection.calibration import (
     BoardCaptureSimulator,
     demo_rig,
     gray_code_patterns,
     load_calibration,
     save_calibration,
 )
-from retrotouch.nodes.projector_render import build_scene, save_scene
+from retrotouch.nodes.projection.render import build_scene, save_scene
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import trimesh
 
-from retrotouch.nodes.procam_calibration import DeviceIntrinsics
-from retrotouch.nodes.projector_render import ProjectionScene, project_points, rasterize_depth, render_layers, render_textured
+from retrotouch.nodes.projection.calibration import DeviceIntrinsics
+from retrotouch.nodes.projection.render import ProjectionScene, project_points, rasterize_depth, render_layers, render_textured
 
 K = np.array([[800.0, 0.0, 330.0], [0.0, 790.0, 236.0], [0.0, 0.0, 1.0]])
 PROJECTOR = DeviceIntrinsics(K, np.array([0.02, 0.0, 0.0, 0.0, 0.0]), 640, 480)

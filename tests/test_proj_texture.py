@@ -11,10 +11,10 @@ import trimesh
 
 from proj_fixtures import bunny_layout, bunny_mm
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.depth_tracking import demo_trajectory
-from retrotouch.nodes.procam_calibration import demo_rig
-from retrotouch.nodes.projector_render import RenderStyle, load_scene, render_layers, render_textured
-from retrotouch.nodes.uv_texture import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
+from retrotouch.nodes.projection.tracking import demo_trajectory
+from retrotouch.nodes.projection.calibration import demo_rig
+from retrotouch.nodes.projection.render import RenderStyle, load_scene, render_layers, render_textured
+from retrotouch.nodes.projection.textures import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from proj_fixtures import bunny_mm
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.depth_tracking import (
+from retrotouch.nodes.projection.tracking import (
     DepthFolderSource,
     ModelSurface,
     TrackerSettings,
@@ -22,8 +22,8 @@ from retrotouch.nodes.depth_tracking import (
     render_depth,
     write_depth_png,
 )
-from retrotouch.nodes.datatypes import Mesh
-from retrotouch.nodes.procam_calibration import DeviceIntrinsics
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.projection.calibration import DeviceIntrinsics
 
 
 @pytest.fixture(scope="module")

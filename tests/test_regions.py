@@ -8,9 +8,9 @@ import pytest
 import trimesh
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.datatypes import Mesh, SurfaceRegions
-from retrotouch.nodes.mesh_io import LoadParams, ScaleParams, load_mesh, scale_mesh
-from retrotouch.nodes.regions import RegionParams, detect_regions, face_normals_areas, parse_axis
+from retrotouch.nodes.data.types import Mesh, SurfaceRegions
+from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions, face_normals_areas, parse_axis
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 

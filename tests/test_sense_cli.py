@@ -19,10 +19,10 @@ import typer
 from typer.testing import CliRunner
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.live_view import LiveView
-from retrotouch.nodes.muca_simulator import BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty, synthetic_bunny_map
-from retrotouch.nodes.sense_cli import EventSinks, register
-from retrotouch.nodes.touch_processing import TouchProcessor, load_sensing_map
+from retrotouch.nodes.sensing.live_view import LiveView
+from retrotouch.nodes.sensing.simulator import BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty, synthetic_bunny_map
+from retrotouch.nodes.sensing.cli import EventSinks, register
+from retrotouch.nodes.sensing.processing import TouchProcessor, load_sensing_map
 
 GESTURES = ["tap", "tap", "tap", "double_tap", "long_press", "swipe", "pinch", "spread"]
 
@@ -72,7 +72,7 @@ def test_script_file_record_and_replay_give_the_same_events(app, layout, tmp_pat
 
 
 def test_evaluate_a_labelled_recording_prints_one_json_report(app, layout, tmp_path):
-    from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
+    from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
 
     recording = tmp_path / "eval.jsonl"
     evaluate_simulator(layout, BoardParams(seed=2), EvalParams(locations=4, repetitions=2), record=recording)
@@ -138,10 +138,9 @@ def test_operator_errors_are_user_errors(app, layout, tmp_path, args, message):
 
 
 def test_operator_errors_are_one_line_and_exit_2_in_the_real_cli(layout):
-    pytest.importorskip("retrotouch.graph.cli", reason="the engine's CLI module is not there yet")
     for args in (["--port", "/dev/nonexistent-muca", "--layout", str(layout)],
                  ["--port", "/dev/nonexistent-muca", "--layout", str(layout / "nope.json")]):
-        done = subprocess.run([sys.executable, "-m", "retrotouch.graph.cli", "sense", *args],
+        done = subprocess.run([sys.executable, "-m", "retrotouch.nodes", "sense", *args],
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 2
         assert len(done.stderr.strip().splitlines()) == 1 and "error" in done.stderr

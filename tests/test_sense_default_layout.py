@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from retrotouch.nodes.gestures import GestureRecognizer
-from retrotouch.nodes.muca_simulator import DEMO_SCRIPT, BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty
-from retrotouch.nodes.sense_eval import EvalParams, evaluate_simulator
-from retrotouch.nodes.touch_processing import ProcessingParams, TouchProcessor, load_sensing_map
+from retrotouch.nodes.sensing.gestures import GestureRecognizer
+from retrotouch.nodes.sensing.simulator import DEMO_SCRIPT, BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty
+from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor, load_sensing_map
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from retrotouch.nodes.gestures import GestureParams, GestureRecognizer
-from retrotouch.nodes.muca_simulator import (
+from retrotouch.nodes.sensing.gestures import GestureParams, GestureRecognizer
+from retrotouch.nodes.sensing.simulator import (
     DEMO_SCRIPT,
     BoardParams,
     ScriptBuilder,
@@ -13,7 +13,7 @@ from retrotouch.nodes.muca_simulator import (
     frames_through_pty,
     synthetic_bunny_map,
 )
-from retrotouch.nodes.touch_processing import FrameResult, Touch, TouchProcessor, load_sensing_map
+from retrotouch.nodes.sensing.processing import FrameResult, Touch, TouchProcessor, load_sensing_map
 
 
 @pytest.fixture(scope="module")

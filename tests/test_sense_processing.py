@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.muca_simulator import (
+from retrotouch.nodes.sensing.simulator import (
     BoardParams,
     ScriptBuilder,
     VirtualBoard,
     frames_through_pty,
     synthetic_bunny_map,
 )
-from retrotouch.nodes.sense_eval import EvalParams, evaluate_recording, evaluate_simulator
-from retrotouch.nodes.touch_processing import (
+from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_recording, evaluate_simulator
+from retrotouch.nodes.sensing.processing import (
     ProcessingParams,
     SurfaceProjector,
     TouchProcessor,

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.muca_serial import (
+from retrotouch.nodes.sensing.muca_serial import (
     AsciiFrameParser,
     BinaryFrameParser,
     FrameOptions,

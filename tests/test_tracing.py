@@ -7,9 +7,9 @@ from scipy.spatial import cKDTree
 
 from curves_fixture import bunny
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.crossings import drop_near, find_crossings, segments_of
-from retrotouch.nodes.datatypes import CurveEnd
-from retrotouch.nodes.tracing import (
+from retrotouch.nodes.curves.crossings import drop_near, find_crossings, segments_of
+from retrotouch.nodes.data.types import CurveEnd
+from retrotouch.nodes.curves.tracing import (
     TraceRxParams,
     TraceTxParams,
     fan_angles,

@@ -1,0 +1,4 @@
+"""``python -m retrotouch.nodes ...`` is the ``retrotouch`` command."""
+from .app import main
+
+main()

@@ -1,0 +1,19 @@
+"""The ``retrotouch`` application: what it tells the engine about itself, and its entry point."""
+from __future__ import annotations
+
+from ..graph.app import App
+
+APP = App(
+    name="retrotouch",
+    description="retrofit 3D objects with surface-conforming touch sensing.",
+    node_packages=(__package__,),
+    cli_extensions=(f"{__package__}.sensing.cli", f"{__package__}.projection.cli"),
+    versioned=("numpy", "scipy", "trimesh", "pymeshlab", "potpourri3d", "ortools", "shapely"),
+)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``retrotouch ...``: the engine's command line with the sensing and projection commands."""
+    from ..graph.cli import main as engine_main
+
+    engine_main(APP, argv)

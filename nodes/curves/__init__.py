@@ -1,0 +1,1 @@
+"""Curve families (paper section 5): trivial connections, Tx/Rx field lines, crossings."""

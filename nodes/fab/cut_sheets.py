@@ -1,0 +1,159 @@
+"""Cut-sheet files for the vinyl cutter (paper section 7.2; rules in shared/notes/projection-fabrication.md).
+
+Per sheet ``n`` (1-based) the sink writes
+
+* ``sheets/sheet_<n>.svg``: root ``width``/``height`` in mm and a ``viewBox`` in mm, so one user unit is
+  1 mm; no ``transform`` anywhere. Group ``id="cut"`` holds ONE compound ``<path>`` with every part as
+  a closed subpath (Cricut Design Space keeps the nesting of a single path; separate paths would be
+  rearranged). Group ``id="labels"`` holds ONE stroke-only ``<path>`` with the channel names as glyph
+  outlines (Design Space ignores ``<text>``): in Design Space set that layer's operation to *Pen* (or
+  hide it) and *Attach* both layers before "Make it" so the pen draws the names on the solder tabs.
+* ``sheets/sheet_<n>.pdf``: the same drawing through cairosvg, page exactly the sheet size.
+* ``sheets/sheet_<n>.dxf``: R2010 DXF in mm (``$INSUNITS`` = 4) with closed LWPOLYLINEs on layer
+  ``CUT`` and the label glyphs on layer ``LABELS`` (for Silhouette Studio Basic and other cutters).
+* ``sheets/preview.png``: all sheets side by side on white, mat border in grey.
+* ``sheets/report.json``: sheet size, nester, material use, gaps and where every part went.
+
+SVG y grows downwards; the sheet frame of :mod:`retrotouch.nodes.fab.nesting` has y up, so the writer
+maps ``(x, y) -> (x, H - y)`` (the drawing stays "seen from outside"; no mirroring).
+"""
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+from pydantic import Field
+
+from ...graph.node import Files, NodeParams, node
+from .nesting import NestedSheets, place, placed_polygons
+from .outline import TraceOutlines
+from shapely.geometry import LineString
+
+
+class Params(NodeParams):
+    preview_px_per_mm: float = Field(2.0, gt=0, le=20, description="preview.png resolution (pixels per mm)")
+    decimals: int = Field(3, ge=1, le=6, description="coordinate decimals in SVG/DXF (3 = 1 micrometre)")
+
+
+def _sheet_geometry(outlines: TraceOutlines, nested: NestedSheets):
+    """Per sheet: (placed outline rings, placed label polylines, part names), sheet frame, y up."""
+    placed = placed_polygons(outlines, nested)
+    sheets = []
+    for sheet in range(nested.sheet_count):
+        rings, labels, names = [], [], []
+        for i in np.nonzero(nested.part_sheet == sheet)[0]:
+            rings.append(np.asarray(placed[i].exterior.coords)[:-1])
+            names.append(outlines.names[i])
+            for glyph in outlines.label_polylines(int(i)):
+                line = place(LineString(glyph), float(nested.rotation_deg[i]), nested.translation[i])
+                labels.append(np.asarray(line.coords))
+        sheets.append((rings, labels, names))
+    return sheets
+
+
+def _path_data(polylines: list[np.ndarray], height: float, decimals: int) -> str:
+    fmt = f"{{:.{decimals}f}}"
+    parts = []
+    for poly in polylines:
+        xy = [(fmt.format(x), fmt.format(height - y)) for x, y in poly]
+        parts.append("M" + " L".join(f"{x} {y}" for x, y in xy) + " Z")
+    return " ".join(parts)
+
+
+def sheet_svg(rings, labels, names, width: float, height: float, number: int, decimals: int) -> str:
+    """One sheet as an SVG document at exact physical size (module conventions)."""
+    return (
+        '<?xml version="1.0" encoding="UTF-8" standalone="no"?>\n'
+        f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width:g}mm" height="{height:g}mm" '
+        f'viewBox="0 0 {width:g} {height:g}">\n'
+        f"  <title>retrotouch cut sheet {number}: {', '.join(names)}</title>\n"
+        '  <g id="cut">\n'
+        f'    <path id="cut-sheet-{number}" fill="#c87533" fill-rule="evenodd" stroke="#000000" stroke-width="0.1" '
+        f'd="{_path_data(rings, height, decimals)}"/>\n'
+        "  </g>\n"
+        '  <g id="labels">\n'
+        f'    <path id="labels-sheet-{number}" fill="none" stroke="#0000ff" stroke-width="0.15" '
+        f'd="{_path_data(labels, height, decimals)}"/>\n'
+        "  </g>\n"
+        "</svg>\n"
+    )
+
+
+def sheet_dxf(rings, labels, decimals: int) -> bytes:
+    """One sheet as DXF R2010 in mm: closed LWPOLYLINEs on layers CUT and LABELS."""
+    import ezdxf  # heavy: imported when used
+
+    doc = ezdxf.new("R2010", setup=False)
+    doc.units = ezdxf.units.MM
+    doc.header["$MEASUREMENT"] = 1
+    doc.layers.add("CUT", color=1)
+    doc.layers.add("LABELS", color=5)
+    msp = doc.modelspace()
+    for layer, polylines in (("CUT", rings), ("LABELS", labels)):
+        for poly in polylines:
+            msp.add_lwpolyline(np.round(poly, decimals).tolist(), close=True, dxfattribs={"layer": layer})
+    stream = io.StringIO()
+    doc.write(stream)
+    return stream.getvalue().encode("utf-8")
+
+
+def preview_png(svgs: list[str], width: float, height: float, px_per_mm: float) -> bytes:
+    """All sheets side by side (grey border = cut area), white background."""
+    import cairosvg
+    import cv2
+
+    w, h = int(round(width * px_per_mm)), int(round(height * px_per_mm))
+    gap = max(4, int(round(5 * px_per_mm)))
+    canvas = np.full((h + 2 * gap, len(svgs) * (w + gap) + gap, 3), 255, dtype=np.uint8)
+    for k, svg in enumerate(svgs):
+        png = cairosvg.svg2png(bytestring=svg.encode(), output_width=w, output_height=h, background_color="white")
+        image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        x = gap + k * (w + gap)
+        canvas[gap : gap + h, x : x + w] = image
+        cv2.rectangle(canvas, (x - 1, gap - 1), (x + w, gap + h), (160, 160, 160), 1)
+    ok, encoded = cv2.imencode(".png", canvas)
+    return encoded.tobytes()
+
+
+@node("fab.cut_sheets", params=Params, inputs=("outlines", "nesting"), outputs=("files",), sink=True)
+def cut_sheets(params: Params, outlines: TraceOutlines, nesting: NestedSheets) -> Files:
+    """Write every nested sheet as SVG (one compound cut path + pen labels), PDF and DXF at exact
+    physical size, a PNG preview and a JSON report."""
+    import cairosvg  # heavy: imported when used
+
+    width, height = nesting.sheet_width_mm, nesting.sheet_height_mm
+    contents: dict[str, bytes] = {}
+    svgs = []
+    for k, (rings, labels, names) in enumerate(_sheet_geometry(outlines, nesting), start=1):
+        svg = sheet_svg(rings, labels, names, width, height, k, params.decimals)
+        svgs.append(svg)
+        contents[f"sheets/sheet_{k}.svg"] = svg.encode("utf-8")
+        contents[f"sheets/sheet_{k}.pdf"] = cairosvg.svg2pdf(bytestring=svg.encode("utf-8"))
+        contents[f"sheets/sheet_{k}.dxf"] = sheet_dxf(rings, labels, params.decimals)
+    contents["sheets/preview.png"] = preview_png(svgs, width, height, params.preview_px_per_mm)
+    report = {
+        "units": "mm",
+        "sheet": {"width": width, "height": height, "count": nesting.sheet_count},
+        "nester": nesting.nester,
+        "fallback_reason": nesting.fallback_reason,
+        "spacing_mm": nesting.spacing_mm,
+        "min_gap_mm": nesting.min_gap_mm if np.isfinite(nesting.min_gap_mm) else None,
+        "overlaps": nesting.overlaps,
+        "parts_area_mm2": round(nesting.parts_area_mm2, 3),
+        "material_use": round(nesting.material_use, 5),
+        "used_length_mm_last_sheet": round(nesting.used_length_mm, 3),
+        "split_traces": list(outlines.split_traces),
+        "parts": [
+            {
+                "name": outlines.names[i],
+                "sheet": int(nesting.part_sheet[i]) + 1,
+                "rotation_deg": round(float(nesting.rotation_deg[i]), 4),
+                "translation_mm": [round(float(v), 4) for v in nesting.translation[i]],
+                "area_mm2": round(float(outlines.area_mm2[i]), 3),
+            }
+            for i in range(outlines.count)
+        ],
+    }
+    contents["sheets/report.json"] = (json.dumps(report, indent=1) + "\n").encode("utf-8")
+    return Files(contents=contents)

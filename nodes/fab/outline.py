@@ -1,0 +1,267 @@
+"""Flat trace outlines: unfolded centrelines -> closed cut polygons (paper section 7.1).
+
+Each unfolded trace (:class:`retrotouch.nodes.fab.unfold.UnfoldedTraces`, same 2D frame: mm, seen from
+outside, base end at the origin) becomes one closed polygon without holes, the union of
+
+* the centreline buffered to ``width_mm`` (round caps and joins),
+* a landmark disc of ``landmark_radius_mm`` at every crossing with the other layer (0 disables),
+* an electrode pad disc of ``pad_radius_mm`` centred at every pad position of the unfolding,
+* a rectangular solder tab ``solder_tab_length_mm`` x ``solder_tab_width_mm`` continuing the trace
+  beyond its base end along the end tangent; the channel name (``Tx03``) is written inside the tab
+  as glyph outlines (the label layer, drawn with a pen, never cut). The tab is where the wire is
+  soldered, so the name is at hand when wiring.
+
+Self-overlap: a trace whose flat outline would touch itself (two stretches of the trace, far apart
+along it, closer than their radii plus ``self_clearance_mm``) is split into pieces that do not,
+numbered from the base end (``Tx03.1``, ``Tx03.2``...; every piece gets its own named tab at its
+base-side end, which overlaps the neighbouring piece on the object and is soldered to it), or, with
+``on_self_overlap: error``, reported as a UserError. "Far apart along it" means an arc distance
+above pi/2 times the contact distance, which no bend gentler than a half turn reaches.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import numpy as np
+import shapely
+from pydantic import Field
+from shapely.geometry import LineString, Point, Polygon
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams, node
+from .unfold import UnfoldedTraces, point_at_arc
+
+
+class Params(NodeParams):
+    width_mm: float = Field(1.0, gt=0, description="trace width (mm)")
+    landmark_radius_mm: float = Field(1.0, ge=0, description="landmark disc radius at every crossing (mm); 0 = none")
+    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad radius (mm)")
+    solder_tab_length_mm: float = Field(9.0, gt=0, description="solder tab length beyond the base end (mm)")
+    solder_tab_width_mm: float = Field(4.0, gt=0, description="solder tab width (mm)")
+    label_height_mm: float = Field(2.4, gt=0, description="largest label glyph height (mm); shrunk to fit the tab")
+    label_margin_mm: float = Field(0.5, ge=0, description="clearance between the label and the tab edge (mm)")
+    self_clearance_mm: float = Field(0.5, ge=0, description="smallest gap between two stretches of one trace (mm)")
+    on_self_overlap: Literal["split", "error"] = Field("split", description="split self-overlapping traces or fail")
+    arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
+
+
+@dataclasses.dataclass(frozen=True)
+class TraceOutlines:
+    """Cut outlines of all traces (parts), in their unfolded frames (mm, seen from outside)."""
+
+    names: tuple[str, ...]  # (N,) part names: "Tx03", or "Tx03.1", "Tx03.2" for a split trace
+    trace_names: tuple[str, ...]  # names of the unfolded traces ("Tx03"), indexed by ``trace``
+    trace: np.ndarray  # (N,) int64 index into UnfoldedTraces
+    arc_range: np.ndarray  # (N, 2) float64 arc interval of the trace this part covers (mm)
+    ring: np.ndarray  # (R, 2) float64 exterior rings, not repeating the first point
+    ring_offsets: np.ndarray  # (N + 1,) int64
+    centre: np.ndarray  # (Q, 2) float64 centrelines
+    centre_offsets: np.ndarray  # (N + 1,) int64
+    pad_xy: np.ndarray  # (M, 2) electrode pad centres
+    pad_part: np.ndarray  # (M,) int64
+    landmark_xy: np.ndarray  # (L, 2) landmark centres (crossings)
+    landmark_part: np.ndarray  # (L,) int64
+    landmark_other: np.ndarray  # (L,) int64 trace of the other layer crossing there (index into trace_names)
+    tab: np.ndarray  # (N, 4, 2) solder tab corners
+    label: np.ndarray  # (S, 2) label glyph outline points
+    label_offsets: np.ndarray  # (G + 1,) int64 closed glyph polylines
+    label_part: np.ndarray  # (G,) int64
+    area_mm2: np.ndarray  # (N,) float64
+    split_traces: tuple[str, ...]  # traces that were split to avoid self-overlap
+    width_mm: float
+    pad_radius_mm: float
+    landmark_radius_mm: float
+
+    @property
+    def count(self) -> int:
+        return len(self.names)
+
+    def polygon(self, i: int) -> Polygon:
+        return Polygon(self.ring[self.ring_offsets[i] : self.ring_offsets[i + 1]])
+
+    def label_polylines(self, i: int) -> list[np.ndarray]:
+        return [
+            self.label[self.label_offsets[g] : self.label_offsets[g + 1]] for g in np.nonzero(self.label_part == i)[0]
+        ]
+
+
+def label_glyphs(text: str, origin: np.ndarray, direction: np.ndarray, box_length: float, box_height: float,
+                 max_height: float) -> list[np.ndarray]:
+    """Closed glyph outlines of ``text`` centred at ``origin``, reading along ``direction``, scaled to
+    fit a ``box_length`` x ``box_height`` box with cap height at most ``max_height`` (mm)."""
+    from matplotlib.font_manager import FontProperties  # heavy: imported when used
+    from matplotlib.textpath import TextPath
+
+    path = TextPath((0, 0), text, size=1.0, prop=FontProperties(family="DejaVu Sans"))
+    polygons = [np.asarray(p) for p in path.to_polygons(closed_only=True) if len(p) >= 3]
+    allpts = np.concatenate(polygons)
+    lo, hi = allpts.min(axis=0), allpts.max(axis=0)
+    extent = np.maximum(hi - lo, 1e-9)
+    scale = min(box_length / extent[0], box_height / extent[1], max_height / extent[1])
+    centre = (lo + hi) / 2
+    normal = np.array([-direction[1], direction[0]])
+    frame = np.stack([direction, normal])  # rows: x-axis, y-axis of the text
+    return [origin + ((p - centre) * scale) @ frame for p in polygons]
+
+
+def _first_conflict(samples: np.ndarray, radius: np.ndarray, u: np.ndarray, clearance: float) -> tuple[float, float] | None:
+    """The conflicting sample pair (lo, hi distance from the base) with the smallest hi, or None.
+
+    Two samples conflict when their discs come closer than ``clearance`` (distance < r_i + r_j +
+    clearance) while they are more than pi/2 times that contact distance apart along the trace.
+    """
+    from scipy.spatial import cKDTree  # heavy: imported when used
+
+    pairs = cKDTree(samples).query_pairs(2 * radius.max() + clearance, output_type="ndarray")
+    if len(pairs) == 0:
+        return None
+    i, j = pairs[:, 0], pairs[:, 1]
+    contact = radius[i] + radius[j] + clearance
+    bad = (np.linalg.norm(samples[i] - samples[j], axis=1) < contact) & (np.abs(u[i] - u[j]) > np.pi / 2 * contact)
+    if not bad.any():
+        return None
+    lo, hi = np.minimum(u[i], u[j])[bad], np.maximum(u[i], u[j])[bad]
+    k = int(np.argmin(hi))
+    return float(lo[k]), float(hi[k])
+
+
+def _sub_polyline(points: np.ndarray, arc: np.ndarray, a0: float, a1: float) -> np.ndarray:
+    """The polyline between arc lengths a0 < a1 (clamped to the polyline)."""
+    a0, a1 = max(a0, 0.0), min(a1, float(arc[-1]))
+    inside = (arc > a0) & (arc < a1)
+    ends = [np.array([np.interp(a, arc, points[:, 0]), np.interp(a, arc, points[:, 1])]) for a in (a0, a1)]
+    return np.vstack([ends[0], points[inside], ends[1]])
+
+
+@node("fab.outline", params=Params, inputs=("unfolded",), outputs=("outlines",))
+def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
+    """Outline every unfolded trace as one closed polygon with landmarks, electrode pads and a named
+    solder tab; split (or report) traces whose outline would overlap itself."""
+    w2 = params.width_mm / 2
+    tab_len, tab_w2 = params.solder_tab_length_mm, params.solder_tab_width_mm / 2
+    parts: dict[str, list] = {k: [] for k in ("name", "trace", "arc", "ring", "centre", "tab", "area")}
+    pads, landmarks, labels = [], [], []
+    split = []
+    for c in range(unfolded.count):
+        rows = unfolded.trace(c)
+        points, arc = unfolded.points[rows], unfolded.arc[rows]
+        length = float(arc[-1])
+        at_end = bool(unfolded.base_at_end[c])
+        marks = np.nonzero(unfolded.mark_trace == c)[0]
+        pad_marks = marks[unfolded.mark_pad[marks]]
+
+        name = unfolded.names[c]
+        # u = distance from the base end along the trace; pieces [u0, u1) are grown from the base:
+        # each piece, with its own solder tab at u0, ends just before its first self-conflict
+        u_of = (lambda a: length - a) if at_end else (lambda a: a)
+        step = params.width_mm / 2
+        u = np.append(np.arange(0.0, length, step), length)
+        arc_of_u = length - u if at_end else u
+        centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
+        disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
+        disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, w2)),
+                                 np.full(len(pad_marks), params.pad_radius_mm)])
+        disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
+        t = np.append(np.arange(0.0, tab_len, step), tab_len)
+        pieces: list[tuple[float, float]] = []
+        u0 = 0.0
+        while True:
+            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
+            outward = tangent if at_end else -tangent
+            keep_c, keep_d = u >= u0, disc_u >= u0
+            samples = np.vstack([centre_samples[keep_c], disc_xy[keep_d], tab_xy + t[:, None] * outward])
+            radius = np.concatenate([np.full(keep_c.sum(), w2), disc_r[keep_d], np.full(len(t), tab_w2)])
+            sample_u = np.concatenate([u[keep_c], disc_u[keep_d], u0 - t])
+            conflict = _first_conflict(samples, radius, sample_u, params.self_clearance_mm)
+            if conflict is None:
+                pieces.append((u0, np.inf))
+                break
+            if params.on_self_overlap == "error":
+                raise UserError(
+                    f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
+                    f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
+                )
+            lo, hi = conflict
+            u1 = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step)
+            if u1 >= hi:
+                raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
+            pieces.append((u0, u1))
+            u0 = u1
+        if len(pieces) > 1:
+            split.append(name)
+        for number, (u0, u1) in enumerate(pieces, start=1):
+            part = len(parts["name"])
+            part_name = name if len(pieces) == 1 else f"{name}.{number}"
+            a0, a1 = (length - u1, length - u0) if at_end else (u0, u1)
+            centre = _sub_polyline(points, arc, a0, a1)
+            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
+            direction = tangent if at_end else -tangent
+            normal = np.array([-direction[1], direction[0]])
+            tab = np.array([
+                tab_xy + tab_w2 * normal,
+                tab_xy - tab_w2 * normal,
+                tab_xy + tab_len * direction - tab_w2 * normal,
+                tab_xy + tab_len * direction + tab_w2 * normal,
+            ])
+            shapes = [Polygon(tab)]
+            line = LineString(centre) if np.ptp(centre, axis=0).max() > 0 else Point(centre[0])
+            shapes.append(line.buffer(w2, quad_segs=params.arc_segments))
+            mark_u, pad_u = u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])
+            if params.landmark_radius_mm > 0:
+                for m in marks[(mark_u >= u0) & (mark_u < u1)]:
+                    shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
+                    landmarks.append((part, unfolded.mark_xy[m], int(unfolded.mark_other[m])))
+            for m in pad_marks[(pad_u >= u0) & (pad_u < u1)]:
+                shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
+                pads.append((part, unfolded.pad_xy[m]))
+            shape = shapely.unary_union(shapes)
+            if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
+                shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
+            if shape.geom_type != "Polygon" or not shape.is_valid or len(shape.interiors) > 0:
+                raise UserError(
+                    f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "
+                    f"{len(getattr(shape, 'interiors', []))} holes); raise self_clearance_mm so the trace is split"
+                )
+            ring = np.asarray(shape.exterior.coords)[:-1]
+            margin = params.label_margin_mm
+            for glyph in label_glyphs(
+                part_name, tab_xy + (tab_len / 2) * direction, direction,
+                tab_len - 2 * margin, 2 * tab_w2 - 2 * margin, params.label_height_mm,
+            ):
+                labels.append((part, glyph))
+            for key, value in zip(parts, (part_name, c, (max(a0, 0.0), min(a1, length)), ring, centre, tab, shape.area)):
+                parts[key].append(value)
+
+    def flat(arrays):
+        return np.concatenate(arrays) if arrays else np.zeros((0, 2)), np.concatenate(
+            [[0], np.cumsum([len(a) for a in arrays])]
+        ).astype(np.int64)
+
+    ring, ring_offsets = flat(parts["ring"])
+    centre, centre_offsets = flat(parts["centre"])
+    label, label_offsets = flat([g for _, g in labels])
+    return TraceOutlines(
+        names=tuple(parts["name"]),
+        trace_names=unfolded.names,
+        trace=np.asarray(parts["trace"], dtype=np.int64),
+        arc_range=np.asarray(parts["arc"], dtype=np.float64).reshape(-1, 2),
+        ring=ring,
+        ring_offsets=ring_offsets,
+        centre=centre,
+        centre_offsets=centre_offsets,
+        pad_xy=np.asarray([p for _, p in pads], dtype=np.float64).reshape(-1, 2),
+        pad_part=np.asarray([i for i, _ in pads], dtype=np.int64),
+        landmark_xy=np.asarray([p for _, p, _ in landmarks], dtype=np.float64).reshape(-1, 2),
+        landmark_part=np.asarray([i for i, _, _ in landmarks], dtype=np.int64),
+        landmark_other=np.asarray([o for _, _, o in landmarks], dtype=np.int64),
+        tab=np.asarray(parts["tab"], dtype=np.float64).reshape(-1, 4, 2),
+        label=label,
+        label_offsets=label_offsets,
+        label_part=np.asarray([i for i, _ in labels], dtype=np.int64),
+        area_mm2=np.asarray(parts["area"], dtype=np.float64),
+        split_traces=tuple(split),
+        width_mm=params.width_mm,
+        pad_radius_mm=params.pad_radius_mm,
+        landmark_radius_mm=params.landmark_radius_mm,
+    )

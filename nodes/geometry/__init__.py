@@ -1,0 +1,1 @@
+"""Shared geometry over ``(V, F)`` arrays (millimetres, faces CCW seen from outside)."""

@@ -1,0 +1,1 @@
+"""Mesh ingest (paper section 4): load, scale, repair, remesh, topology check, export."""

@@ -1,0 +1,116 @@
+"""``mesh.check_topology``: make sure the surface is what the layout method needs.
+
+The trivial-connection layout needs one closed, manifold, coherently and outwardly oriented
+genus-0 surface. The check measures components, boundary edges and holes, non-manifold edges and
+vertices, orientation and the Euler characteristic / genus, and fails with one line that says what
+is wrong and what to do.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams, node
+from ..data.types import Mesh
+from .repair import face_components, signed_volume, to_meshset
+
+
+def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | float]:
+    """Topological measures of a triangle mesh (plain ints/floats).
+
+    ``genus`` is ``(2 C - chi - holes) / 2`` over the referenced vertices, meaningful for manifold
+    meshes; ``inconsistent_edges`` counts edges whose two faces traverse them in the same direction.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    used = np.unique(faces)
+    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    undirected = np.sort(halfedges, axis=1)
+    edges, edge_count = np.unique(undirected, axis=0, return_counts=True)
+    _, directed_count = np.unique(halfedges, axis=0, return_counts=True)
+    boundary = edges[edge_count == 1]
+    if len(boundary):
+        n = int(boundary.max()) + 1
+        graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        holes = len(np.unique(labels[np.unique(boundary)]))
+    else:
+        holes = 0
+    components = face_components(faces, len(vertices))[0] if len(faces) else 0
+    measures = to_meshset(vertices, faces).get_topological_measures()
+    chi = len(used) - len(edges) + len(faces)
+    return {
+        "vertices": int(len(used)),
+        "faces": int(len(faces)),
+        "edges": int(len(edges)),
+        "unreferenced_vertices": int(len(vertices) - len(used)),
+        "components": int(components),
+        "boundary_edges": int(len(boundary)),
+        "holes": int(holes),
+        "non_manifold_edges": int(np.count_nonzero(edge_count > 2)),
+        "non_manifold_vertices": int(measures["non_two_manifold_vertices"]),
+        "inconsistent_edges": int(np.count_nonzero(directed_count > 1)),
+        "euler_characteristic": int(chi),
+        "genus": int((2 * components - chi - holes) // 2),
+        "signed_volume_mm3": signed_volume(vertices, faces),
+    }
+
+
+def topology_problems(report: dict[str, int | float], expected_genus: int | None) -> list[str]:
+    """Operator-facing descriptions (what is wrong: what to do) of everything wrong in ``report``."""
+    problems = []
+    if report["non_manifold_edges"] or report["non_manifold_vertices"]:
+        problems.append(
+            f"{report['non_manifold_edges']} non-manifold edges and "
+            f"{report['non_manifold_vertices']} non-manifold vertices: run mesh.repair first"
+        )
+    if report["components"] > 1:
+        problems.append(
+            f"{report['components']} components: keep the largest with mesh.repair keep_largest: true"
+        )
+    if report["boundary_edges"]:
+        problems.append(
+            f"{report['boundary_edges']} boundary edges ({report['holes']} hole(s)): run mesh.repair "
+            "with close_holes (raise max_hole_edges) or fill them in a mesh editor"
+        )
+    if report["inconsistent_edges"]:
+        problems.append(
+            f"{report['inconsistent_edges']} edges with inconsistent face orientation: run mesh.repair"
+        )
+    elif report["signed_volume_mm3"] < 0 and not report["boundary_edges"]:
+        problems.append("faces point inward (negative signed volume): run mesh.repair")
+    clean = not problems
+    if clean and expected_genus is not None and report["genus"] != expected_genus:
+        problems.append(
+            f"genus {report['genus']}: the layout method needs a genus-{expected_genus} surface; close "
+            "the handle(s) in a mesh editor or pick another object"
+        )
+    return problems
+
+
+class CheckTopologyParams(NodeParams):
+    """What counts as a usable surface."""
+
+    expected_genus: int | None = Field(0, ge=0, description="required genus (null: any)")
+
+
+@node(
+    "mesh.check_topology",
+    params=CheckTopologyParams,
+    inputs=("mesh",),
+    outputs=("mesh", "report"),
+)
+def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]:
+    """Pass the mesh through unchanged when it is one closed, manifold, outward genus-0 surface.
+
+    Otherwise raise one line listing each problem with its fix. ``report`` holds the measures.
+    """
+    if len(mesh.faces) == 0:
+        raise UserError(f"{mesh.source} has no faces: load a triangle mesh")
+    report = topology_report(mesh.vertices, mesh.faces)
+    problems = topology_problems(report, params.expected_genus)
+    if problems:
+        raise UserError(f"{mesh.source.split(' sha256:')[0]}: " + "; ".join(problems))
+    return {"mesh": mesh, "report": report}

@@ -1,0 +1,1 @@
+"""Previews of a layout: rendered PNG views and a self-contained interactive HTML view."""

@@ -1,0 +1,246 @@
+"""Projection textures: the layout baked into a UV texture of the object (sink ``projection.textures``).
+
+An xatlas atlas (one chart set, ``padding_px`` gutter, ``texture_px`` square) parametrises the
+mesh. Each curve segment lies inside one face (``CurveSet`` convention), so both its ends are
+mapped to UV with barycentrics of that face and drawn there: a line never jumps across a seam.
+Crossings are drawn as rings and pads as filled discs in the UV of their face. Widths are given
+in millimetres on the surface and converted with the atlas' mean texel density.
+
+Files written (``<name>`` from ``Params.name`` or the mesh source):
+
+* ``projection/<name>_layout.glb`` -- the textured mesh with the texture embedded,
+* ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png``,
+* ``projection/<name>_scene.npz`` -- the curves, normals and crossings the projector renderer and
+  ``retrotouch project`` read, plus the atlas and one projector texture per layer (black
+  background, white curves) for the textured route (see
+  :class:`retrotouch.nodes.projection.render.ProjectionScene`).
+
+UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size.
+"""
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from ...graph.errors import UserError
+from ...graph.node import Files, NodeParams, node
+from ..data.types import CurveSet, Layout, Mesh
+
+# Heavy libraries (cv2, trimesh, xatlas, PIL) are imported inside the functions: node modules must
+# import cheaply (the engine imports them to discover node types).
+
+HEX_COLOUR = re.compile(r"^#[0-9a-fA-F]{6}$")
+
+
+class TextureParams(NodeParams):
+    """Texture size and look of the baked layout."""
+
+    texture_px: int = Field(2048, ge=256, le=8192, description="texture width = height (px)")
+    padding_px: int = Field(4, ge=0, le=32, description="gutter between atlas charts (px)")
+    line_width_mm: float = Field(1.0, gt=0, description="drawn curve width on the surface (mm)")
+    crossing_radius_mm: float = Field(1.0, gt=0, description="crossing ring radius (mm)")
+    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad disc radius (mm)")
+    background: str = Field("#d8d8d8", description="texture background colour (#RRGGBB)")
+    tx_colour: str = Field("#d03020", description="Tx curve colour (#RRGGBB)")
+    rx_colour: str = Field("#2050d0", description="Rx curve colour (#RRGGBB)")
+    crossing_colour: str = Field("#101010", description="crossing ring colour (#RRGGBB)")
+    pad_colour: str = Field("#e0a000", description="pad disc colour (#RRGGBB)")
+    name: str | None = Field(None, description="file name stem; default: taken from the mesh source")
+
+    @field_validator("background", "tx_colour", "rx_colour", "crossing_colour", "pad_colour")
+    @classmethod
+    def _hex(cls, value: str) -> str:
+        if not HEX_COLOUR.match(value):
+            raise ValueError(f"colour {value!r} must look like #RRGGBB")
+        return value
+
+    @field_validator("name")
+    @classmethod
+    def _stem(cls, value: str | None) -> str | None:
+        if value is not None and not re.fullmatch(r"[A-Za-z0-9_.-]+", value):
+            raise ValueError(f"name {value!r} may only hold letters, digits, '_', '-' and '.'")
+        return value
+
+
+def _bgr(hex_colour: str) -> tuple[int, int, int]:
+    r, g, b = (int(hex_colour[i : i + 2], 16) for i in (1, 3, 5))
+    return (b, g, r)
+
+
+def name_from_source(source: str) -> str:
+    """A file-name stem from ``Mesh.source`` ('builtin:bunny ...' -> 'bunny', '/x/my duck.ply sha256:..' -> 'my_duck')."""
+    first = re.sub(r"\s+sha256:[0-9a-fA-F]*$", "", source.strip()) or "mesh"
+    stem = first.split(":", 1)[1] if first.startswith("builtin:") else Path(first).stem
+    return re.sub(r"[^A-Za-z0-9_-]+", "_", stem) or "mesh"
+
+
+@dataclasses.dataclass(frozen=True)
+class Atlas:
+    """A UV atlas: split vertices ``vertex_map`` (into the mesh), ``faces`` (same order as the mesh's), ``uv`` in [0, 1]."""
+
+    vertex_map: np.ndarray  # (n', ) int64
+    faces: np.ndarray  # (m, 3) int64
+    uv: np.ndarray  # (n', 2) float64
+
+
+def build_atlas(mesh: Mesh, texture_px: int, padding_px: int) -> Atlas:
+    """xatlas parametrisation packed into a ``texture_px`` square with ``padding_px`` gutters."""
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = texture_px
+    pack.padding = padding_px
+    pack.bilinear = True
+    atlas.generate(pack_options=pack)
+    vmap, faces, uv = atlas[0]
+    if not np.array_equal(vmap[faces], mesh.faces):
+        raise RuntimeError("xatlas reordered faces; the face -> UV mapping would be wrong")
+    return Atlas(np.asarray(vmap, np.int64), np.asarray(faces, np.int64), np.asarray(uv, np.float64))
+
+
+def texels_per_mm(mesh: Mesh, atlas: Atlas, texture_px: int) -> float:
+    """Mean texel density: sqrt(UV area in px^2 / surface area in mm^2)."""
+    tri = mesh.vertices[mesh.faces]
+    area_3d = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    t = atlas.uv[atlas.faces] * texture_px
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    area_uv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    return float(np.sqrt(area_uv / area_3d))
+
+
+def face_uv_pixels(atlas: Atlas, faces: np.ndarray, bary: np.ndarray, texture_px: int) -> np.ndarray:
+    """Texture pixel coordinates (k, 2) (x right, y down) of surface points given by face + barycentrics."""
+    uv = np.einsum("kj,kjd->kd", bary, atlas.uv[atlas.faces[faces]])
+    return np.stack([uv[:, 0] * texture_px - 0.5, (1.0 - uv[:, 1]) * texture_px - 0.5], axis=1)
+
+
+def segment_uv_pixels(mesh: Mesh, atlas: Atlas, curves: CurveSet, texture_px: int) -> np.ndarray:
+    """(S, 2, 2) texture pixel coordinates of every curve segment, both ends in the segment's own face."""
+    import trimesh
+
+    starts = np.concatenate(
+        [np.arange(curves.offsets[c], curves.offsets[c + 1] - 1) for c in range(curves.count)] + [np.zeros(0, np.int64)]
+    ).astype(np.int64)
+    if len(starts) == 0:
+        return np.zeros((0, 2, 2))
+    seg_faces = curves.faces[starts]
+    tri = mesh.vertices[mesh.faces[seg_faces]]
+    end_bary = trimesh.triangles.points_to_barycentric(tri, curves.points[starts + 1])
+    a = face_uv_pixels(atlas, seg_faces, curves.bary[starts], texture_px)
+    b = face_uv_pixels(atlas, seg_faces, end_bary, texture_px)
+    return np.stack([a, b], axis=1)
+
+
+def _bake(
+    mesh: Mesh,
+    layout: Layout,
+    atlas: Atlas,
+    params: TextureParams,
+    background: tuple[int, int, int],
+    curves: list[tuple[CurveSet, tuple[int, int, int]]],
+    crossing_bgr: tuple[int, int, int],
+    pad_bgr: tuple[int, int, int],
+) -> np.ndarray:
+    import cv2
+
+    size = params.texture_px
+    img = np.zeros((size, size, 3), np.uint8)
+    img[:] = background
+    density = texels_per_mm(mesh, atlas, size)
+    shift = 4
+    scale = float(1 << shift)
+    width = max(1, int(round(params.line_width_mm * density)))
+    for curve_set, colour in curves:
+        segs = segment_uv_pixels(mesh, atlas, curve_set, size)
+        if len(segs):
+            cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
+    centres = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, size) * scale).astype(np.int64)
+    pad_r = int(round(params.pad_radius_mm * density * scale))
+    ring_r = int(round(params.crossing_radius_mm * density * scale))
+    ring_w = max(1, width // 2)
+    for (x, y), has_pad in zip(centres, np.asarray(layout.pad, bool)):
+        if has_pad:
+            cv2.circle(img, (int(x), int(y)), pad_r, pad_bgr, -1, cv2.LINE_AA, shift)
+        cv2.circle(img, (int(x), int(y)), ring_r, crossing_bgr, ring_w, cv2.LINE_AA, shift)
+    return img
+
+
+def bake_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: TextureParams) -> np.ndarray:
+    """The BGR uint8 texture (texture_px, texture_px, 3) with both layers' curves, crossings and pads."""
+    curves = [(layout.tx, _bgr(params.tx_colour)), (layout.rx, _bgr(params.rx_colour))]
+    return _bake(mesh, layout, atlas, params, _bgr(params.background), curves, _bgr(params.crossing_colour), _bgr(params.pad_colour))
+
+
+def bake_projector_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: TextureParams, layer: str) -> np.ndarray:
+    """One layer baked for projection: black (no light), the layer's curves white, crossing rings and pads in colour."""
+    curve_set = layout.tx if layer == "tx" else layout.rx
+    white = (255, 255, 255)
+    return _bake(mesh, layout, atlas, params, (0, 0, 0), [(curve_set, white)], (0, 255, 255), _bgr(params.pad_colour))
+
+
+def obj_text(mesh: Mesh, atlas: Atlas, mtl_file: str) -> str:
+    """Wavefront OBJ of the split-vertex atlas mesh (one ``vt`` per vertex, 1-based ``f v/vt``)."""
+    v = mesh.vertices[atlas.vertex_map]
+    lines = [f"# retrotouch projection texture mesh (mm)\nmtllib {mtl_file}\no layout"]
+    lines.append("\n".join(f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v))
+    lines.append("\n".join(f"vt {s:.6f} {t:.6f}" for s, t in atlas.uv))
+    lines.append("usemtl layout")
+    f = atlas.faces + 1
+    lines.append("\n".join(f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in f))
+    return "\n".join(lines) + "\n"
+
+
+def mtl_text(texture_file: str) -> str:
+    return f"newmtl layout\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {texture_file}\n"
+
+
+def check_layout_on_mesh(mesh: Mesh, layout: Layout) -> None:
+    """UserError when the layout's face ids do not fit the mesh."""
+    m = len(mesh.faces)
+    for what, faces in (("tx", layout.tx.faces), ("rx", layout.rx.faces), ("cells", layout.cells.faces)):
+        if len(faces) and (faces.min() < 0 or faces.max() >= m):
+            raise UserError(f"layout {what} refers to face {int(faces.max())} but the mesh has {m} faces: pass the mesh the layout was made on")
+
+
+@node("projection.textures", params=TextureParams, inputs=("mesh", "layout"), outputs=("files",), sink=True)
+def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Files:
+    """Bake the selected curves (per-layer colour), crossings and pads into a UV texture; write GLB, OBJ+MTL+PNG and the projection scene."""
+    import cv2
+    import trimesh
+    from PIL import Image
+
+    from .render import build_scene, save_scene
+
+    check_layout_on_mesh(mesh, layout)
+    stem = params.name or name_from_source(mesh.source)
+    atlas = build_atlas(mesh, params.texture_px, params.padding_px)
+    texture = bake_texture(mesh, layout, atlas, params)
+    ok, png = cv2.imencode(".png", texture)
+    if not ok:
+        raise RuntimeError("PNG encoding of the texture failed")
+    visual = trimesh.visual.TextureVisuals(uv=atlas.uv, image=Image.fromarray(texture[:, :, ::-1].copy()))
+    textured = trimesh.Trimesh(vertices=mesh.vertices[atlas.vertex_map], faces=atlas.faces, visual=visual, process=False)
+    glb = textured.export(file_type="glb")
+    base = f"projection/{stem}"
+    scene = dataclasses.replace(
+        build_scene(mesh, layout),
+        atlas_vertex_map=atlas.vertex_map,
+        atlas_faces=atlas.faces,
+        atlas_uv=atlas.uv,
+        layer_textures=tuple(bake_projector_texture(mesh, layout, atlas, params, layer) for layer in ("tx", "rx")),
+    )
+    return Files(
+        {
+            f"{base}_layout.glb": bytes(glb),
+            f"{base}_layout.obj": obj_text(mesh, atlas, f"{stem}_layout.mtl").encode(),
+            f"{base}_layout.mtl": mtl_text(f"{stem}_texture.png").encode(),
+            f"{base}_texture.png": png.tobytes(),
+            f"{base}_scene.npz": save_scene(scene),
+        }
+    )

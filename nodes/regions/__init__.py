@@ -1,0 +1,1 @@
+"""Surface regions: the resting base (non-sensing) and the sensing region."""

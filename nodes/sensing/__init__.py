@@ -1,0 +1,1 @@
+"""Touch sensing at runtime (paper section 8): Muca serial link, virtual board, touch processing, gestures, live view, evaluation, ``retrotouch sense``."""

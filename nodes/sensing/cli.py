@@ -1,0 +1,272 @@
+"""``retrotouch sense``: live touch sensing from a Muca board (or the simulator, or a recording) to an
+event stream for applications.
+
+Usage::
+
+    retrotouch sense --port /dev/ttyACM0 --layout out/retrofit            # a board
+    retrotouch sense --simulate [script.json] [--fast] [--layout ...]       # the virtual board on a pty
+    retrotouch sense --replay session.jsonl --layout out/retrofit           # a recording
+    ... --record session.jsonl   --udp 127.0.0.1:9000   --websocket 8765   --view [--view-port 8080]
+    ... --evaluate   (with --simulate or --replay: the 15 x 10 SNR / localization protocol, one JSON report;
+                      a hardware recording without labels needs --protocol locations.json)
+
+Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
+gestures from :mod:`retrotouch.nodes.sensing.gestures`); the same lines go to every ``--udp`` target as
+datagrams and to every client of ``--websocket``. Diagnostics go to stderr.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from ...graph.errors import UserError
+
+
+def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
+    if not text:
+        return ()
+    try:
+        return tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise UserError(f"{option} takes channel numbers separated by commas, e.g. {option} 3,7") from None
+
+
+def _udp_target(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError(f"--udp {text!r}: give HOST:PORT, e.g. --udp 127.0.0.1:9000")
+    return host, int(port)
+
+
+class EventSinks:
+    """Fans each event out to stdout, UDP targets and websocket clients."""
+
+    def __init__(self, stdout: bool = True, udp: Iterable[str] = (), websocket_port: int | None = None):
+        self.stdout = stdout
+        self.udp_targets = [_udp_target(target) for target in udp]
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if self.udp_targets else None
+        self.websocket_server = None
+        self._clients: set[Any] = set()
+        self._lock = threading.Lock()
+        if websocket_port is not None:
+            self._start_websocket(websocket_port)
+
+    def _start_websocket(self, port: int) -> None:
+        from websockets.exceptions import ConnectionClosed
+        from websockets.sync.server import serve
+
+        def handler(connection) -> None:
+            with self._lock:
+                self._clients.add(connection)
+            try:
+                for _ in connection:  # clients only listen; drain until they leave
+                    pass
+            except ConnectionClosed:
+                pass
+            finally:
+                with self._lock:
+                    self._clients.discard(connection)
+
+        try:
+            self.websocket_server = serve(handler, "127.0.0.1", port)
+        except OSError as exc:
+            raise UserError(f"--websocket {port}: cannot listen ({exc.strerror}): pick another port") from None
+        threading.Thread(target=self.websocket_server.serve_forever, name="websocket", daemon=True).start()
+        print(f"websocket events on ws://127.0.0.1:{self.websocket_server.socket.getsockname()[1]}/", file=sys.stderr)
+
+    def emit(self, event: dict[str, Any]) -> None:
+        line = json.dumps(event, separators=(",", ":"))
+        if self.stdout:
+            sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+        if self.udp is not None:
+            for target in self.udp_targets:
+                self.udp.sendto(line.encode(), target)
+        with self._lock:
+            clients = list(self._clients)
+        for client in clients:
+            try:
+                client.send(line)
+            except Exception:  # noqa: BLE001 - a client that went away is dropped on its own thread
+                pass
+
+    def close(self) -> None:
+        if self.websocket_server is not None:
+            self.websocket_server.shutdown()
+        if self.udp is not None:
+            self.udp.close()
+
+
+def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
+                duration_s: float | None = None, on_frame: Callable[[Any], None] | None = None) -> int:
+    """Process frames until they end (or ``duration_s`` of frame time); returns the frame count."""
+    count = 0
+    start = None
+    for frame in frames:
+        start = frame.t if start is None else start
+        t = frame.t - start
+        result = processor.process(frame.values, t)
+        gestures = recognizer.feed(result)
+        for event in (*result.events, *gestures):
+            sinks.emit(event)
+        if view is not None:
+            view.publish(result, gestures)
+        if on_frame is not None:
+            on_frame(result)
+        count += 1
+        if duration_s is not None and t >= duration_s:
+            break
+    return count
+
+
+def sense(
+    port: Optional[str] = typer.Option(None, "--port", help="Serial port of the Muca board (or a pyserial URL)."),
+    layout: Optional[str] = typer.Option(None, "--layout", help="sensing_map.json or the run folder holding it "
+                                         "(default with --simulate: out/retrofit, else a synthetic bunny)."),
+    simulate: bool = typer.Option(False, "--simulate", help="Use the virtual board on a pseudo-terminal; "
+                                  "optionally follow SCRIPT (JSON steps), else a demo of every gesture."),
+    script: Optional[str] = typer.Argument(None, help="Simulation script (with --simulate)."),
+    fast: bool = typer.Option(False, "--fast", help="Simulator: run as fast as the processing goes."),
+    loop: bool = typer.Option(False, "--loop", help="Simulator: repeat the script until stopped."),
+    snr: float = typer.Option(60.0, "--snr", help="Simulator: peak signal over noise sigma."),
+    seed: int = typer.Option(0, "--seed", help="Simulator: random seed."),
+    coupling: str = typer.Option("gaussian", "--coupling", help="Simulator: finger coupling profile, gaussian (the "
+                                 "processing's model) or disc (flat top, power-law tail: a model mismatch)."),
+    replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
+    speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
+    record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
+    frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii or binary."),
+    baudrate: int = typer.Option(115200, "--baud", help="Serial baud rate."),
+    flip_tx: bool = typer.Option(False, "--flip-tx", help="The firmware reverses TX (Muca master)."),
+    flip_rx: bool = typer.Option(False, "--flip-rx", help="The firmware reverses RX (Muca 2020 library)."),
+    skip_tx: Optional[str] = typer.Option(None, "--skip-tx", help="TX channels to ignore, e.g. 3,7."),
+    skip_rx: Optional[str] = typer.Option(None, "--skip-rx", help="RX channels to ignore."),
+    skip_lines: int = typer.Option(0, "--skip-lines", help="Ignore this many lines after connecting."),
+    udp: Optional[list[str]] = typer.Option(None, "--udp", help="Also send events as UDP datagrams to HOST:PORT."),
+    websocket: Optional[int] = typer.Option(None, "--websocket", help="Also serve events on ws://127.0.0.1:PORT/."),
+    view: bool = typer.Option(False, "--view", help="Serve the live 3D view (URL on stderr)."),
+    view_port: int = typer.Option(8080, "--view-port", help="Port of the live view (0 = any free port)."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds of frames."),
+    evaluate: bool = typer.Option(False, "--evaluate", help="Run the SNR/localization protocol (with --simulate "
+                                  "or --replay) and print its report as one JSON object."),
+    protocol: Optional[str] = typer.Option(None, "--protocol", help="With --evaluate --replay of an unlabelled "
+                                           "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
+                                           "round by round."),
+) -> None:
+    """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
+    from .gestures import GestureRecognizer
+    from .muca_serial import FrameOptions, MucaReader, replay_frames
+    from .simulator import BoardParams
+    from .processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
+
+    sources = [name for name, on in (("--port", port), ("--simulate", simulate), ("--replay", replay)) if on]
+    if len(sources) != 1:
+        raise UserError("choose one input: --port DEVICE, --simulate [SCRIPT] or --replay FILE")
+    if script is not None and not simulate:
+        raise UserError(f"unexpected argument {script!r}: a script goes with --simulate")
+    if record and replay:
+        raise UserError("--record and --replay together: a replay is already recorded")
+    if evaluate and port:
+        raise UserError("--evaluate needs --simulate or a labelled --replay recording")
+    if protocol and not (evaluate and replay):
+        raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
+    if coupling not in ("gaussian", "disc"):
+        raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
+    board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
+    if frame_format not in ("ascii", "binary"):
+        raise UserError(f"--format {frame_format!r}: use ascii or binary")
+    if layout is None:
+        if not simulate:
+            raise UserError("--layout is required: pass the run folder or its sensing_map.json")
+        layout_path = _default_layout()
+    else:
+        layout_path = resolve_sensing_map_path(layout)
+    if evaluate:
+        _evaluate(layout_path, replay, board_params, record, protocol)
+        return
+    sensing_map = load_sensing_map(layout_path)
+    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
+                           skip_rx=_parse_channels(skip_rx, "--skip-rx"))
+    steps = _steps(script)
+    processor = TouchProcessor(sensing_map)
+    sinks = EventSinks(udp=udp or (), websocket_port=websocket)
+    live = None
+    reader = None
+    try:
+        if view:
+            from .live_view import LiveView
+
+            try:
+                live = LiveView(processor, port=view_port)
+            except OSError as exc:
+                raise UserError(f"--view-port {view_port}: cannot listen ({exc.strerror}): pick another port") from None
+            print(f"live view on {live.start()}", file=sys.stderr)
+        if port:
+            reader = MucaReader(port, baudrate=baudrate, frame_format=frame_format, options=options,
+                                skip_first_lines=skip_lines, record=record)
+            frames: Iterable[Any] = reader.frames()
+        elif replay:
+            # A recording's header holds the board's orientation unless the options override it.
+            frames = replay_frames(replay, options=options if (flip_tx or flip_rx or skip_tx or skip_rx) else None,
+                                   speed=speed)
+        else:
+            frames = _simulated(sensing_map, steps, board_params, fast, loop, frame_format, record)
+        count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
+        print(f"{count} frames processed", file=sys.stderr)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if reader is not None:
+            reader.close()
+        if live is not None:
+            live.stop()
+        sinks.close()
+
+
+def _default_layout() -> Path:
+    from .simulator import default_sensing_map_path
+
+    cache = Path.home() / ".cache" / "retrotouch" / "synthetic_bunny"
+    path, description = default_sensing_map_path(Path.cwd(), cache)
+    print(f"layout: {description}", file=sys.stderr)
+    return path
+
+
+def _steps(script: Optional[str]) -> list[dict[str, Any]]:
+    from .simulator import DEMO_SCRIPT, load_script
+
+    return DEMO_SCRIPT if script is None else load_script(script)
+
+
+def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> Iterator[Any]:
+    from .simulator import ScriptBuilder, VirtualBoard, frames_through_pty
+
+    board = VirtualBoard(sensing_map, params)
+    built = ScriptBuilder(sensing_map, params, params.seed).build(steps)
+    return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
+
+
+def _evaluate(layout_path: Path, replay: Optional[str], board_params, record: Optional[str],
+              protocol: Optional[str]) -> None:
+    from .evaluation import EvalParams, evaluate_recording, evaluate_simulator
+
+    started = time.perf_counter()
+    if replay:
+        report = evaluate_recording(replay, layout_path, protocol=protocol)
+    else:
+        report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record)
+    print(json.dumps({**report.summary(), "per_location": list(report.locations),
+                      "seconds": round(time.perf_counter() - started, 2)}))
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``sense`` to the retrotouch CLI."""
+    app.command("sense")(sense)
