@@ -280,68 +280,85 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
 
         types = [n["type"] for n in raw_nodes.values() if isinstance(n, dict) and isinstance(n.get("type"), str)]
         registry = discovery.load(types)
+    decls = {name: _declare(doc, name, body, registry) for name, body in raw_nodes.items()}
+    _resolve_references(doc, decls)
+    return Pipeline(doc, _toposort(doc, decls), overrides)
 
-    decls: dict[str, NodeDecl] = {}
-    for name, body in raw_nodes.items():
-        path: Path = ("nodes", name)
-        if not _NAME.match(name):
-            raise doc.fail(path, f"node name {name!r} must be letters, digits, '_' or '-'", key=True)
-        _expect(doc, path, body, dict, f"node {name!r}")
-        for key in body:
-            if key not in NODE_KEYS:
-                raise doc.fail(path + (key,), f"node {name!r}: unknown key {key!r}{did_you_mean(key, NODE_KEYS)}"
-                                              f" (allowed: {', '.join(NODE_KEYS)})", key=True)
-        if "type" not in body:
-            raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
-        type_name = body["type"]
-        if not isinstance(type_name, str) or type_name not in registry:
-            hint = did_you_mean(str(type_name), registry) or f" (list them with `{current().name} nodes`)"
-            raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
-        spec = registry[type_name]
-        fields = spec.params.model_fields
 
-        inputs_raw = _expect(doc, path + ("inputs",), body.get("inputs") or {}, dict, f"node {name!r}: inputs")
-        inputs: dict[str, InputRef] = {}
-        for input_name, ref_text in inputs_raw.items():
-            ipath = path + ("inputs", input_name)
-            if input_name not in spec.inputs:
-                allowed = ", ".join(spec.inputs) or "none"
-                raise doc.fail(ipath, f"node {name!r} ({type_name}): unknown input {input_name!r}"
-                                      f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
-            m = _REF.match(ref_text) if isinstance(ref_text, str) else None
-            if not m:
-                raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
-                                      f"or either with [*], got {ref_text!r}")
-            inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
-        for input_name in spec.inputs:
-            if input_name not in inputs:
-                raise doc.fail(path, f"node {name!r} ({type_name}): input {input_name!r} is not connected; "
-                                     f"add inputs: {{{input_name}: <node>}}", key=True)
+def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec]) -> NodeDecl:
+    """One node's declaration: its keys, type, inputs, params and map checked."""
+    path: Path = ("nodes", name)
+    if not _NAME.match(name):
+        raise doc.fail(path, f"node name {name!r} must be letters, digits, '_' or '-'", key=True)
+    _expect(doc, path, body, dict, f"node {name!r}")
+    for key in body:
+        if key not in NODE_KEYS:
+            raise doc.fail(path + (key,), f"node {name!r}: unknown key {key!r}{did_you_mean(key, NODE_KEYS)}"
+                                          f" (allowed: {', '.join(NODE_KEYS)})", key=True)
+    if "type" not in body:
+        raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
+    type_name = body["type"]
+    if not isinstance(type_name, str) or type_name not in registry:
+        hint = did_you_mean(str(type_name), registry) or f" (list them with `{current().name} nodes`)"
+        raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
+    spec = registry[type_name]
+    inputs = _declare_inputs(doc, name, spec, body.get("inputs"))
+    params = interpolate(doc, _expect(doc, path + ("params",), body.get("params") or {}, dict,
+                                      f"node {name!r}: params"), path + ("params",))
+    mapped = _declare_map(doc, name, spec, params, body.get("map"))
+    cache = body.get("cache", "default")
+    if cache not in CACHE_MODES:
+        raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
+                                          f"{did_you_mean(str(cache), CACHE_MODES)}")
+    return NodeDecl(name, spec, inputs, params, mapped, cache, path)
 
-        params = interpolate(doc, _expect(doc, path + ("params",), body.get("params") or {}, dict,
-                                          f"node {name!r}: params"), path + ("params",))
-        map_raw = _expect(doc, path + ("map",), body.get("map") or {}, dict, f"node {name!r}: map")
-        mapped: dict[str, list[Any]] = {}
-        for key, values in map_raw.items():
-            mpath = path + ("map", key)
-            if key not in fields:
-                raise doc.fail(mpath, f"node {name!r} ({type_name}): cannot map over unknown param {key!r}"
-                                      f"{did_you_mean(key, fields)}", key=True)
-            if key in params:
-                raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
-                                      "keep one", key=True)
-            values = interpolate(doc, values, mpath)
-            if not isinstance(values, list) or not values:
-                raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
-                                      f"got {values!r}")
-            mapped[key] = values
-        cache = body.get("cache", "default")
-        if cache not in CACHE_MODES:
-            raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
-                                              f"{did_you_mean(str(cache), CACHE_MODES)}")
-        decls[name] = NodeDecl(name, spec, inputs, params, mapped, cache, path)
 
-    for decl in decls.values():  # references
+def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, InputRef]:
+    path: Path = ("nodes", name)
+    inputs_raw = _expect(doc, path + ("inputs",), raw or {}, dict, f"node {name!r}: inputs")
+    inputs: dict[str, InputRef] = {}
+    for input_name, ref_text in inputs_raw.items():
+        ipath = path + ("inputs", input_name)
+        if input_name not in spec.inputs:
+            allowed = ", ".join(spec.inputs) or "none"
+            raise doc.fail(ipath, f"node {name!r} ({spec.name}): unknown input {input_name!r}"
+                                  f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
+        m = _REF.match(ref_text) if isinstance(ref_text, str) else None
+        if not m:
+            raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
+                                  f"or either with [*], got {ref_text!r}")
+        inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
+    for input_name in spec.inputs:
+        if input_name not in inputs:
+            raise doc.fail(path, f"node {name!r} ({spec.name}): input {input_name!r} is not connected; "
+                                 f"add inputs: {{{input_name}: <node>}}", key=True)
+    return inputs
+
+
+def _declare_map(doc: Document, name: str, spec: NodeSpec, params: dict[str, Any], raw: Any) -> dict[str, list[Any]]:
+    path: Path = ("nodes", name)
+    fields = spec.params.model_fields
+    map_raw = _expect(doc, path + ("map",), raw or {}, dict, f"node {name!r}: map")
+    mapped: dict[str, list[Any]] = {}
+    for key, values in map_raw.items():
+        mpath = path + ("map", key)
+        if key not in fields:
+            raise doc.fail(mpath, f"node {name!r} ({spec.name}): cannot map over unknown param {key!r}"
+                                  f"{did_you_mean(key, fields)}", key=True)
+        if key in params:
+            raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
+                                  "keep one", key=True)
+        values = interpolate(doc, values, mpath)
+        if not isinstance(values, list) or not values:
+            raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
+                                  f"got {values!r}")
+        mapped[key] = values
+    return mapped
+
+
+def _resolve_references(doc: Document, decls: dict[str, NodeDecl]) -> None:
+    """Check every input names an existing node and output; fill in the output of one-output nodes."""
+    for decl in decls.values():
         for input_name, ref in decl.inputs.items():
             if ref.node not in decls:
                 raise doc.fail(ref.path, f"node {decl.name!r}: input {input_name!r} refers to unknown node "
@@ -355,7 +372,6 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
                     raise doc.fail(ref.path, f"node {ref.node!r} has outputs {', '.join(outputs)}; "
                                              f"write {ref.node}.<output>")
                 decl.inputs[input_name] = dataclasses.replace(ref, output=outputs[0])
-    return Pipeline(doc, _toposort(doc, decls), overrides)
 
 
 def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
