@@ -23,6 +23,7 @@ try:  # typer >= 0.20 vendors click as typer._click; older versions use click it
 except ImportError:  # pragma: no cover - depends on the installed typer
     import click  # type: ignore[no-redef]
 
+from . import interrupts
 from .app import App, configure, current
 from .errors import NodeFailed, UserError
 
@@ -56,6 +57,8 @@ def run(
 
     result = run_pipeline(pipeline, overrides, out_dir=out, scheduler=scheduler, cache_dir=cache_dir,
                           explain=explain, on_plan=_print_explain if explain else None, progress=_progress)
+    for problem in result.repaired:
+        print(f"{current().name}: note: damaged cache entry deleted and recomputed: {problem}", file=sys.stderr)
     _print_table(result.plan, result.status)
     ran = len(result.ran())
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
@@ -150,22 +153,61 @@ def cache_clear(cache_dir: Optional[str] = CacheDirOption) -> None:
     print(maintenance.clear(_store(cache_dir)))
 
 
+class _Running:
+    """Progress events from the runner: which instances run, since when."""
+
+    def __init__(self, on_change: Any = None):
+        self.started: dict[str, float] = {}
+        self.finished = 0
+        self.on_change = on_change
+
+    def start(self, label: str) -> None:
+        import time
+
+        self.started[label] = time.monotonic()
+
+    def done(self, label: str) -> None:
+        self.started.pop(label, None)
+        self.finished += 1
+        if self.on_change:
+            self.on_change()
+
+    def describe(self, width: int) -> str:
+        """``running: a 12s, b[x=1] 3s`` cut to ``width`` characters."""
+        import time
+
+        now = time.monotonic()
+        parts = [f"{label} {now - t:.0f}s" for label, t in sorted(self.started.items(), key=lambda kv: kv[1])]
+        text = "running: " + ", ".join(parts) if parts else "starting"
+        return text if len(text) <= width else text[: max(0, width - 1)] + "…"
+
+
 def _progress(total: int):
-    """Context manager yielding ``advance(label)``; a rich progress bar on stderr while tasks run."""
+    """Context manager yielding a :class:`_Running`; on a terminal, a live display on stderr of the
+    bar, the count, the elapsed time and the running nodes with their own elapsed time."""
     import contextlib
 
     @contextlib.contextmanager
     def manager():
         if total == 0 or not sys.stderr.isatty():
-            yield lambda label: None
+            yield _Running()
             return
         from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TimeElapsedColumn
+        from rich.text import Text
 
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      console=Console(stderr=True), transient=True) as progress:
-            task = progress.add_task("running", total=total)
-            yield lambda label: progress.update(task, advance=1, description=f"done {label}")
+        console = Console(stderr=True)
+        events = _Running()
+
+        class RunningColumn(ProgressColumn):
+            def render(self, task: Any) -> Text:
+                return Text(events.describe(max(20, console.width - 45)))
+
+        with Progress(BarColumn(bar_width=20), MofNCompleteColumn(), TimeElapsedColumn(), RunningColumn(),
+                      console=console, transient=True, refresh_per_second=4) as progress:
+            task = progress.add_task("run", total=total)
+            events.on_change = lambda: progress.update(task, completed=events.finished)
+            yield events
 
     return manager()
 
@@ -211,13 +253,30 @@ def build_app(with_extensions: bool = True) -> typer.Typer:
 
 
 def main(application: App, argv: list[str] | None = None) -> None:
-    """Run the command line of ``application``, turning every error into one line and an exit code."""
+    """Run the command line of ``application``, turning every error into one line and an exit code.
+
+    ``argv`` None means this process's own command line: then SIGINT/SIGTERM stay ignored once the
+    command is done (the process is exiting); otherwise the previous handlers are put back.
+    """
+    previous = interrupts.install()
+    try:
+        _main(application, argv)
+    finally:
+        if argv is None:
+            interrupts.ignore()
+        else:
+            interrupts.restore(previous)
+
+
+def _main(application: App, argv: list[str] | None) -> None:
     configure(application)
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
         command = typer.main.get_command(app)
         result = command.main(args=args, prog_name=application.name, standalone_mode=False)
+    except interrupts.Interrupted as exc:
+        _fail("interrupted", exc.exit_code)
     except UserError as exc:
         _fail(str(exc), 2)
     except NodeFailed as exc:
@@ -237,6 +296,7 @@ def main(application: App, argv: list[str] | None = None) -> None:
 
 
 def _fail(message: str, code: int) -> None:
+    interrupts.ignore()  # the one line below is the last word, even if Ctrl-C comes again
     first = " ".join(str(message).split("\n"))
     print(f"{current().name}: error: {first}", file=sys.stderr)
     sys.exit(code)

@@ -121,6 +121,8 @@ def _validate(pipeline: Pipeline, decl: NodeDecl, raw: dict[str, Any], mapped_in
         path = decl.path + ("map", field, mapped_index[field])
     else:
         path = decl.path + ("params",) + tuple(loc)
+    if not field:  # a model validator, about the params together
+        raise doc.fail(path, f"{what}: params: {err['msg']}")
     got = f" (got {err['input']!r})" if "input" in err else ""
     raise doc.fail(path, f"{what}: param {field!r}: {err['msg']}{got}")
 

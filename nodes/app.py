@@ -14,6 +14,10 @@ APP = App(
 
 def main(argv: list[str] | None = None) -> None:
     """``retrotouch ...``: the engine's command line with the sensing and projection commands."""
+    from ..graph import interrupts
+
+    if argv is None:  # this process's own command line: Ctrl-C from the first moment is one clean line
+        interrupts.install()
     from ..graph.cli import main as engine_main
 
     engine_main(APP, argv)
