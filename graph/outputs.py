@@ -1,5 +1,8 @@
 """The output folder: sink files plus ``manifest.json``, replaced as a whole.
 
+``manifest.json`` is specified by ``graph/schemas/manifest.schema.json`` (format version
+:data:`MANIFEST_FORMAT_VERSION`, named in its ``format`` field).
+
 Everything is written into a temporary sibling folder (manifest.json last), then swapped in with
 renames, so the output folder is never seen half-written. Sinks of mapped nodes write under a
 sub-folder named after their branch (``target_edge_mm=2/mesh.ply``).
@@ -25,6 +28,8 @@ from .node import Files
 from .store import DISK_ERRNOS, ArtifactRef, check_room, disk_problem
 
 MANIFEST = "manifest.json"
+MANIFEST_FORMAT_VERSION = 1
+"""Bump with graph/schemas/manifest.schema.json when the manifest's fields change."""
 ENGINE_VERSIONED = ("numpy", "pydantic", "dask", "distributed", "pyyaml")
 """Distributions the engine itself runs on; the app adds its own (:attr:`.app.App.versioned`)."""
 
@@ -175,7 +180,7 @@ def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], ru
             "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
         })
     return {
-        "format": f"{current().name}.manifest/1",
+        "format": f"{current().name}.manifest/{MANIFEST_FORMAT_VERSION}",
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(created_time())),
         "pipeline": {"path": os.path.abspath(plan.file), "sha256": plan.text_sha256},
         "overrides": plan.overrides,

@@ -190,6 +190,26 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     return plan
 
 
+def restrict(plan: Plan, targets: list[str]) -> Plan:
+    """The plan of only ``targets`` (pipeline node names; every branch) and what they need; only
+    the sinks among them write into the output folder."""
+    nodes = plan.pipeline.nodes
+    for target in targets:
+        if target not in nodes:
+            raise UserError(f"--target {target!r}: no such node{did_you_mean(target, nodes)} "
+                            f"(nodes: {', '.join(nodes)})")
+    keep: set[int] = set()
+    for inst in reversed(plan.instances):
+        if inst.node in targets or id(inst) in keep:
+            keep.add(id(inst))
+            keep.update(id(u) for ups in inst.inputs.values() for u, _ in ups)
+    chosen = Plan(plan.pipeline, [i for i in plan.instances if id(i) in keep], plan.store)
+    for inst in chosen.instances:
+        inst.runs, inst.reason, inst.cached = False, "", None
+    _decide(chosen)
+    return chosen
+
+
 def _decide(plan: Plan) -> None:
     """Mark what runs: misses, ``cache: recompute``, and ``cache: disable`` nodes whose output is needed."""
     for inst in plan.instances:

@@ -39,10 +39,13 @@ def check_scheduler(scheduler: str) -> None:
         raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
 
 
-def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str | None = None) -> planning.Plan:
+def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str | None = None,
+              targets: list[str] | None = None) -> planning.Plan:
+    """The full plan, or with ``targets`` only those nodes and what they need (see :func:`.plan.restrict`)."""
     from .pipeline import load_pipeline
 
-    return planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
+    plan = planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
+    return planning.restrict(plan, targets) if targets else plan
 
 
 DAMAGED_RETRIES = 3
@@ -69,6 +72,7 @@ def run_pipeline(
     explain: bool = False,
     on_plan: Callable[[planning.Plan], None] | None = None,
     progress: Callable[[int], Any] | None = None,
+    targets: list[str] | None = None,
 ) -> RunResult:
     """Plan, run what is missing, write the output folder; see :mod:`.execute`.
 
@@ -76,6 +80,7 @@ def run_pipeline(
     ``progress(total)`` returns a context manager yielding an object with ``start(instance id)``
     and ``done(instance id)``. A cache entry found damaged on the way (its sha256 no longer matches)
     is discarded, and the run re-plans and recomputes it (listed in ``RunResult.repaired``).
+    ``targets``: run only these nodes and what they need (their sinks alone fill the output folder).
     """
     from . import snapshot
 
@@ -84,9 +89,10 @@ def run_pipeline(
     overrides = list(overrides or [])
     store = Store(cache_dir or default_cache_dir())
     out_dir = out_dir or default_out_dir(pipeline)
-    plan = snapshot.load(pipeline, overrides, store)
+    targets = list(targets or [])
+    plan = None if targets else snapshot.load(pipeline, overrides, store)
     if plan is None:
-        plan = make_plan(pipeline, overrides, store.root)
+        plan = make_plan(pipeline, overrides, store.root, targets)
     preflight(out_dir, store)
     if explain and isinstance(plan, planning.Plan):
         planning.explain(plan)
@@ -103,8 +109,8 @@ def run_pipeline(
                 raise UserError(f"cache {store.root}: entries keep failing their sha256 check ({exc}); check the "
                                 f"disk, or start afresh with `{current().name} cache clear`") from None
             repaired.append(str(exc))
-            plan = make_plan(pipeline, overrides, store.root)  # the damaged entry is a miss now
-    if isinstance(plan, planning.Plan):
+            plan = make_plan(pipeline, overrides, store.root, targets)  # the damaged entry is a miss now
+    if isinstance(plan, planning.Plan) and not targets:  # a partial plan would overwrite the full records
         planning.record_run(plan)
         snapshot.save(plan, overrides)
     for inst in plan.instances:
