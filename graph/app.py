@@ -25,6 +25,8 @@ class App:
     """Distributions whose installed versions are recorded in ``manifest.json``."""
     description: str = ""
     """One line for ``--help``."""
+    version: str = ""
+    """What ``--version`` prints after the name."""
 
     @property
     def env_prefix(self) -> str:

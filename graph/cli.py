@@ -23,10 +23,11 @@ try:  # typer >= 0.20 vendors click as typer._click; older versions use click it
 except ImportError:  # pragma: no cover - depends on the installed typer
     import click  # type: ignore[no-redef]
 
+from . import interrupts
 from .app import App, configure, current
 from .errors import NodeFailed, UserError
 
-CORE_COMMANDS = ("run", "plan", "nodes", "cache")
+CORE_COMMANDS = ("run", "plan", "dag", "nodes", "cache")
 
 SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
                          help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
@@ -49,38 +50,77 @@ def run(
                                   help="auto | sync | threads | processes | local-cluster | tcp://HOST:PORT (a dask.distributed "
                                        "scheduler)."),
     explain: bool = typer.Option(False, "--explain", help="Say why each node that runs is not a cache hit."),
+    targets: Optional[list[str]] = typer.Option(None, "--target", "-t", metavar="NODE",
+                                                help="Run only this node (every branch) and what it needs; repeatable. "
+                                                     "Only the sinks among them write into --out."),
+    as_json: bool = typer.Option(False, "--json", help="Print a machine-readable run summary (JSON) instead of the table."),
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:
     """Run a pipeline: cached nodes are reused, the rest run on the scheduler; sinks write into --out."""
+    import json
+
+    from . import display
     from .runner import run_pipeline
 
-    result = run_pipeline(pipeline, overrides, out_dir=out, scheduler=scheduler, cache_dir=cache_dir,
-                          explain=explain, on_plan=_print_explain if explain else None, progress=_progress)
-    _print_table(result.plan, result.status)
+    result = run_pipeline(pipeline, overrides, out_dir=out, scheduler=scheduler, cache_dir=cache_dir, explain=explain,
+                          on_plan=_print_explain if explain and not as_json else None, progress=display.progress,
+                          targets=targets)
+    for problem in result.repaired:
+        print(f"{current().name}: note: damaged cache entry deleted and recomputed: {problem}", file=sys.stderr)
+    if as_json:
+        print(json.dumps(display.run_summary(current().name, result), indent=1))
+        return
     ran = len(result.ran())
+    if result.status:
+        display.print_table(["node", "branch", "cached/ran", "seconds"],
+                            display.instance_rows(result.plan, result.status, only_sent=True))
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 
 def plan_command(
     pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
     overrides: Optional[list[str]] = SetOption,
+    targets: Optional[list[str]] = typer.Option(None, "--target", "-t", metavar="NODE",
+                                                help="Only this node and what it needs; repeatable."),
     cache_dir: Optional[str] = CacheDirOption,
 ) -> None:
     """Show what a run would do: every node instance, its cache key, hit or miss, and why it would run."""
+    from . import display
     from . import plan as planning
     from .runner import make_plan
 
-    plan = make_plan(pipeline, overrides, cache_dir)
+    plan = make_plan(pipeline, overrides, cache_dir, targets)
     planning.explain(plan)
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table("node", "branch", "type", "key", "status", "why")
-    for inst in plan.instances:
-        table.add_row(inst.node, inst.label, inst.type_name, inst.key[:12],
-                      "run" if inst.runs else ("cached" if inst.cached else "skip"), inst.reason)
-    Console().print(table)
+    display.print_table(["node", "branch", "type", "key", "status", "why"],
+                        [[i.node, i.label, i.type_name, i.key[:12], "run" if i.runs else ("cached" if i.cached else "skip"),
+                          i.reason] for i in plan.instances])
     print(f"{len(plan.to_run)} of {len(plan.instances)} node instances would run")
+
+
+def dag(
+    pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
+    overrides: Optional[list[str]] = SetOption,
+    fmt: str = typer.Option("mermaid", "--format", "-f", help="mermaid | dot | svg (svg needs Graphviz's dot)."),
+    status: bool = typer.Option(False, "--status", help="Plan too, and colour each node: cached or would run."),
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Print the pipeline graph: one box per node (branches counted), one edge per input."""
+    from . import dag as graph
+    from .pipeline import load_pipeline
+
+    if fmt not in graph.FORMATS:
+        raise UserError(f"--format {fmt!r}: expected one of {', '.join(graph.FORMATS)}")
+    states: dict[str, str] = {}
+    if status:
+        from .runner import make_plan
+
+        plan = make_plan(pipeline, overrides, cache_dir)
+        for inst in plan.instances:
+            states[inst.node] = "would run" if inst.runs or states.get(inst.node) == "would run" else "cached"
+        pipe = plan.pipeline
+    else:
+        pipe = load_pipeline(pipeline, overrides or [])
+    sys.stdout.write(graph.render(pipe, fmt, states))
 
 
 def nodes(name: Optional[str] = typer.Argument(None, help="Only node types containing this text.")) -> None:
@@ -150,26 +190,6 @@ def cache_clear(cache_dir: Optional[str] = CacheDirOption) -> None:
     print(maintenance.clear(_store(cache_dir)))
 
 
-def _progress(total: int):
-    """Context manager yielding ``advance(label)``; a rich progress bar on stderr while tasks run."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def manager():
-        if total == 0 or not sys.stderr.isatty():
-            yield lambda label: None
-            return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      console=Console(stderr=True), transient=True) as progress:
-            task = progress.add_task("running", total=total)
-            yield lambda label: progress.update(task, advance=1, description=f"done {label}")
-
-    return manager()
-
-
 def _print_explain(plan) -> None:
     if not plan.to_run:
         print(f"nothing to run: all {len(plan.instances)} node instances are cached")
@@ -177,26 +197,25 @@ def _print_explain(plan) -> None:
         print(f"{inst.id}: runs because {inst.reason}")
 
 
-def _print_table(plan, status: dict[int, dict[str, Any]]) -> None:
-    from rich.console import Console
-    from rich.table import Table
+def _show_version(value: bool) -> None:
+    if value:
+        print(f"{current().name} {current().version or 'unknown version'}")
+        raise typer.Exit(0)
 
-    table = Table("node", "branch", "cached/ran", "seconds")
-    for inst in plan.instances:
-        s = status.get(id(inst))
-        if s is None:
-            table.add_row(inst.node, inst.label, "cached" if inst.cached else "skipped", "")
-        else:
-            table.add_row(inst.node, inst.label, s["status"], f"{s['seconds']:.2f}")
-    Console(width=max(100, Console().width)).print(table)
+
+def _root(version: bool = typer.Option(False, "--version", "-V", is_eager=True, callback=_show_version,
+                                       help="Print the version and exit.")) -> None:
+    """Options before the command."""
 
 
 def build_app(with_extensions: bool = True) -> typer.Typer:
     app = typer.Typer(help=f"{current().name}: {current().description}",
                       no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
-                      rich_markup_mode=None)
+                      rich_markup_mode=None, context_settings={"help_option_names": ["-h", "--help"]})
+    app.callback()(_root)
     app.command("run")(run)
     app.command("plan")(plan_command)
+    app.command("dag")(dag)
     app.command("nodes")(nodes)
     app.add_typer(cache_app, name="cache")
     if with_extensions:
@@ -211,13 +230,30 @@ def build_app(with_extensions: bool = True) -> typer.Typer:
 
 
 def main(application: App, argv: list[str] | None = None) -> None:
-    """Run the command line of ``application``, turning every error into one line and an exit code."""
+    """Run the command line of ``application``, turning every error into one line and an exit code.
+
+    ``argv`` None means this process's own command line: then SIGINT/SIGTERM stay ignored once the
+    command is done (the process is exiting); otherwise the previous handlers are put back.
+    """
+    previous = interrupts.install()
+    try:
+        _main(application, argv)
+    finally:
+        if argv is None:
+            interrupts.ignore()
+        else:
+            interrupts.restore(previous)
+
+
+def _main(application: App, argv: list[str] | None) -> None:
     configure(application)
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
         command = typer.main.get_command(app)
         result = command.main(args=args, prog_name=application.name, standalone_mode=False)
+    except interrupts.Interrupted as exc:
+        _fail("interrupted", exc.exit_code)
     except UserError as exc:
         _fail(str(exc), 2)
     except NodeFailed as exc:
@@ -237,6 +273,7 @@ def main(application: App, argv: list[str] | None = None) -> None:
 
 
 def _fail(message: str, code: int) -> None:
+    interrupts.ignore()  # the one line below is the last word, even if Ctrl-C comes again
     first = " ".join(str(message).split("\n"))
     print(f"{current().name}: error: {first}", file=sys.stderr)
     sys.exit(code)

@@ -35,7 +35,7 @@ from .app import App, configure, current
 from .errors import NodeFailed, UserError
 from .node import REGISTRY, Files
 from .plan import Instance, Plan
-from .store import ArtifactRef, Store
+from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem
 
 SCHEDULERS = ("auto", "sync", "threads", "processes", "local-cluster")
 
@@ -65,46 +65,65 @@ class TaskResult:
 
 
 def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
-    """Run one node instance (in whatever process the scheduler chose)."""
+    """Run one node instance (in whatever process the scheduler chose).
+
+    A damaged input entry raises :class:`.store.CorruptEntry` (the entry is already discarded; the
+    runner recomputes it and tries again); a full or read-only cache is a one-line UserError.
+    """
     configure(spec.app)
     registry.load([spec.node_type], spec.extra_modules)
     artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
-    node = REGISTRY[spec.node_type]
     store = Store(spec.cache_root)
     lock_path = store.lock_path(spec.key)
-    os.makedirs(os.path.dirname(lock_path), exist_ok=True)
-    with FileLock(lock_path):
+    try:
+        os.makedirs(os.path.dirname(lock_path), exist_ok=True)
+        lock = FileLock(lock_path)
+        lock.acquire()
+    except OSError as exc:
+        if exc.errno in DISK_ERRNOS:
+            raise disk_problem("cache", store.root, exc, "pass --cache-dir on another disk") from None
+        raise
+    try:
         if spec.cache_mode == "default":
             existing = store.lookup(spec.key)
             if existing is not None:
                 return TaskResult(existing, False, 0.0)
-        try:
-            loaded: dict[int, Any] = {}
-            kwargs: dict[str, Any] = {}
-            for name, fan_in, items in spec.inputs:
-                values = []
-                for index, output, single in items:
-                    if index not in loaded:
-                        loaded[index] = store.load(refs[index])
-                    values.append(loaded[index] if single else loaded[index][output])
-                kwargs[name] = values if fan_in else values[0]
-            params = node.params.model_validate(spec.params)
-            start = time.perf_counter()
-            value = node.func(params, **kwargs)
-            seconds = time.perf_counter() - start
-            _check_output(node.name, node.outputs, node.sink, value)
-            info = {"node": spec.instance_id, "type": spec.node_type, "seconds": seconds}
-            if spec.cache_mode == "disable":
-                ref = store.write(spec.key, value, info=info, scratch_run=spec.run_id)
-            elif spec.cache_mode == "recompute":
-                ref = store.replace(spec.key, value, info=info)
-            else:
-                ref = store.write(spec.key, value, info=info)
-        except UserError as exc:
-            raise UserError(f"node {spec.instance_id}: {exc}") from None
-        except Exception as exc:
-            log = _write_log(store, spec, traceback.format_exc())
-            raise NodeFailed(f"node {spec.instance_id} failed: {type(exc).__name__}: {exc} (traceback: {log})") from None
+        return _compute(spec, store, refs)
+    except (UserError, CorruptEntry):
+        raise
+    except Exception as exc:
+        log = _write_log(store, spec, traceback.format_exc())
+        raise NodeFailed(f"node {spec.instance_id} failed: {type(exc).__name__}: {exc} (traceback: {log})") from None
+    finally:
+        lock.release()
+
+
+def _compute(spec: TaskSpec, store: Store, refs: tuple[ArtifactRef, ...]) -> TaskResult:
+    node = REGISTRY[spec.node_type]
+    loaded: dict[int, Any] = {}
+    kwargs: dict[str, Any] = {}
+    for name, fan_in, items in spec.inputs:
+        values = []
+        for index, output, single in items:
+            if index not in loaded:
+                loaded[index] = store.load(refs[index])
+            values.append(loaded[index] if single else loaded[index][output])
+        kwargs[name] = values if fan_in else values[0]
+    params = node.params.model_validate(spec.params)
+    start = time.perf_counter()
+    try:
+        value = node.func(params, **kwargs)
+    except UserError as exc:
+        raise UserError(f"node {spec.instance_id}: {exc}") from None
+    seconds = time.perf_counter() - start
+    _check_output(node.name, node.outputs, node.sink, value)
+    info = {"node": spec.instance_id, "type": spec.node_type, "seconds": seconds}
+    if spec.cache_mode == "disable":
+        ref = store.write(spec.key, value, info=info, scratch_run=spec.run_id)
+    elif spec.cache_mode == "recompute":
+        ref = store.replace(spec.key, value, info=info)
+    else:
+        ref = store.write(spec.key, value, info=info)
     return TaskResult(ref, True, seconds)
 
 
@@ -168,19 +187,25 @@ def parallel_width(plan: Plan) -> int:
 
 # -- schedulers --------------------------------------------------------------------------------
 Done = Callable[[str, TaskResult], None]
+Started = Callable[[str], None]
 
 
-def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done) -> dict[str, TaskResult]:
-    """Run ``plan.to_run``; ``on_done(task name, result)`` is called as each finishes."""
+def _ignore_start(name: str) -> None:
+    pass
+
+
+def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: Started = _ignore_start) -> dict[str, TaskResult]:
+    """Run ``plan.to_run``; ``on_start(task name)`` is called as each is handed to a worker (not on a
+    dask.distributed cluster) and ``on_done(task name, result)`` as each finishes."""
     tasks = build_tasks(plan, run_id)
     if not tasks:
         return {}
     if scheduler == "auto":
         scheduler = "processes" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
     if scheduler == "sync":
-        return _run_sync(tasks, on_done)
+        return _run_sync(tasks, on_done, on_start)
     if scheduler in ("threads", "processes"):
-        return _run_dask_local(tasks, scheduler, on_done)
+        return _run_dask_local(tasks, scheduler, on_done, on_start)
     if scheduler == "local-cluster" or scheduler.startswith("tcp://"):
         return _run_distributed(tasks, scheduler, on_done)
     raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
@@ -189,12 +214,13 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done) -> dict[str,
 _nodes_ran_in_process = False
 
 
-def _run_sync(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], on_done: Done) -> dict[str, TaskResult]:
+def _run_sync(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], on_done: Done, on_start: Started) -> dict[str, TaskResult]:
     global _nodes_ran_in_process
     _nodes_ran_in_process = True
     results: dict[str, TaskResult] = {}
     for name, (spec, args) in tasks.items():  # built in topological order
         refs = [results[a].ref if isinstance(a, str) else a for a in args]
+        on_start(name)
         results[name] = run_task(spec, *refs)
         on_done(name, results[name])
     return results
@@ -212,28 +238,38 @@ def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> d
     return {name: (_run_from_results, spec, *args) for name, (spec, args) in tasks.items()}
 
 
-def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done) -> dict[str, TaskResult]:
+def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done,
+                    on_start: Started) -> dict[str, TaskResult]:
+    import dask
     from dask.callbacks import Callback
 
     global _nodes_ran_in_process
-    if kind == "threads":
-        _nodes_ran_in_process = True
-        from dask.threaded import get
-    else:
-        from dask.multiprocessing import get
 
     class Progress(Callback):
+        def _pretask(self, key: Any, dsk: Any, state: Any) -> None:
+            on_start(key)
+
         def _posttask(self, key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
             on_done(key, result)
 
-    import dask
-
     names = list(tasks)
-    context = "fork" if kind == "processes" and _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
     # chunksize=1: one node instance per submission, so uneven branches balance across workers and
     # progress is reported per instance (dask's multiprocessing default batches 6 tasks at a time).
-    with Progress(), dask.config.set({"multiprocessing.context": context, "chunksize": 1}):
-        values = get(_dask_graph(tasks), names)
+    with Progress(), dask.config.set({"chunksize": 1}):
+        if kind == "threads":
+            _nodes_ran_in_process = True
+            from dask.threaded import get
+
+            values = get(_dask_graph(tasks), names)
+        else:
+            from dask.multiprocessing import get
+
+            from .pool import process_pool
+
+            context = "fork" if _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
+            store = Store(next(iter(tasks.values()))[0].cache_root)
+            with process_pool(os.cpu_count() or 1, context, store.drop_tmp_of) as pool:
+                values = get(_dask_graph(tasks), names, pool=pool)
     return dict(zip(names, values))
 
 

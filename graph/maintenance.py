@@ -1,7 +1,7 @@
 """The ``cache info|gc|clear`` commands.
 
 ``gc`` always removes temp dirs and scratch areas older than an hour (left by killed runs) and
-entries that fail validation. With pipelines given it drops the entries those pipelines do not use
+entries that fail validation (meta.json, file sizes and every file's sha256). With pipelines given it drops the entries those pipelines do not use
 (their current plans' keys are kept); with ``--older-than DAYS`` it drops entries not used (run or
 hit) for that many days; with both, an entry must be unused by the pipelines AND old to go.
 """
@@ -55,7 +55,7 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
     corrupt = dropped = freed = 0
     for key, folder in store.entries():
         try:
-            store.read_meta(folder, key)
+            store.verify(folder, key)
         except CorruptEntry:
             store.discard(folder)
             corrupt += 1

@@ -1,5 +1,8 @@
 """The output folder: sink files plus ``manifest.json``, replaced as a whole.
 
+``manifest.json`` is specified by ``graph/schemas/manifest.schema.json`` (format version
+:data:`MANIFEST_FORMAT_VERSION`, named in its ``format`` field).
+
 Everything is written into a temporary sibling folder (manifest.json last), then swapped in with
 renames, so the output folder is never seen half-written. Sinks of mapped nodes write under a
 sub-folder named after their branch (``target_edge_mm=2/mesh.ply``).
@@ -18,12 +21,15 @@ import time
 import uuid
 from typing import Any
 
+from . import interrupts
 from .app import current
 from .errors import UserError
 from .node import Files
-from .store import ArtifactRef
+from .store import DISK_ERRNOS, ArtifactRef, check_room, disk_problem
 
 MANIFEST = "manifest.json"
+MANIFEST_FORMAT_VERSION = 1
+"""Bump with graph/schemas/manifest.schema.json when the manifest's fields change."""
 ENGINE_VERSIONED = ("numpy", "pydantic", "dask", "distributed", "pyyaml")
 """Distributions the engine itself runs on; the app adds its own (:attr:`.app.App.versioned`)."""
 
@@ -45,16 +51,41 @@ def _safe_relpath(path: str, node: str) -> str:
     return norm
 
 
+OUT_FIX = "choose another --out"
+
+
+def check_out_dir(out_dir: str) -> None:
+    """Fail before anything runs when ``out_dir`` cannot become the output folder: it is a file, a
+    folder this app did not write, or its disk is read-only or full."""
+    out_dir = os.path.abspath(out_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise UserError(f"--out {out_dir} is a file, not a folder; {OUT_FIX} (a new folder or a previous output "
+                        "folder)")
+    if _foreign(out_dir):
+        raise UserError(f"--out {out_dir} exists and was not written by {current().name} (no {MANIFEST}); "
+                        "choose a new or empty folder")
+    check_room("--out", out_dir, OUT_FIX)
+
+
 def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
     """Write every sink's files and the manifest into ``out_dir``; return the manifest.
 
     ``refs`` maps ``id(instance)`` to the reference of its output; ``run`` holds per-run facts
-    (overrides, scheduler, per-instance status and seconds) copied into the manifest.
+    (overrides, scheduler, per-instance status and seconds) copied into the manifest. A damaged
+    sink entry raises :class:`.store.CorruptEntry` (the runner recomputes it); a full or read-only
+    disk is a one-line UserError, and ``out_dir`` is left as it was.
     """
     out_dir = os.path.abspath(out_dir)
-    if _foreign(out_dir):
-        raise UserError(f"--out {out_dir} exists and was not written by {current().name} (no {MANIFEST}); "
-                        "choose a new or empty folder")
+    check_out_dir(out_dir)
+    try:
+        return _write(plan, refs, out_dir, run)
+    except OSError as exc:
+        if exc.errno in DISK_ERRNOS:
+            raise disk_problem("--out", out_dir, exc, OUT_FIX) from None
+        raise
+
+
+def _write(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
     tmp = os.path.join(parent, f".{os.path.basename(out_dir)}.tmp-{uuid.uuid4().hex[:8]}")
@@ -79,7 +110,8 @@ def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: di
         manifest = _manifest(plan, refs, files, run)
         with open(os.path.join(tmp, MANIFEST), "w", encoding="utf-8") as f:
             json.dump(manifest, f, indent=1)
-        _swap(tmp, out_dir)
+        with interrupts.deferred():  # never stopped between moving the old folder away and the new one in
+            _swap(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return manifest
@@ -124,6 +156,18 @@ def _swap(tmp: str, out_dir: str) -> None:
         raise UserError(f"could not replace {out_dir}: other runs keep writing it")
 
 
+def created_time() -> float:
+    """Now, or ``$SOURCE_DATE_EPOCH`` when set (reproducible builds: https://reproducible-builds.org)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if not epoch:
+        return time.time()
+    try:
+        return float(int(epoch))
+    except ValueError:
+        raise UserError(f"SOURCE_DATE_EPOCH={epoch!r} is not a whole number of seconds since 1970; "
+                        "set it to e.g. $(git log -1 --format=%ct) or unset it") from None
+
+
 def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
     nodes = []
     for inst in plan.instances:
@@ -136,8 +180,8 @@ def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], ru
             "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
         })
     return {
-        "format": f"{current().name}.manifest/1",
-        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "format": f"{current().name}.manifest/{MANIFEST_FORMAT_VERSION}",
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(created_time())),
         "pipeline": {"path": os.path.abspath(plan.file), "sha256": plan.text_sha256},
         "overrides": plan.overrides,
         "scheduler": run["scheduler"],

@@ -56,16 +56,18 @@ class Document:
     data: Any
     marks: dict[Path, str]  # value locations
     key_marks: dict[Path, str]  # mapping-key locations (for "unknown key" errors)
+    via: dict[Path, str] = dataclasses.field(default_factory=dict)  # ${} sites filled from an -S override
 
     def where(self, path: Path, key: bool = False) -> str:
-        """Location of ``path`` (its key when ``key``), or of its nearest located ancestor."""
+        """Location of ``path`` (its key when ``key``), or of its nearest located ancestor; a value
+        that came from an ``-S`` override through ``${}`` names the override first."""
+        origin = next((self.via[path[:n]] for n in range(len(path), 0, -1) if path[:n] in self.via), None)
         if key and path in self.key_marks:
-            return self.key_marks[path]
-        while path:
-            if path in self.marks:
-                return self.marks[path]
-            path = path[:-1]
-        return self.marks.get((), f"{self.file}:1:1")
+            site = self.key_marks[path]
+        else:
+            site = next((self.marks[path[:n]] for n in range(len(path), 0, -1) if path[:n] in self.marks),
+                        self.marks.get((), f"{self.file}:1:1"))
+        return f"{origin} (used at {site})" if origin and origin != site else site
 
     def fail(self, path: Path, message: str, key: bool = False) -> PipelineError:
         return PipelineError(f"{self.where(path, key)}: {message}")
@@ -132,69 +134,6 @@ def load_document(file: str) -> Document:
     return doc
 
 
-# -- overrides ---------------------------------------------------------------------------------
-def apply_override(doc: Document, override: str) -> None:
-    """Apply ``-S PATH=VALUE`` to the document (VALUE parsed as YAML).
-
-    PATH is dotted into the document (``params.diagonal_mm``, ``nodes.remesh.params.target_edge_mm``,
-    list items by index); ``NODE.PARAM`` is short for ``nodes.NODE.params.PARAM`` and a bare
-    ``NAME`` for the pipeline param ``params.NAME``. Existing paths can
-    be replaced; new keys are accepted only inside a node's ``params`` (checked against the node
-    type later) and for a node's optional keys (``map``, ``cache``, ...).
-    """
-    where = f"-S {override}"
-    path_text, eq, raw = override.partition("=")
-    if not eq or not path_text:
-        raise UserError(f"{where}: expected PATH=VALUE, e.g. -S params.diagonal_mm=200")
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else None
-    except yaml.YAMLError as exc:
-        raise UserError(f"{where}: VALUE is not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    parts: list[str | int] = list(path_text.split("."))
-    nodes = doc.data["nodes"]
-    if parts[0] not in TOP_KEYS:
-        if parts[0] in nodes and len(parts) == 2:
-            parts = ["nodes", parts[0], "params", parts[1]]
-        elif parts[0] in doc.data["params"] and len(parts) == 1:
-            parts = ["params", parts[0]]
-        else:
-            choices = list(TOP_KEYS) + list(nodes) + list(doc.data["params"])
-            raise UserError(f"{where}: unknown path {path_text!r}{did_you_mean(str(parts[0]), choices)} "
-                            "(use NAME or params.NAME for pipeline params, NODE.PARAM or nodes.NODE.params.PARAM)")
-    cur: Any = doc.data
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        done = ".".join(map(str, parts[:i])) or "<top>"
-        if isinstance(cur, list):
-            try:
-                part = int(part)
-                cur[part]
-            except (ValueError, IndexError):
-                raise UserError(f"{where}: {done} is a list of {len(cur)} items; {part!r} is not an index") from None
-            parts[i] = part
-        elif isinstance(cur, dict):
-            if part not in cur:
-                in_params = len(parts) >= 3 and parts[0] == "nodes" and parts[2] == "params" and i >= 2
-                node_key = i == 2 and parts[0] == "nodes" and part in NODE_KEYS
-                if not (in_params or node_key):
-                    hint = did_you_mean(str(part), map(str, cur)) or f" (keys: {', '.join(map(str, cur)) or 'none'})"
-                    raise UserError(f"{where}: {done} has no key {part!r}{hint}")
-                if not last:
-                    cur[part] = {}
-        else:
-            raise UserError(f"{where}: {done} is a value, not a mapping or list")
-        if last:
-            cur[part] = value
-        else:
-            cur = cur[part]
-    prefix = tuple(parts)
-    for marks in (doc.marks, doc.key_marks):
-        for p in [p for p in marks if p[: len(prefix)] == prefix]:
-            del marks[p]
-    doc.marks[prefix] = where
-    doc.key_marks[prefix] = where
-
-
 # -- interpolation -----------------------------------------------------------------------------
 def interpolate(doc: Document, value: Any, path: Path) -> Any:
     """Replace ``${name}`` with pipeline params; a whole-string ``${name}`` keeps the value's type."""
@@ -204,6 +143,9 @@ def interpolate(doc: Document, value: Any, path: Path) -> Any:
         if name not in params:
             raise doc.fail(at, f"unknown pipeline param ${{{name}}}{did_you_mean(name, params)}"
                                f" (defined: {', '.join(params) or 'none'})")
+        origin = next((m for p, m in doc.marks.items() if p[:2] == ("params", name) and m.startswith("-S ")), None)
+        if origin:
+            doc.via[at] = origin
         return params[name]
 
     def walk(v: Any, at: Path) -> Any:
@@ -270,6 +212,8 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
 
     ``registry`` defaults to discovering the node types the file names.
     """
+    from .overrides import apply_override
+
     doc = load_document(file)
     overrides = list(overrides)
     for override in overrides:
@@ -280,68 +224,85 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
 
         types = [n["type"] for n in raw_nodes.values() if isinstance(n, dict) and isinstance(n.get("type"), str)]
         registry = discovery.load(types)
+    decls = {name: _declare(doc, name, body, registry) for name, body in raw_nodes.items()}
+    _resolve_references(doc, decls)
+    return Pipeline(doc, _toposort(doc, decls), overrides)
 
-    decls: dict[str, NodeDecl] = {}
-    for name, body in raw_nodes.items():
-        path: Path = ("nodes", name)
-        if not _NAME.match(name):
-            raise doc.fail(path, f"node name {name!r} must be letters, digits, '_' or '-'", key=True)
-        _expect(doc, path, body, dict, f"node {name!r}")
-        for key in body:
-            if key not in NODE_KEYS:
-                raise doc.fail(path + (key,), f"node {name!r}: unknown key {key!r}{did_you_mean(key, NODE_KEYS)}"
-                                              f" (allowed: {', '.join(NODE_KEYS)})", key=True)
-        if "type" not in body:
-            raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
-        type_name = body["type"]
-        if not isinstance(type_name, str) or type_name not in registry:
-            hint = did_you_mean(str(type_name), registry) or f" (list them with `{current().name} nodes`)"
-            raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
-        spec = registry[type_name]
-        fields = spec.params.model_fields
 
-        inputs_raw = _expect(doc, path + ("inputs",), body.get("inputs") or {}, dict, f"node {name!r}: inputs")
-        inputs: dict[str, InputRef] = {}
-        for input_name, ref_text in inputs_raw.items():
-            ipath = path + ("inputs", input_name)
-            if input_name not in spec.inputs:
-                allowed = ", ".join(spec.inputs) or "none"
-                raise doc.fail(ipath, f"node {name!r} ({type_name}): unknown input {input_name!r}"
-                                      f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
-            m = _REF.match(ref_text) if isinstance(ref_text, str) else None
-            if not m:
-                raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
-                                      f"or either with [*], got {ref_text!r}")
-            inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
-        for input_name in spec.inputs:
-            if input_name not in inputs:
-                raise doc.fail(path, f"node {name!r} ({type_name}): input {input_name!r} is not connected; "
-                                     f"add inputs: {{{input_name}: <node>}}", key=True)
+def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec]) -> NodeDecl:
+    """One node's declaration: its keys, type, inputs, params and map checked."""
+    path: Path = ("nodes", name)
+    if not _NAME.match(name):
+        raise doc.fail(path, f"node name {name!r} must be letters, digits, '_' or '-'", key=True)
+    _expect(doc, path, body, dict, f"node {name!r}")
+    for key in body:
+        if key not in NODE_KEYS:
+            raise doc.fail(path + (key,), f"node {name!r}: unknown key {key!r}{did_you_mean(key, NODE_KEYS)}"
+                                          f" (allowed: {', '.join(NODE_KEYS)})", key=True)
+    if "type" not in body:
+        raise doc.fail(path, f"node {name!r} has no 'type:'", key=True)
+    type_name = body["type"]
+    if not isinstance(type_name, str) or type_name not in registry:
+        hint = did_you_mean(str(type_name), registry) or f" (list them with `{current().name} nodes`)"
+        raise doc.fail(path + ("type",), f"node {name!r}: unknown node type {type_name!r}{hint}")
+    spec = registry[type_name]
+    inputs = _declare_inputs(doc, name, spec, body.get("inputs"))
+    params = interpolate(doc, _expect(doc, path + ("params",), body.get("params") or {}, dict,
+                                      f"node {name!r}: params"), path + ("params",))
+    mapped = _declare_map(doc, name, spec, params, body.get("map"))
+    cache = body.get("cache", "default")
+    if cache not in CACHE_MODES:
+        raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
+                                          f"{did_you_mean(str(cache), CACHE_MODES)}")
+    return NodeDecl(name, spec, inputs, params, mapped, cache, path)
 
-        params = interpolate(doc, _expect(doc, path + ("params",), body.get("params") or {}, dict,
-                                          f"node {name!r}: params"), path + ("params",))
-        map_raw = _expect(doc, path + ("map",), body.get("map") or {}, dict, f"node {name!r}: map")
-        mapped: dict[str, list[Any]] = {}
-        for key, values in map_raw.items():
-            mpath = path + ("map", key)
-            if key not in fields:
-                raise doc.fail(mpath, f"node {name!r} ({type_name}): cannot map over unknown param {key!r}"
-                                      f"{did_you_mean(key, fields)}", key=True)
-            if key in params:
-                raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
-                                      "keep one", key=True)
-            values = interpolate(doc, values, mpath)
-            if not isinstance(values, list) or not values:
-                raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
-                                      f"got {values!r}")
-            mapped[key] = values
-        cache = body.get("cache", "default")
-        if cache not in CACHE_MODES:
-            raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
-                                              f"{did_you_mean(str(cache), CACHE_MODES)}")
-        decls[name] = NodeDecl(name, spec, inputs, params, mapped, cache, path)
 
-    for decl in decls.values():  # references
+def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, InputRef]:
+    path: Path = ("nodes", name)
+    inputs_raw = _expect(doc, path + ("inputs",), raw or {}, dict, f"node {name!r}: inputs")
+    inputs: dict[str, InputRef] = {}
+    for input_name, ref_text in inputs_raw.items():
+        ipath = path + ("inputs", input_name)
+        if input_name not in spec.inputs:
+            allowed = ", ".join(spec.inputs) or "none"
+            raise doc.fail(ipath, f"node {name!r} ({spec.name}): unknown input {input_name!r}"
+                                  f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
+        m = _REF.match(ref_text) if isinstance(ref_text, str) else None
+        if not m:
+            raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
+                                  f"or either with [*], got {ref_text!r}")
+        inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
+    for input_name in spec.inputs:
+        if input_name not in inputs:
+            raise doc.fail(path, f"node {name!r} ({spec.name}): input {input_name!r} is not connected; "
+                                 f"add inputs: {{{input_name}: <node>}}", key=True)
+    return inputs
+
+
+def _declare_map(doc: Document, name: str, spec: NodeSpec, params: dict[str, Any], raw: Any) -> dict[str, list[Any]]:
+    path: Path = ("nodes", name)
+    fields = spec.params.model_fields
+    map_raw = _expect(doc, path + ("map",), raw or {}, dict, f"node {name!r}: map")
+    mapped: dict[str, list[Any]] = {}
+    for key, values in map_raw.items():
+        mpath = path + ("map", key)
+        if key not in fields:
+            raise doc.fail(mpath, f"node {name!r} ({spec.name}): cannot map over unknown param {key!r}"
+                                  f"{did_you_mean(key, fields)}", key=True)
+        if key in params:
+            raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
+                                  "keep one", key=True)
+        values = interpolate(doc, values, mpath)
+        if not isinstance(values, list) or not values:
+            raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
+                                  f"got {values!r}")
+        mapped[key] = values
+    return mapped
+
+
+def _resolve_references(doc: Document, decls: dict[str, NodeDecl]) -> None:
+    """Check every input names an existing node and output; fill in the output of one-output nodes."""
+    for decl in decls.values():
         for input_name, ref in decl.inputs.items():
             if ref.node not in decls:
                 raise doc.fail(ref.path, f"node {decl.name!r}: input {input_name!r} refers to unknown node "
@@ -355,7 +316,6 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
                     raise doc.fail(ref.path, f"node {ref.node!r} has outputs {', '.join(outputs)}; "
                                              f"write {ref.node}.<output>")
                 decl.inputs[input_name] = dataclasses.replace(ref, output=outputs[0])
-    return Pipeline(doc, _toposort(doc, decls), overrides)
 
 
 def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:

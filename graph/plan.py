@@ -121,6 +121,8 @@ def _validate(pipeline: Pipeline, decl: NodeDecl, raw: dict[str, Any], mapped_in
         path = decl.path + ("map", field, mapped_index[field])
     else:
         path = decl.path + ("params",) + tuple(loc)
+    if not field:  # a model validator, about the params together
+        raise doc.fail(path, f"{what}: params: {err['msg']}")
     got = f" (got {err['input']!r})" if "input" in err else ""
     raise doc.fail(path, f"{what}: param {field!r}: {err['msg']}{got}")
 
@@ -186,6 +188,26 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     plan = Plan(pipeline, ordered, store)
     _decide(plan)
     return plan
+
+
+def restrict(plan: Plan, targets: list[str]) -> Plan:
+    """The plan of only ``targets`` (pipeline node names; every branch) and what they need; only
+    the sinks among them write into the output folder."""
+    nodes = plan.pipeline.nodes
+    for target in targets:
+        if target not in nodes:
+            raise UserError(f"--target {target!r}: no such node{did_you_mean(target, nodes)} "
+                            f"(nodes: {', '.join(nodes)})")
+    keep: set[int] = set()
+    for inst in reversed(plan.instances):
+        if inst.node in targets or id(inst) in keep:
+            keep.add(id(inst))
+            keep.update(id(u) for ups in inst.inputs.values() for u, _ in ups)
+    chosen = Plan(plan.pipeline, [i for i in plan.instances if id(i) in keep], plan.store)
+    for inst in chosen.instances:
+        inst.runs, inst.reason, inst.cached = False, "", None
+    _decide(chosen)
+    return chosen
 
 
 def _decide(plan: Plan) -> None:

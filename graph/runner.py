@@ -9,8 +9,9 @@ import uuid
 from typing import Any, Callable
 
 from . import plan as planning
+from .app import current
 from .errors import UserError
-from .store import Store, default_cache_dir
+from .store import CorruptEntry, Store, check_room, default_cache_dir
 
 
 @dataclasses.dataclass
@@ -20,6 +21,7 @@ class RunResult:
     manifest: dict[str, Any]
     out_dir: str
     seconds: float
+    repaired: list[str] = dataclasses.field(default_factory=list)  # damaged cache entries found and recomputed
 
     def ran(self) -> list[str]:
         """Ids (``node`` or ``node[branch]``) of the instances that actually ran."""
@@ -37,10 +39,27 @@ def check_scheduler(scheduler: str) -> None:
         raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
 
 
-def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str | None = None) -> planning.Plan:
+def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str | None = None,
+              targets: list[str] | None = None) -> planning.Plan:
+    """The full plan, or with ``targets`` only those nodes and what they need (see :func:`.plan.restrict`)."""
     from .pipeline import load_pipeline
 
-    return planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
+    plan = planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
+    return planning.restrict(plan, targets) if targets else plan
+
+
+DAMAGED_RETRIES = 3
+"""How many times a run re-plans after finding damaged cache entries before giving up."""
+
+
+def preflight(out_dir: str, store: Store) -> None:
+    """The checks that can fail cheaply, done before any node runs: the output folder can be
+    written, the cache disk has room, ``SOURCE_DATE_EPOCH`` (if set) is usable."""
+    from .outputs import check_out_dir, created_time
+
+    check_out_dir(out_dir)
+    check_room("cache", store.root, "pass --cache-dir on another disk")
+    created_time()
 
 
 def run_pipeline(
@@ -53,49 +72,78 @@ def run_pipeline(
     explain: bool = False,
     on_plan: Callable[[planning.Plan], None] | None = None,
     progress: Callable[[int], Any] | None = None,
+    targets: list[str] | None = None,
 ) -> RunResult:
     """Plan, run what is missing, write the output folder; see :mod:`.execute`.
 
     ``on_plan`` sees the plan before anything runs (the CLI prints ``--explain`` there);
-    ``progress(total)`` returns a context manager yielding ``advance(instance id)``.
+    ``progress(total)`` returns a context manager yielding an object with ``start(instance id)``
+    and ``done(instance id)``. A cache entry found damaged on the way (its sha256 no longer matches)
+    is discarded, and the run re-plans and recomputes it (listed in ``RunResult.repaired``).
+    ``targets``: run only these nodes and what they need (their sinks alone fill the output folder).
     """
     from . import snapshot
-    from .execute import execute, task_name
-    from .outputs import write_outputs
 
     check_scheduler(scheduler)
     start = time.perf_counter()
     overrides = list(overrides or [])
     store = Store(cache_dir or default_cache_dir())
-    plan = snapshot.load(pipeline, overrides, store)
-    if plan is None:
-        plan = make_plan(pipeline, overrides, store.root)
     out_dir = out_dir or default_out_dir(pipeline)
+    targets = list(targets or [])
+    plan = None if targets else snapshot.load(pipeline, overrides, store)
+    if plan is None:
+        plan = make_plan(pipeline, overrides, store.root, targets)
+    preflight(out_dir, store)
     if explain and isinstance(plan, planning.Plan):
         planning.explain(plan)
     if on_plan:
         on_plan(plan)
-    by_task = {task_name(i): i for i in plan.to_run}
-    status: dict[int, dict[str, Any]] = {}
-    run_id = uuid.uuid4().hex
-    bar = progress(len(by_task)) if progress else contextlib.nullcontext(lambda label: None)
-    try:
-        with bar as advance:
-            def on_done(name: str, result: Any) -> None:
-                inst = by_task[name]
-                status[id(inst)] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds}
-                advance(inst.id)
-
-            results = execute(plan, scheduler, run_id, on_done)
-        refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
-        refs.update({id(by_task[name]): result.ref for name, result in results.items()})
-        manifest = write_outputs(plan, refs, out_dir, {"status": status, "scheduler": scheduler})
-    finally:
-        plan.store.drop_scratch(run_id)
-    if isinstance(plan, planning.Plan):
+    status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans
+    repaired: list[str] = []
+    for attempt in range(DAMAGED_RETRIES + 1):
+        try:
+            manifest = _execute_and_write(plan, scheduler, out_dir, status, progress)
+            break
+        except CorruptEntry as exc:
+            if attempt == DAMAGED_RETRIES:
+                raise UserError(f"cache {store.root}: entries keep failing their sha256 check ({exc}); check the "
+                                f"disk, or start afresh with `{current().name} cache clear`") from None
+            repaired.append(str(exc))
+            plan = make_plan(pipeline, overrides, store.root, targets)  # the damaged entry is a miss now
+    if isinstance(plan, planning.Plan) and not targets:  # a partial plan would overwrite the full records
         planning.record_run(plan)
         snapshot.save(plan, overrides)
     for inst in plan.instances:
         if inst.cached is not None:
             plan.store.touch(inst.cached)
-    return RunResult(plan, status, manifest, os.path.abspath(out_dir), time.perf_counter() - start)
+    by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
+    return RunResult(plan, by_instance, manifest, os.path.abspath(out_dir), time.perf_counter() - start, repaired)
+
+
+def _execute_and_write(plan: Any, scheduler: str, out_dir: str, status: dict[str, dict[str, Any]],
+                       progress: Callable[[int], Any] | None) -> dict[str, Any]:
+    from .execute import execute, task_name
+    from .outputs import write_outputs
+
+    by_task = {task_name(i): i for i in plan.to_run}
+    run_id = uuid.uuid4().hex
+    bar = progress(len(by_task)) if progress else contextlib.nullcontext(None)
+    try:
+        with bar as events:
+            def on_done(name: str, result: Any) -> None:
+                inst = by_task[name]
+                status[inst.id] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds}
+                if events is not None:
+                    events.done(inst.id)
+
+            def on_start(name: str) -> None:
+                if events is not None:
+                    events.start(by_task[name].id)
+
+            results = execute(plan, scheduler, run_id, on_done, on_start)
+        refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
+        refs.update({id(by_task[name]): result.ref for name, result in results.items()})
+        by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
+        return write_outputs(plan, refs, out_dir, {"status": by_instance, "scheduler": scheduler})
+    finally:
+        plan.store.drop_scratch(run_id)

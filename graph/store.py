@@ -3,7 +3,7 @@
 Layout under the cache dir::
 
     objects/<key[:2]>/<key>/   meta.json + the artifact files (see artifacts.py)
-    tmp/<uuid>/                entries being written; renamed into objects/ when complete
+    tmp/<pid>-<uuid>/          entries being written by process pid; renamed into objects/ when complete
     scratch/<run-id>/<key>/    outputs of ``cache: disable`` nodes, deleted after the run
     locks/<key[:2]>/<key>.lock per-key file locks (two runs sharing a cache compute a key once)
     runs/<pipeline-id>.json    what each node of a pipeline last ran with (for ``--explain``)
@@ -31,10 +31,43 @@ from typing import Any
 
 from . import artifacts
 from .app import current
+from .errors import UserError
 from .hashing import file_sha256
 
 META = "meta.json"
 META_FORMAT = "graph.artifact/1"
+MIN_FREE_BYTES = 64 << 20
+"""A run does not start when the cache or the output disk has less room than this."""
+DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+"""Write errors the operator can fix (room, permissions), reported in one line instead of a traceback."""
+
+
+def disk_problem(what: str, path: str, exc: OSError, fix: str) -> UserError:
+    """The one-line error for a write to ``path`` that failed with one of :data:`DISK_ERRNOS`."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return UserError(f"{what} {path}: no space left on the device; free some space or {fix}")
+    return UserError(f"{what} {path} is not writable ({exc.strerror}); {fix}")
+
+
+def check_room(what: str, path: str, fix: str, min_free: int = MIN_FREE_BYTES) -> None:
+    """Fail early when ``path`` (or its nearest existing parent) cannot take a write: read-only,
+    not a folder, or under ``min_free`` bytes free."""
+    probe = os.path.abspath(path)
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        raise UserError(f"{what} {path}: {probe} is a file, not a folder; name a folder there or {fix}")
+    test_dir = os.path.join(probe, f".write-test-{uuid.uuid4().hex[:8]}")
+    try:
+        os.mkdir(test_dir)
+        os.rmdir(test_dir)
+        stats = os.statvfs(probe)
+    except OSError as exc:
+        raise disk_problem(what, path, exc, fix) from None
+    free = stats.f_bavail * stats.f_frsize
+    if free < min_free:
+        raise UserError(f"{what} {path}: only {free / 1e6:.1f} MB free on its disk (at least {min_free / 1e6:.0f} MB "
+                        f"needed); free some space or {fix}")
 
 
 def default_cache_dir() -> str:
@@ -53,7 +86,7 @@ class ArtifactRef:
 
 
 class CorruptEntry(Exception):
-    """A stored entry failed validation."""
+    """A stored entry failed validation (it is never used; the run recomputes it)."""
 
 
 class Store:
@@ -73,9 +106,17 @@ class Store:
         return os.path.join(self.root, "locks", key[:2], key + ".lock")
 
     def _new_tmp(self) -> str:
-        path = os.path.join(self.root, "tmp", uuid.uuid4().hex)
+        path = os.path.join(self.root, "tmp", f"{os.getpid()}-{uuid.uuid4().hex}")
         os.makedirs(path)
         return path
+
+    def drop_tmp_of(self, pids: list[int]) -> None:
+        """Remove the temp folders of (killed) writer processes ``pids``."""
+        root = os.path.join(self.root, "tmp")
+        prefixes = tuple(f"{pid}-" for pid in pids)
+        for name in os.listdir(root) if os.path.isdir(root) and prefixes else []:
+            if name.startswith(prefixes):
+                shutil.rmtree(os.path.join(root, name), ignore_errors=True)
 
     # -- reading ------------------------------------------------------------------------------
     def read_meta(self, folder: str, key: str) -> dict[str, Any]:
@@ -108,13 +149,22 @@ class Store:
             return None
         return ArtifactRef(key, folder, meta["content_sha256"], meta.get("seconds", 0.0))
 
-    def load(self, ref: ArtifactRef) -> Any:
-        """The stored value; every file's sha256 is checked first."""
-        meta = self.read_meta(ref.path, ref.key)
+    def verify(self, folder: str, key: str) -> dict[str, Any]:
+        """meta.json of an entry after the full check: :meth:`read_meta` and every file's sha256."""
+        meta = self.read_meta(folder, key)
         for name, info in meta["files"].items():
-            if file_sha256(os.path.join(ref.path, name)) != info["sha256"]:
-                self.discard(ref.path)
-                raise CorruptEntry(f"{ref.path}: {name} does not match its recorded sha256")
+            if file_sha256(os.path.join(folder, name)) != info["sha256"]:
+                raise CorruptEntry(f"{folder}: {name} does not match its recorded sha256")
+        return meta
+
+    def load(self, ref: ArtifactRef) -> Any:
+        """The stored value; every file's sha256 is checked first (a damaged entry is discarded
+        and :class:`CorruptEntry` raised: the caller recomputes it)."""
+        try:
+            self.verify(ref.path, ref.key)
+        except CorruptEntry:
+            self.discard(ref.path)
+            raise
         return artifacts.decode(ref.path)
 
     def touch(self, ref: ArtifactRef) -> None:
@@ -129,7 +179,16 @@ class Store:
         """Store ``value`` under ``key`` atomically and return its reference.
 
         ``scratch_run`` stores into the run's scratch area instead of the cache (``cache: disable``).
+        A full or read-only cache disk is a :class:`.errors.UserError`.
         """
+        try:
+            return self._write(key, value, info, scratch_run)
+        except OSError as exc:
+            if exc.errno in DISK_ERRNOS:
+                raise disk_problem("cache", self.root, exc, "pass --cache-dir on another disk") from None
+            raise
+
+    def _write(self, key: str, value: Any, info: dict[str, Any], scratch_run: str | None) -> ArtifactRef:
         tmp = self._new_tmp()
         try:
             names = artifacts.encode(value, tmp)

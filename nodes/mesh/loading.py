@@ -74,6 +74,8 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     is connected. Raises :class:`UserError` naming the file and the fix for anything unreadable.
     """
     fix = "export it again as a binary PLY, OBJ, STL, OFF or GLB triangle mesh"
+    if path.is_dir():
+        raise UserError(f"mesh file {path} is a folder: name a mesh file in it (or use builtin:bunny)")
     if not path.is_file():
         raise UserError(f"mesh file {path} does not exist: check the path (or use builtin:bunny)")
     if path.stat().st_size == 0:

@@ -9,7 +9,7 @@ import json
 import time
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.node import Files, NodeParams, node
@@ -75,3 +75,30 @@ def fail(params: FailParams, x: np.ndarray) -> np.ndarray:
     if params.kind == "user":
         raise UserError("the input is unusable; pick another one")
     return x * (1 // 0)  # a genuine bug: ZeroDivisionError
+
+
+class BlobParams(NodeParams):
+    megabytes: float = Field(1.0, gt=0, description="size of the file written (MB)")
+
+
+@node("t.blob", params=BlobParams, outputs=("files",), sink=True)
+def blob(params: BlobParams) -> Files:
+    """A file of zero bytes of the given size (for full-disk tests)."""
+    return Files({"blob.bin": bytes(int(params.megabytes * 1e6))})
+
+
+class RangeParams(NodeParams):
+    low: float = Field(0.0, description="lower bound")
+    high: float = Field(1.0, description="upper bound")
+
+    @model_validator(mode="after")
+    def ordered(self) -> "RangeParams":
+        if self.high <= self.low:
+            raise ValueError("high must be above low")
+        return self
+
+
+@node("t.range", params=RangeParams, outputs=("values",))
+def value_range(params: RangeParams) -> np.ndarray:
+    """low and high (a params model with a validator over two fields)."""
+    return np.array([params.low, params.high])

@@ -1,0 +1,82 @@
+"""Ctrl-C and SIGTERM: one clean stop, wherever the run is.
+
+:func:`install` (called first thing by the entry point) turns the first SIGINT or SIGTERM into an
+:class:`Interrupted` exception and ignores any further one, so the ``finally`` blocks that remove
+temp folders and stop worker processes run to the end. :class:`Interrupted` derives from
+``BaseException`` (not ``KeyboardInterrupt``), so no library on the way up (click, dask) reports
+or swallows it; the command line prints one ``interrupted`` line and exits 130 (143 for SIGTERM).
+Inside :func:`deferred` a signal is held until the block ends (for steps that must not be cut in
+half, such as swapping the output folder).
+"""
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from typing import Iterator
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Interrupted(BaseException):
+    """The operator stopped the run (Ctrl-C or SIGTERM)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+_depth = 0
+_pending: int | None = None
+
+
+def _handler(signum: int, frame: object) -> None:
+    global _pending
+    ignore()
+    if _depth:
+        _pending = signum
+        return
+    raise Interrupted(signum)
+
+
+def install() -> dict[int, object]:
+    """Handle SIGINT/SIGTERM as described in the module docstring (main thread only); returns the
+    previous handlers, for :func:`restore`."""
+    previous: dict[int, object] = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in SIGNALS:
+            previous[signum] = signal.signal(signum, _handler)
+    return previous
+
+
+def restore(previous: dict[int, object]) -> None:
+    """Put back the handlers :func:`install` replaced."""
+    global _pending
+    _pending = None
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)  # type: ignore[arg-type]
+
+
+def ignore() -> None:
+    """Ignore SIGINT/SIGTERM from now on (once stopping, or once the command is done)."""
+    if threading.current_thread() is threading.main_thread():
+        for signum in SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold an interruption until the block has finished, then raise it."""
+    global _depth, _pending
+    _depth += 1
+    try:
+        yield
+    finally:
+        _depth -= 1
+        if _depth == 0 and _pending is not None:
+            signum, _pending = _pending, None
+            raise Interrupted(signum)
