@@ -12,8 +12,7 @@ Files written (``<name>`` from ``Params.name`` or the mesh source):
 * ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png``,
 * ``projection/<name>_scene.npz`` -- the curves, normals and crossings the projector renderer and
   ``retrotouch project`` read, plus the atlas and one projector texture per layer (black
-  background, white curves) for the textured route (see
-  :class:`retrotouch.nodes.projection.render.ProjectionScene`).
+  background, white curves) for the textured route (format: :mod:`retrotouch.nodes.data.scene`).
 
 UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size.
 """
@@ -28,7 +27,9 @@ from pydantic import Field, field_validator
 
 from ...graph.errors import UserError
 from ...graph.node import Files, NodeParams, node
+from ..data.scene import build_scene, save_scene
 from ..data.types import CurveSet, Layout, Mesh
+from ..geometry.triangles import areas, corners
 
 # Heavy libraries (cv2, trimesh, xatlas, PIL) are imported inside the functions: node modules must
 # import cheaply (the engine imports them to discover node types).
@@ -106,8 +107,7 @@ def build_atlas(mesh: Mesh, texture_px: int, padding_px: int) -> Atlas:
 
 def texels_per_mm(mesh: Mesh, atlas: Atlas, texture_px: int) -> float:
     """Mean texel density: sqrt(UV area in px^2 / surface area in mm^2)."""
-    tri = mesh.vertices[mesh.faces]
-    area_3d = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    area_3d = areas(corners(mesh.vertices, mesh.faces)).sum()
     t = atlas.uv[atlas.faces] * texture_px
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area_uv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
@@ -214,8 +214,6 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
     import cv2
     import trimesh
     from PIL import Image
-
-    from .render import build_scene, save_scene
 
     check_layout_on_mesh(mesh, layout)
     stem = params.name or name_from_source(mesh.source)
