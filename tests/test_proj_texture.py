@@ -49,7 +49,7 @@ def test_exports_load_with_the_texture(baked):
     mesh, _, params, files, out = baked
     glb = trimesh.load(io.BytesIO(files.contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh")
     assert glb.visual.material.baseColorTexture.size == (params.texture_px, params.texture_px)
-    assert np.isclose(glb.area, trimesh.Trimesh(mesh.vertices, mesh.faces).area)
+    assert np.isclose(glb.area * 1e6, trimesh.Trimesh(mesh.vertices, mesh.faces).area)  # GLB in metres
     obj = trimesh.load(out / "projection/bunny_layout.obj", force="mesh")
     assert obj.visual.material.image.size == (params.texture_px, params.texture_px)
     assert len(obj.faces) == len(mesh.faces)
