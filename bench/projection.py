@@ -30,19 +30,14 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # synthetic scenes live with the tests
 
-from proj_fixtures import bunny_layout, bunny_mm, calibrate_synthetic  # noqa: E402
-from retrotouch.nodes.projection.tracking import DepthTracker, SyntheticDepthSource, demo_trajectory, pose_error  # noqa: E402
-from retrotouch.nodes.projection.calibration import demo_rig  # noqa: E402
-from retrotouch.nodes.projection.render import (  # noqa: E402
-    RenderStyle,
-    build_scene,
-    landing_points,
-    project_points,
-    rasterize_depth,
-    render_layers,
-    transform_points,
-    visible_points,
-)
+from proj_fixtures import bunny_layout, bunny_mm, calibrate_synthetic, demo_rig, landing_points  # noqa: E402
+from retrotouch.nodes.data.scene import build_scene  # noqa: E402
+from retrotouch.nodes.projection.camera import project_points, transform_points  # noqa: E402
+from retrotouch.nodes.projection.depth_frames import SyntheticDepthSource, demo_trajectory  # noqa: E402
+from retrotouch.nodes.projection.raster import rasterize_depth  # noqa: E402
+from retrotouch.nodes.projection.render import RenderStyle, render_layers, visible_points  # noqa: E402
+from retrotouch.nodes.projection.tracking import DepthTracker, pose_error  # noqa: E402
+
 
 FRAMES = 90
 CROSSING_EVERY = 10

@@ -11,18 +11,8 @@ import pytest
 import trimesh
 
 from retrotouch.nodes.data.types import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
-from retrotouch.nodes.preview.render import (
-    RX_RGB,
-    TX_RGB,
-    CROSSING_RGB,
-    PreviewParams,
-    camera,
-    face_colours,
-    render_preview,
-    render_layout_preview,
-    render_view,
-    segments,
-)
+from retrotouch.nodes.preview.render import PreviewParams, render_layout_preview, render_preview
+from retrotouch.nodes.preview.views import CROSSING_RGB, RX_RGB, TX_RGB, camera, face_colours, render_view, segments
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 RADIUS = 40.0

@@ -7,27 +7,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from proj_fixtures import BOARD, bunny_layout, bunny_mm, calibrate_synthetic
+from proj_fixtures import BOARD, bunny_layout, bunny_mm, calibrate_synthetic, demo_rig, landing_points
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.projection.tracking import DepthTracker, SyntheticDepthSource, demo_trajectory
-from retrotouch.nodes.projection.calibration import (
-    checkerboard_image,
-    decode_gray_code,
-    demo_rig,
-    find_board_corners,
-    gray_code_patterns,
-    load_calibration,
-    save_calibration,
-)
-from retrotouch.nodes.projection.render import (
-    RenderStyle,
-    build_scene,
-    landing_points,
-    project_points,
-    rasterize_depth,
-    transform_points,
-    visible_points,
-)
+from retrotouch.nodes.data.scene import build_scene
+from retrotouch.nodes.projection.calibration import load_calibration, save_calibration
+from retrotouch.nodes.projection.camera import project_points, transform_points
+from retrotouch.nodes.projection.depth_frames import SyntheticDepthSource, demo_trajectory
+from retrotouch.nodes.projection.raster import rasterize_depth
+from retrotouch.nodes.projection.render import RenderStyle, visible_points
+from retrotouch.nodes.projection.structured_light import checkerboard_image, decode_gray_code, find_board_corners, gray_code_patterns
+from retrotouch.nodes.projection.tracking import DepthTracker
 
 
 @pytest.fixture(scope="module")

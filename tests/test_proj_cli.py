@@ -7,16 +7,11 @@ import cv2
 import numpy as np
 import pytest
 
-from proj_fixtures import BOARD, board_poses, bunny_layout, bunny_mm
-from retrotouch.nodes.projection.tracking import SyntheticDepthSource, demo_trajectory, write_depth_png
-from retrotouch.nodes.projection.calibration import (
-    BoardCaptureSimulator,
-    demo_rig,
-    gray_code_patterns,
-    load_calibration,
-    save_calibration,
-)
-from retrotouch.nodes.projection.render import build_scene, save_scene
+from proj_fixtures import BOARD, BoardCaptureSimulator, board_poses, bunny_layout, bunny_mm, demo_rig, write_depth_png
+from retrotouch.nodes.data.scene import build_scene, save_scene
+from retrotouch.nodes.projection.calibration import load_calibration, save_calibration
+from retrotouch.nodes.projection.depth_frames import SyntheticDepthSource, demo_trajectory
+from retrotouch.nodes.projection.structured_light import gray_code_patterns
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,10 @@ import cv2
 import numpy as np
 import trimesh
 
-from retrotouch.nodes.projection.calibration import DeviceIntrinsics
-from retrotouch.nodes.projection.render import ProjectionScene, project_points, rasterize_depth, render_layers, render_textured
+from retrotouch.nodes.data.scene import ProjectionScene
+from retrotouch.nodes.projection.camera import DeviceIntrinsics, project_points
+from retrotouch.nodes.projection.raster import rasterize_depth, render_textured
+from retrotouch.nodes.projection.render import render_layers
 
 K = np.array([[800.0, 0.0, 330.0], [0.0, 790.0, 236.0], [0.0, 0.0, 1.0]])
 PROJECTOR = DeviceIntrinsics(K, np.array([0.02, 0.0, 0.0, 0.0, 0.0]), 640, 480)

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from proj_fixtures import bunny_layout, bunny_mm
+from proj_fixtures import bunny_layout, bunny_mm, demo_rig
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.projection.tracking import demo_trajectory
-from retrotouch.nodes.projection.calibration import demo_rig
-from retrotouch.nodes.projection.render import RenderStyle, load_scene, render_layers, render_textured
+from retrotouch.nodes.data.scene import load_scene
+from retrotouch.nodes.projection.depth_frames import demo_trajectory
+from retrotouch.nodes.projection.raster import render_textured
+from retrotouch.nodes.projection.render import RenderStyle, render_layers
 from retrotouch.nodes.projection.textures import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
 
 
@@ -48,7 +49,7 @@ def test_exports_load_with_the_texture(baked):
     mesh, _, params, files, out = baked
     glb = trimesh.load(io.BytesIO(files.contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh")
     assert glb.visual.material.baseColorTexture.size == (params.texture_px, params.texture_px)
-    assert np.isclose(glb.area, trimesh.Trimesh(mesh.vertices, mesh.faces).area)
+    assert np.isclose(glb.area * 1e6, trimesh.Trimesh(mesh.vertices, mesh.faces).area)  # GLB in metres
     obj = trimesh.load(out / "projection/bunny_layout.obj", force="mesh")
     assert obj.visual.material.image.size == (params.texture_px, params.texture_px)
     assert len(obj.faces) == len(mesh.faces)
@@ -125,3 +126,18 @@ def test_layout_without_rx_curves_or_cells(baked, tmp_path):
     assert red_tx.sum() > 100 and blue_rx.sum() == 0
     (tmp_path / "scene.npz").write_bytes(files.contents["projection/bunny_scene.npz"])
     assert load_scene(tmp_path / "scene.npz").layer_points[1].shape == (0, 3)
+
+
+def test_textures_code_version_leaves_out_the_projector_runtime():
+    """Editing calibration, rendering or tracking code must not rerun the projection.textures sink."""
+    from retrotouch.graph.codeversion import module_hash
+
+    seen, todo = set(), ["retrotouch.nodes.projection.textures"]
+    while todo:
+        name = todo.pop()
+        if name not in seen:
+            seen.add(name)
+            todo.extend(module_hash(name)[1])
+    runtime = {m for m in seen if m.startswith("retrotouch.nodes.projection.")} - {"retrotouch.nodes.projection.textures"}
+    assert runtime == set()
+    assert "retrotouch.nodes.data.scene" in seen

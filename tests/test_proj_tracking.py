@@ -5,25 +5,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from proj_fixtures import bunny_mm
+from proj_fixtures import bunny_mm, write_depth_png
 from retrotouch.graph.errors import UserError
+from retrotouch.nodes.data.types import Mesh
+from retrotouch.nodes.projection.camera import DeviceIntrinsics
+from retrotouch.nodes.projection.depth_frames import DepthFolderSource, DepthFrame, SyntheticDepthSource, demo_trajectory, render_depth
+from retrotouch.nodes.projection.smoothing import PoseSmoother
 from retrotouch.nodes.projection.tracking import (
-    DepthFolderSource,
+    DepthTracker,
     ModelSurface,
     TrackerSettings,
     backproject,
     global_registration,
-    DepthFrame,
-    DepthTracker,
-    PoseSmoother,
-    SyntheticDepthSource,
-    demo_trajectory,
     pose_error,
-    render_depth,
-    write_depth_png,
 )
-from retrotouch.nodes.data.types import Mesh
-from retrotouch.nodes.projection.calibration import DeviceIntrinsics
 
 
 @pytest.fixture(scope="module")

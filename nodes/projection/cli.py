@@ -38,25 +38,13 @@ import typer
 
 from ...graph.errors import UserError
 from ..data.types import Mesh
-from .tracking import (
-    DepthFolderSource,
-    DepthTracker,
-    FrameSource,
-    SyntheticDepthSource,
-    demo_trajectory,
-    pose_error,
-)
-from .calibration import (
-    BoardCapture,
-    BoardSpec,
-    ProCamCalibration,
-    calibrate_procam,
-    checkerboard_image,
-    gray_code_patterns,
-    load_calibration,
-    save_calibration,
-)
-from .render import ProjectionScene, load_scene, render_layers, render_textured
+from ..data.scene import ProjectionScene, load_scene
+from .calibration import BoardCapture, ProCamCalibration, calibrate_procam, load_calibration, save_calibration
+from .depth_frames import DepthFolderSource, FrameSource, SyntheticDepthSource, demo_trajectory
+from .raster import render_textured
+from .render import render_layers
+from .structured_light import BoardSpec, checkerboard_image, gray_code_patterns
+from .tracking import DepthTracker, TrackResult, pose_error
 
 
 def find_scene_file(layout: Path) -> Path:
@@ -96,6 +84,34 @@ def make_source(
     return SyntheticDepthSource(mesh, calibration.camera, poses, noise_mm=noise_mm, fps=fps), poses
 
 
+def projector_images(
+    scene: ProjectionScene, cal: ProCamCalibration, T_cam_obj: Optional[np.ndarray], mode: str
+) -> dict[str, np.ndarray]:
+    """One projector image per layer for the object at ``T_cam_obj`` (all black while it is not found)."""
+    proj = cal.projector
+    if T_cam_obj is None:
+        blank = np.zeros((proj.height, proj.width, 3), np.uint8)
+        return {n: blank for n in scene.layer_names}
+    T_proj_obj = cal.T_proj_cam @ T_cam_obj
+    if mode == "texture":
+        return {n: render_textured(scene, i, T_proj_obj, proj) for i, n in enumerate(scene.layer_names)}
+    return render_layers(scene, T_proj_obj, proj)
+
+
+def frame_record(index: int, result: TrackResult, T_true: Optional[np.ndarray]) -> dict:
+    """The ``track.json`` entry of one frame (with the pose error when the true pose is known)."""
+    rec = {
+        "frame": index,
+        "status": result.status,
+        "inlier_fraction": round(result.inlier_fraction, 4),
+        "rms_mm": round(result.rms_mm, 4) if np.isfinite(result.rms_mm) else None,
+        "T_cam_obj": None if result.T_cam_obj is None else np.round(result.T_cam_obj, 6).tolist(),
+    }
+    if T_true is not None and result.T_cam_obj is not None:
+        rec["error_deg"], rec["error_mm"] = (round(e, 4) for e in pose_error(result.T_cam_obj, T_true))
+    return rec
+
+
 def run_projection(
     layout: Path,
     calibration_file: Path,
@@ -130,33 +146,17 @@ def run_projection(
         writers = {n: cv2.VideoWriter(str(out / f"{n}.mp4"), fourcc, fps, (proj.width, proj.height)) for n in scene.layer_names}
     records = []
     latencies = []
-    blank = np.zeros((proj.height, proj.width, 3), np.uint8)
     try:
         for frame in source.frames():
             t0 = time.perf_counter()
             result = tracker.update(frame)
-            if result.T_cam_obj is not None and mode == "texture":
-                T_proj_obj = cal.T_proj_cam @ result.T_cam_obj
-                images = {n: render_textured(scene, i, T_proj_obj, proj) for i, n in enumerate(scene.layer_names)}
-            elif result.T_cam_obj is not None:
-                images = render_layers(scene, cal.T_proj_cam @ result.T_cam_obj, proj)
-            else:
-                images = {n: blank for n in scene.layer_names}
+            images = projector_images(scene, cal, result.T_cam_obj, mode)
             latencies.append(time.perf_counter() - t0)
             for name, img in images.items():
                 cv2.imwrite(str(out / name / f"frame_{frame.index:06d}.png"), img)
                 if name in writers:
                     writers[name].write(img)
-            rec = {
-                "frame": frame.index,
-                "status": result.status,
-                "inlier_fraction": round(result.inlier_fraction, 4),
-                "rms_mm": round(result.rms_mm, 4) if np.isfinite(result.rms_mm) else None,
-                "T_cam_obj": None if result.T_cam_obj is None else np.round(result.T_cam_obj, 6).tolist(),
-            }
-            if truth is not None and result.T_cam_obj is not None:
-                rec["error_deg"], rec["error_mm"] = (round(e, 4) for e in pose_error(result.T_cam_obj, truth[frame.index]))
-            records.append(rec)
+            records.append(frame_record(frame.index, result, None if truth is None else truth[frame.index]))
     finally:
         for w in writers.values():
             w.release()

@@ -8,12 +8,18 @@ in millimetres on the surface and converted with the atlas' mean texel density.
 
 Files written (``<name>`` from ``Params.name`` or the mesh source):
 
-* ``projection/<name>_layout.glb`` -- the textured mesh with the texture embedded,
-* ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png``,
+* ``projection/<name>_layout.glb`` -- the textured mesh for glTF viewers (three.js, Blender,
+  ``<model-viewer>``): positions in metres (glTF's unit), smooth vertex normals, one matte material
+  (baseColorFactor 1 times the embedded PNG texture, metallicFactor 0, roughnessFactor
+  :data:`GLB_ROUGHNESS`); ``asset.extras`` says ``{"units": "m", "face_order": "mesh.ply"}``,
+* ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png`` (OBJ in mm),
 * ``projection/<name>_scene.npz`` -- the curves, normals and crossings the projector renderer and
   ``retrotouch project`` read, plus the atlas and one projector texture per layer (black
-  background, white curves) for the textured route (see
-  :class:`retrotouch.nodes.projection.render.ProjectionScene`).
+  background, white curves) for the textured route (format: :mod:`retrotouch.nodes.data.scene`).
+
+Face order: face ``k`` of the OBJ and of the GLB is face ``k`` of the run's ``mesh.ply`` (and of
+the ``Mesh`` passed in), with the same corners in the same order; only vertices are split along
+atlas seams. Anything that names a face id (sensing-map cells, touch events) indexes all three.
 
 UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size.
 """
@@ -28,12 +34,17 @@ from pydantic import Field, field_validator
 
 from ...graph.errors import UserError
 from ...graph.node import Files, NodeParams, node
+from ..data.scene import build_scene, save_scene
 from ..data.types import CurveSet, Layout, Mesh
+from ..geometry.triangles import areas, corners, vertex_normals
 
 # Heavy libraries (cv2, trimesh, xatlas, PIL) are imported inside the functions: node modules must
 # import cheaply (the engine imports them to discover node types).
 
 HEX_COLOUR = re.compile(r"^#[0-9a-fA-F]{6}$")
+GLB_ROUGHNESS = 0.9
+"""Roughness of the GLB material: a matte foil/paint look, no mirror-like highlights."""
+MM_PER_M = 1000.0
 
 
 class TextureParams(NodeParams):
@@ -106,8 +117,7 @@ def build_atlas(mesh: Mesh, texture_px: int, padding_px: int) -> Atlas:
 
 def texels_per_mm(mesh: Mesh, atlas: Atlas, texture_px: int) -> float:
     """Mean texel density: sqrt(UV area in px^2 / surface area in mm^2)."""
-    tri = mesh.vertices[mesh.faces]
-    area_3d = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    area_3d = areas(corners(mesh.vertices, mesh.faces)).sum()
     t = atlas.uv[atlas.faces] * texture_px
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area_uv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
@@ -196,6 +206,33 @@ def obj_text(mesh: Mesh, atlas: Atlas, mtl_file: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray) -> bytes:
+    """The GLB described in the module docstring (metres, matte material, texture embedded, mesh face order)."""
+    import trimesh
+    from PIL import Image
+
+    material = trimesh.visual.material.PBRMaterial(
+        name="layout",
+        baseColorTexture=Image.fromarray(texture_bgr[:, :, ::-1].copy()),
+        baseColorFactor=[255, 255, 255, 255],
+        metallicFactor=0.0,
+        roughnessFactor=GLB_ROUGHNESS,
+    )
+    normals = vertex_normals(mesh.vertices, mesh.faces)[atlas.vertex_map]
+    textured = trimesh.Trimesh(
+        vertices=mesh.vertices[atlas.vertex_map] / MM_PER_M,
+        faces=atlas.faces,
+        vertex_normals=normals,
+        visual=trimesh.visual.TextureVisuals(uv=atlas.uv, material=material),
+        process=False,
+    )
+
+    def describe(tree: dict) -> None:
+        tree["asset"]["extras"] = {"units": "m", "face_order": "mesh.ply"}
+
+    return bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(textured), include_normals=True, tree_postprocessor=describe))
+
+
 def mtl_text(texture_file: str) -> str:
     return f"newmtl layout\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {texture_file}\n"
 
@@ -212,10 +249,6 @@ def check_layout_on_mesh(mesh: Mesh, layout: Layout) -> None:
 def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Files:
     """Bake the selected curves (per-layer colour), crossings and pads into a UV texture; write GLB, OBJ+MTL+PNG and the projection scene."""
     import cv2
-    import trimesh
-    from PIL import Image
-
-    from .render import build_scene, save_scene
 
     check_layout_on_mesh(mesh, layout)
     stem = params.name or name_from_source(mesh.source)
@@ -224,9 +257,6 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
     ok, png = cv2.imencode(".png", texture)
     if not ok:
         raise RuntimeError("PNG encoding of the texture failed")
-    visual = trimesh.visual.TextureVisuals(uv=atlas.uv, image=Image.fromarray(texture[:, :, ::-1].copy()))
-    textured = trimesh.Trimesh(vertices=mesh.vertices[atlas.vertex_map], faces=atlas.faces, visual=visual, process=False)
-    glb = textured.export(file_type="glb")
     base = f"projection/{stem}"
     scene = dataclasses.replace(
         build_scene(mesh, layout),
@@ -237,7 +267,7 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
     )
     return Files(
         {
-            f"{base}_layout.glb": bytes(glb),
+            f"{base}_layout.glb": glb_bytes(mesh, atlas, texture),
             f"{base}_layout.obj": obj_text(mesh, atlas, f"{stem}_layout.mtl").encode(),
             f"{base}_layout.mtl": mtl_text(f"{stem}_texture.png").encode(),
             f"{base}_texture.png": png.tobytes(),

@@ -4,151 +4,30 @@ Pipeline per frame: back-project the valid depth pixels on a grid, drop a suppor
 larger than the object (RANSAC), keep the points near the tracked object and subsample them,
 register them to the mesh with robust point-to-plane ICP (cKDTree over face centroids with face
 normals, Huber weights, back-facing correspondences rejected) starting from the last pose (a
-constant-velocity guess was tried and drifts: an error along a weakly constrained direction feeds
-back and doubles), gate the result on the inlier fraction (a failed frame holds the last good
-pose; several in a row trigger a new global search), and smooth the accepted poses (One Euro
-filter on translation, adaptive slerp on rotation).
+constant-velocity guess drifts: an error along a weakly constrained direction feeds back), gate
+the result on the inlier fraction (a failed frame holds the last good pose; several in a row
+trigger a new global search), and smooth the accepted poses (:mod:`.smoothing`).
 
 The global search tries rotation hypotheses (the 60 rotations of the icosahedral group, each
 combined with a translation aligning the centroid of the model's camera-facing surface with the
 scene centroid), runs a short ICP from each and keeps the best by inlier fraction.
 
-Conventions: see :mod:`retrotouch.nodes.projection.render`; poses are ``T_cam_obj`` (object -> depth
-camera, mm). Depth frames are float32 (height, width) millimetres along the optical axis, 0 where
-invalid; they must be registered to the calibrated camera (same intrinsics).
+Conventions: :mod:`.camera`; poses are ``T_cam_obj`` (object -> depth camera, mm); frames come
+from :mod:`.depth_frames`.
 """
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
-from typing import Iterator, Protocol
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ...graph.errors import UserError
 from ..data.types import Mesh
-from .calibration import DeviceIntrinsics
-from .render import apply_distortion, invert_pose, rasterize_depth, transform_points
-
-
-# ---------------------------------------------------------------------------------------------
-# Frame sources
-
-
-@dataclasses.dataclass(frozen=True)
-class DepthFrame:
-    """One depth image: float32 (height, width) mm, 0 = invalid; ``timestamp_s`` seconds."""
-
-    depth_mm: np.ndarray
-    timestamp_s: float
-    index: int
-
-
-class FrameSource(Protocol):
-    """Anything that yields depth frames registered to ``camera`` (a live RGB-D camera plugs in here).
-
-    A live source wraps its SDK: e.g. for an Azure Kinect (pyk4a), ``camera`` holds the colour
-    camera's calibrated intrinsics and ``frames()`` yields ``capture.transformed_depth`` (depth
-    mapped into the colour camera) as float32 with the device timestamp in seconds.
-    """
-
-    camera: DeviceIntrinsics
-
-    def frames(self) -> Iterator[DepthFrame]:
-        """Frames in time order; a live source blocks until the next one arrives."""
-        ...
-
-
-@dataclasses.dataclass
-class DepthFolderSource:
-    """Depth PNG sequence (16-bit, millimetres, 0 = invalid) from a folder, in file-name order."""
-
-    folder: Path
-    camera: DeviceIntrinsics
-    fps: float = 30.0
-
-    def files(self) -> list[Path]:
-        files = sorted(Path(self.folder).glob("*.png"))
-        if not files:
-            raise UserError(f"no depth PNGs in {self.folder}: pass --frames a folder of 16-bit depth images (mm)")
-        return files
-
-    def frames(self) -> Iterator[DepthFrame]:
-        for i, path in enumerate(self.files()):
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if img is None or img.dtype != np.uint16 or img.ndim != 2:
-                raise UserError(f"{path} is not a single-channel 16-bit depth PNG (mm): re-export the recording")
-            if img.shape != (self.camera.height, self.camera.width):
-                raise UserError(
-                    f"{path} is {img.shape[1]}x{img.shape[0]} but the calibrated camera is "
-                    f"{self.camera.width}x{self.camera.height}: register depth to the calibrated camera"
-                )
-            yield DepthFrame(img.astype(np.float32), i / self.fps, i)
-
-
-def write_depth_png(path: Path, depth_mm: np.ndarray) -> None:
-    """Write a depth image as 16-bit PNG in whole millimetres (0 where invalid or non-finite)."""
-    d = np.where(np.isfinite(depth_mm), depth_mm, 0.0)
-    cv2.imwrite(str(path), np.clip(np.rint(d), 0, 65535).astype(np.uint16))
-
-
-def render_depth(mesh: Mesh, T_cam_obj: np.ndarray, camera: DeviceIntrinsics) -> np.ndarray:
-    """Ideal depth image (float32 mm, 0 = background) of the mesh at pose ``T_cam_obj``, with the camera's distortion.
-
-    Rendered through the pinhole ``K`` and warped (nearest pixel) by the distortion model.
-    """
-    depth = rasterize_depth(transform_points(T_cam_obj, mesh.vertices), mesh.faces, camera.K, camera.width, camera.height)
-    depth[~np.isfinite(depth)] = 0.0
-    return apply_distortion(depth, camera, cv2.INTER_NEAREST)
-
-
-def demo_trajectory(count: int, distance_mm: float = 550.0, fps: float = 30.0, seed: int = 0) -> np.ndarray:
-    """(count, 4, 4) smooth object poses ``T_cam_obj``: an operator slowly turning the object in front of the camera.
-
-    The object's +z axis points up (camera -y); it yaws up to +-35 degrees at <= 20 deg/s, tilts a
-    few degrees and drifts a few centimetres.
-    """
-    t = np.arange(count) / fps
-    rng = np.random.default_rng(seed)
-    phase = rng.uniform(0, 2 * np.pi, 4)
-    yaw = np.deg2rad(35.0) * np.sin(2 * np.pi * 0.09 * t + phase[0])
-    tilt = np.deg2rad(6.0) * np.sin(2 * np.pi * 0.13 * t + phase[1])
-    upright = Rotation.from_euler("x", -90, degrees=True)  # object +z -> camera -y
-    poses = np.tile(np.eye(4), (count, 1, 1))
-    for i in range(count):
-        rot = Rotation.from_euler("x", tilt[i]) * upright * Rotation.from_euler("z", yaw[i])
-        poses[i, :3, :3] = rot.as_matrix()
-    poses[:, 0, 3] = 30.0 * np.sin(2 * np.pi * 0.05 * t + phase[2])
-    poses[:, 1, 3] = 10.0 * np.sin(2 * np.pi * 0.07 * t + phase[3])
-    poses[:, 2, 3] = distance_mm
-    return poses
-
-
-@dataclasses.dataclass
-class SyntheticDepthSource:
-    """Renders the mesh at known poses with Gaussian depth noise (``noise_mm``) and 1 mm quantisation."""
-
-    mesh: Mesh
-    camera: DeviceIntrinsics
-    poses: np.ndarray  # (N, 4, 4) T_cam_obj
-    noise_mm: float = 0.5
-    fps: float = 30.0
-    seed: int = 0
-
-    def frames(self) -> Iterator[DepthFrame]:
-        rng = np.random.default_rng(self.seed)
-        for i, T in enumerate(self.poses):
-            depth = render_depth(self.mesh, T, self.camera)
-            valid = depth > 0
-            depth[valid] = np.rint(depth[valid] + rng.normal(0.0, self.noise_mm, int(valid.sum())))
-            yield DepthFrame(depth.astype(np.float32), i / self.fps, i)
-
-
-# ---------------------------------------------------------------------------------------------
-# Registration
+from ..geometry.triangles import corners, normals
+from .camera import DeviceIntrinsics, invert_pose, normalised_coordinates, transform_points
+from .depth_frames import DepthFrame
+from .smoothing import PoseSmoother
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,12 +58,9 @@ class ModelSurface:
     """The mesh as oriented planes for point-to-plane ICP: face centroids, unit normals and a cKDTree (object frame)."""
 
     def __init__(self, mesh: Mesh) -> None:
-        tri = mesh.vertices[mesh.faces]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        area = np.linalg.norm(cross, axis=1)
+        tri = corners(mesh.vertices, mesh.faces)
         self.points = tri.mean(axis=1)
-        self.normals = cross / np.maximum(area, 1e-12)[:, None]
-        self.area = area / 2.0
+        self.normals, self.area = normals(tri)
         self.tree = cKDTree(self.points)
         self.centre = (self.points * self.area[:, None]).sum(axis=0) / self.area.sum()
         self.radius = float(np.linalg.norm(mesh.vertices - self.centre, axis=1).max())
@@ -197,12 +73,7 @@ def backproject(depth_mm: np.ndarray, camera: DeviceIntrinsics, settings: Tracke
     rows, cols = np.nonzero((sub > settings.min_depth_mm) & (sub < settings.max_depth_mm))
     z = sub[rows, cols].astype(np.float64)
     pix = np.stack([cols * s, rows * s], axis=1).astype(np.float64)
-    if np.any(camera.dist):
-        xy = cv2.undistortPoints(pix.reshape(-1, 1, 2), camera.K, camera.dist).reshape(-1, 2)
-    else:
-        K = camera.K
-        y = (pix[:, 1] - K[1, 2]) / K[1, 1]
-        xy = np.stack([(pix[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0], y], axis=1)
+    xy = normalised_coordinates(pix, camera)
     return np.column_stack([xy * z[:, None], z])
 
 
@@ -333,55 +204,6 @@ def global_registration(scene_cam: np.ndarray, model: ModelSurface, settings: Tr
     candidates.sort(key=lambda reg: (-reg.inlier_fraction, reg.rms_mm))
     refined = [icp_point_to_plane(scene_cam, model, c.T_cam_obj, settings, iterations=30) for c in candidates[:3]]
     return max(refined, key=lambda reg: (reg.inlier_fraction, -reg.rms_mm))
-
-
-# ---------------------------------------------------------------------------------------------
-# Smoothing
-
-
-def _one_euro_alpha(cutoff_hz: float, dt: float) -> float:
-    tau = 1.0 / (2.0 * np.pi * cutoff_hz)
-    return 1.0 / (1.0 + tau / dt)
-
-
-class PoseSmoother:
-    """One Euro filter on translation and its rotation analogue (adaptive slerp toward the new pose)."""
-
-    def __init__(self, min_cutoff_hz: float, beta: float, d_cutoff_hz: float) -> None:
-        self.min_cutoff, self.beta, self.d_cutoff = min_cutoff_hz, beta, d_cutoff_hz
-        self.t_hat: np.ndarray | None = None
-        self.r_hat: Rotation | None = None
-        self.v_hat = 0.0  # filtered translation speed, mm/s
-        self.w_hat = 0.0  # filtered angular speed, deg/s
-        self.time = 0.0
-
-    def reset(self) -> None:
-        self.t_hat, self.r_hat, self.v_hat, self.w_hat = None, None, 0.0, 0.0
-
-    def update(self, T: np.ndarray, time_s: float) -> np.ndarray:
-        """Filtered pose for the raw pose ``T`` observed at ``time_s``."""
-        t, r = T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3])
-        if self.t_hat is None or self.r_hat is None or time_s <= self.time:
-            self.t_hat, self.r_hat, self.time = t, r, time_s
-            return T.copy()
-        dt = time_s - self.time
-        self.time = time_s
-        a_d = _one_euro_alpha(self.d_cutoff, dt)
-        self.v_hat += a_d * (np.linalg.norm(t - self.t_hat) / dt - self.v_hat)
-        a_t = _one_euro_alpha(self.min_cutoff + self.beta * self.v_hat, dt)
-        self.t_hat = self.t_hat + a_t * (t - self.t_hat)
-        delta = self.r_hat.inv() * r
-        self.w_hat += a_d * (np.rad2deg(delta.magnitude()) / dt - self.w_hat)
-        a_r = _one_euro_alpha(self.min_cutoff + self.beta * self.w_hat, dt)
-        self.r_hat = self.r_hat * Rotation.from_rotvec(a_r * delta.as_rotvec())
-        out = np.eye(4)
-        out[:3, :3] = self.r_hat.as_matrix()
-        out[:3, 3] = self.t_hat
-        return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Tracker
 
 
 @dataclasses.dataclass(frozen=True)

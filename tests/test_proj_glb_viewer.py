@@ -1,0 +1,216 @@
+"""The projection GLB in a real glTF viewer: three.js's GLTFLoader in headless Chromium.
+
+three.js comes from npm (``npm ci --prefix tests/glb_viewer``, pinned in
+``tests/glb_viewer/package.json``, MIT); Chromium is Debian's. Without either the viewer test
+skips and says which is missing. The page loads the GLB, renders it under a hemisphere +
+directional light (the lights a three.js scene is typically set up with) and posts three.js's
+bounding box and material to the test's server; an image the server answers only after that post
+holds the page's load event, so Chromium's screenshot is taken after the frame was drawn. The
+screenshot must show a lit, not a black, object.
+"""
+from __future__ import annotations
+
+import functools
+import http.server
+import io
+import json
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from proj_fixtures import bunny_layout, bunny_mm
+from retrotouch.nodes.layout.sensing_map import mesh_ply_bytes
+from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures
+
+THREE = Path(__file__).resolve().parent / "glb_viewer" / "node_modules" / "three"
+VIEW_W, VIEW_H = 640, 480
+
+PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><style>body{margin:0;background:#000}</style>
+<script type="importmap">{"imports": {"three": "./three/build/three.module.js", "three/addons/": "./three/examples/jsm/"}}</script>
+</head><body>
+<script type="module">
+import * as THREE from "three";
+import {GLTFLoader} from "three/addons/loaders/GLTFLoader.js";
+const report = body => fetch("result", {method: "POST", body: typeof body === "string" ? body : JSON.stringify(body)});
+try {
+  const renderer = new THREE.WebGLRenderer({antialias: false, preserveDrawingBuffer: true});
+  renderer.setPixelRatio(1);
+  renderer.setSize(__W__, __H__);
+  renderer.setClearColor(0x000000, 1);
+  document.body.prepend(renderer.domElement);
+  const scene = new THREE.Scene();
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 1.0));
+  const sun = new THREE.DirectionalLight(0xffffff, 2.0);
+  scene.add(sun, sun.target);
+  new GLTFLoader().load("model.glb", gltf => {
+    const box = new THREE.Box3().setFromObject(gltf.scene);
+    const size = box.getSize(new THREE.Vector3()), centre = box.getCenter(new THREE.Vector3());
+    const radius = size.length() / 2;
+    const camera = new THREE.PerspectiveCamera(40, __W__ / __H__, radius / 50, radius * 50);
+    const dir = new THREE.Vector3(0.4, 0.3, 1.0).normalize();
+    camera.position.copy(centre).addScaledVector(dir, 1.15 * radius / Math.sin(THREE.MathUtils.degToRad(20)));
+    camera.lookAt(centre);
+    sun.position.copy(camera.position);
+    sun.target.position.copy(centre);
+    scene.add(gltf.scene);
+    renderer.render(scene, camera);
+    let mesh = null;
+    gltf.scene.traverse(o => { if (o.isMesh) mesh = o; });
+    const m = mesh.material;
+    report({
+      size: size.toArray(), metalness: m.metalness, roughness: m.roughness, color: m.color.toArray(),
+      map: m.map ? [m.map.image.width, m.map.image.height] : null,
+      triangles: mesh.geometry.index.count / 3, normals: !!mesh.geometry.attributes.normal,
+      units: gltf.asset.extras ? gltf.asset.extras.units : null});
+  }, undefined, err => report("error " + err));
+} catch (err) { report("error " + err); }
+</script><img src="wait.png" alt="" style="display:none"></body></html>
+"""
+
+
+@pytest.fixture(scope="module")
+def baked():
+    mesh = bunny_mm(3000)
+    files = projection_textures(TextureParams(texture_px=1024), mesh, bunny_layout(mesh, 8, 6))
+    return mesh, files.contents
+
+
+def _glb_json(glb: bytes) -> dict:
+    length = struct.unpack("<I", glb[12:16])[0]
+    return json.loads(glb[20 : 20 + length])
+
+
+def test_glb_is_metres_with_a_matte_material_and_the_texture_embedded(baked):
+    mesh, contents = baked
+    glb = contents["projection/bunny_layout.glb"]
+    tree = _glb_json(glb)
+    assert tree["asset"]["extras"] == {"units": "m", "face_order": "mesh.ply"}
+    (material,) = tree["materials"]
+    pbr = material["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 0.0 and pbr["roughnessFactor"] == GLB_ROUGHNESS
+    assert pbr["baseColorFactor"] == [1.0, 1.0, 1.0, 1.0]
+    (image,) = tree["images"]
+    assert image["mimeType"] == "image/png" and "bufferView" in image and "uri" not in image  # embedded
+    loaded = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
+    extent_m = np.ptp(mesh.vertices, axis=0) / 1000.0
+    np.testing.assert_allclose(np.ptp(loaded.vertices, axis=0), extent_m, rtol=1e-6)
+    assert "NORMAL" in tree["meshes"][0]["primitives"][0]["attributes"]
+
+
+def test_obj_and_glb_face_order_is_mesh_ply_face_order(baked, tmp_path):
+    """Face k of the OBJ and of the GLB has the corners of face k of mesh.ply, in the same order."""
+    mesh, contents = baked
+    (tmp_path / "mesh.ply").write_bytes(mesh_ply_bytes(mesh))
+    ply = trimesh.load(tmp_path / "mesh.ply", process=False)
+    ply_corners = ply.vertices[ply.faces]
+    np.testing.assert_array_equal(ply.faces, mesh.faces)
+    glb = trimesh.load(io.BytesIO(contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh", process=False)
+    np.testing.assert_allclose(glb.vertices[glb.faces] * 1000.0, ply_corners, atol=1e-4)
+    for rel, data in contents.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(data)
+    obj = trimesh.load(tmp_path / "projection/bunny_layout.obj", process=False, maintain_order=True)
+    np.testing.assert_allclose(obj.vertices[obj.faces], ply_corners, atol=1e-5)
+
+
+def _chromium(args: list[str], profile: Path) -> str:
+    """Headless Chromium in its own process group (killed whole if it hangs); returns stdout."""
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             "--enable-unsafe-swiftshader", f"--user-data-dir={profile}"]
+    process = subprocess.Popen([shutil.which("chromium"), *flags, *args], stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    try:
+        out, _ = process.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        out, _ = process.communicate()
+        pytest.fail("headless chromium did not finish in 120 s")
+    return out
+
+
+class _ViewerSite(http.server.SimpleHTTPRequestHandler):
+    """Static files, plus POST /result (the page's report) and GET /wait.png (answered after it)."""
+
+    reported: threading.Event
+    report: list[str]
+
+    def do_POST(self) -> None:  # noqa: N802 (http.server's naming)
+        body = self.rfile.read(int(self.headers.get("Content-Length", 0))).decode()
+        self.report.append(body)
+        self.reported.set()
+        self.send_response(204)
+        self.end_headers()
+
+    def do_GET(self) -> None:  # noqa: N802
+        if self.path.startswith("/wait.png"):
+            self.reported.wait(90)
+            ok, png = cv2.imencode(".png", np.zeros((1, 1, 3), np.uint8))
+            self.send_response(200)
+            self.send_header("Content-Type", "image/png")
+            self.send_header("Content-Length", str(len(png)))
+            self.end_headers()
+            self.wfile.write(png.tobytes())
+            return
+        super().do_GET()
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+@pytest.fixture
+def served(baked, tmp_path):
+    """The GLB, the page and three.js on 127.0.0.1 (a random port): yields (url, reports, event)."""
+    if shutil.which("chromium") is None:
+        pytest.skip("chromium is not installed (apt-get install -y chromium): the GLB is not checked in a viewer")
+    if not (THREE / "build" / "three.module.js").is_file():
+        pytest.skip("three.js is not installed (npm ci --prefix tests/glb_viewer): the GLB is not checked in a viewer")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "three").symlink_to(THREE, target_is_directory=True)
+    (site / "model.glb").write_bytes(baked[1]["projection/bunny_layout.glb"])
+    (site / "index.html").write_text(PAGE.replace("__W__", str(VIEW_W)).replace("__H__", str(VIEW_H)))
+    reported, reports = threading.Event(), []
+    handler = type("Site", (_ViewerSite,), {"reported": reported, "report": reports})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(site)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/index.html", reports, reported
+    finally:
+        reported.set()
+        server.shutdown()
+        server.server_close()
+
+
+def test_three_js_sees_the_object_in_metres_and_renders_it_lit(baked, served, tmp_path):
+    mesh, _ = baked
+    url, reports, reported = served
+    shot = tmp_path / "view.png"
+    _chromium([f"--window-size={VIEW_W},{VIEW_H}", "--virtual-time-budget=5000", f"--screenshot={shot}", url],
+              tmp_path / "profile")
+    assert reported.is_set() and reports and reports[0].startswith("{"), reports
+    report = json.loads(reports[0])
+    extent_m = np.ptp(mesh.vertices, axis=0) / 1000.0
+    # three.js's bounding box is the object's size in metres (within 1 % of its diagonal)
+    assert np.abs(np.array(report["size"]) - extent_m).max() < 0.01 * np.linalg.norm(extent_m), report
+    assert report["metalness"] == 0.0 and report["roughness"] == pytest.approx(GLB_ROUGHNESS)
+    assert report["color"] == [1, 1, 1] and report["map"] == [1024, 1024] and report["normals"]
+    assert report["triangles"] == len(mesh.faces) and report["units"] == "m"
+    image = cv2.imread(str(shot))
+    assert image is not None and image.shape[:2] == (VIEW_H, VIEW_W)
+    luminance = image.astype(float) @ np.array([0.114, 0.587, 0.299])  # BGR
+    object_pixels = luminance > 8  # the background is cleared to black
+    assert object_pixels.mean() > 0.05, "the object covers too little of the view"
+    # lit like paper: the light grey texture (#d8d8d8) under the lights, not a dark metal
+    assert luminance[object_pixels].mean() > 110, luminance[object_pixels].mean()
