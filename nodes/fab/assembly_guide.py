@@ -22,6 +22,7 @@ from pydantic import Field
 
 from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
+from ..geometry import triangles
 from .outline import TraceOutlines
 
 
@@ -74,8 +75,7 @@ def render(mesh: Mesh, direction: np.ndarray, size: int) -> View:
     view = View(direction, right, up, scale, (lo + hi) / 2, size,
                 np.full((size, size, 3), 255, np.uint8), np.full((size, size), -np.inf, np.float32))
     px, depth = view.project(V)
-    normals = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    normals, _ = triangles.normals(triangles.corners(V, F))
     facing = normals @ direction
     front = np.nonzero(facing > 0)[0]
     order = front[np.argsort(depth[F[front]].mean(axis=1))]
