@@ -24,6 +24,7 @@ from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
 from ..geometry import triangles
 from .outline import TraceOutlines
+from .timestamps import source_date
 
 
 class Params(NodeParams):
@@ -125,7 +126,8 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
     buffer = io.BytesIO()
-    with PdfPages(buffer, metadata={"Title": "retrotouch assembly guide", "Creator": "retrotouch"}) as pdf:
+    metadata = {"Title": "retrotouch assembly guide", "Creator": "retrotouch", "CreationDate": source_date()}
+    with PdfPages(buffer, metadata=metadata) as pdf:
         fig = Figure(figsize=(11.69, 8.27))
         axes = fig.subplots(1, 3)
         source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]

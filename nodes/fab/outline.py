@@ -77,6 +77,11 @@ class TraceOutlines:
     def count(self) -> int:
         return len(self.names)
 
+    @property
+    def joints(self) -> int:
+        """Places where two pieces of one split trace are soldered together."""
+        return self.count - len(np.unique(self.trace))
+
     def polygon(self, i: int) -> Polygon:
         return Polygon(self.ring[self.ring_offsets[i] : self.ring_offsets[i + 1]])
 
