@@ -35,7 +35,7 @@ def written(request):
     nested = nest(nest_params, outlines)
     files = cut_sheets(Params(), outlines, nested)
     assert isinstance(files, Files)
-    return nest_params.sheet_size(), outlines, nested, files.contents
+    return (nested.sheet_width_mm, nested.sheet_height_mm), outlines, nested, files.contents
 
 
 def _subpaths(d: str) -> list[np.ndarray]:

@@ -1,5 +1,5 @@
 """fab.nest: parts on their mats, no overlaps, gaps >= spacing, more sheets when needed, clear error
-for a trace longer than any mat."""
+for a trace longer than any mat, reproducible placement."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,6 +9,7 @@ import shapely
 from test_fab_outline import straight, unfolded_from_polylines
 
 from retrotouch.graph.errors import UserError
+from retrotouch.nodes.fab.mats import MATS_MM
 from retrotouch.nodes.fab.nesting import Params, nest, placed_polygons
 from retrotouch.nodes.fab.outline import Params as OutlineParams
 from retrotouch.nodes.fab.outline import outline
@@ -26,7 +27,7 @@ def traces(lengths, bend: float = 0.0):
 
 
 def check_layout(outlines, nested, params):
-    width, height = params.sheet_size()
+    width, height = nested.sheet_width_mm, nested.sheet_height_mm
     placed = placed_polygons(outlines, nested)
     usable = shapely.box(params.margin_mm, params.margin_mm, width - params.margin_mm, height - params.margin_mm)
     for polygon in placed:
@@ -52,34 +53,54 @@ def test_shelf_fallback_packs_a_sheet():
     check_layout(outlines, nested, params)
 
 
-def test_spyrrow_packs_densely_with_spacing():
+def test_raster_packs_densely_with_spacing():
     outlines = traces([250, 200, 180, 120, 100, 60], bend=10.0)
-    params = Params(seconds=1, spacing_mm=1.0)
+    params = Params(spacing_mm=1.0)
     nested = nest(params, outlines)
-    assert nested.nester == "spyrrow", nested.fallback_reason
+    assert nested.nester == "raster", nested.fallback_reason
     check_layout(outlines, nested, params)
     shelf = nest(Params(nester="shelf", spacing_mm=1.0), outlines)
     assert nested.used_length_mm < shelf.used_length_mm  # denser than the fallback
 
 
-@pytest.mark.parametrize("nester", ["shelf", "spyrrow"])
+def test_raster_placement_is_reproducible():
+    outlines = traces([250, 200, 180, 120, 100, 60], bend=10.0)
+    first, second = nest(Params(), outlines), nest(Params(), outlines)
+    assert first.rotation_deg.tobytes() == second.rotation_deg.tobytes()
+    assert first.translation.tobytes() == second.translation.tobytes()
+    assert first.part_sheet.tobytes() == second.part_sheet.tobytes()
+
+
+@pytest.mark.parametrize("spacing", [0.5, 2.0])
+def test_raster_gap_is_at_least_the_spacing(spacing):
+    outlines = traces([150, 140, 130, 120, 110, 100, 90, 80], bend=8.0)
+    params = Params(mat="custom", sheet_width_mm=160, sheet_height_mm=60, spacing_mm=spacing, pixel_mm=0.7)
+    nested = nest(params, outlines)
+    assert nested.nester == "raster", nested.fallback_reason
+    check_layout(outlines, nested, params)
+
+
+@pytest.mark.parametrize("nester", ["shelf", "raster"])
 def test_more_sheets_when_needed(nester):
     outlines = traces([100] * 5)
-    params = Params(mat="custom", sheet_width_mm=130, sheet_height_mm=20, nester=nester, seconds=1, retry_seconds=1)
+    params = Params(mat="custom", sheet_width_mm=130, sheet_height_mm=20, nester=nester)
     nested = nest(params, outlines)
     assert nested.nester == nester, nested.fallback_reason
     assert nested.sheet_count >= 2
     check_layout(outlines, nested, params)
 
 
-def test_portrait_12x24_mat_holds_a_trace_too_long_for_12x12():
+def test_auto_mat_takes_12x24_for_a_trace_too_long_for_12x12():
     outlines = traces([400, 150])
-    with pytest.raises(UserError, match=r"Tx00 is 4\d\d x \d+ mm flat .*mat: 12x24"):
-        nest(Params(nester="shelf"), outlines)
-    params = Params(mat="12x24", nester="shelf")
+    with pytest.raises(UserError, match=r"Tx00 is 4\d\d x \d+ mm flat and does not fit .* at any rotation; .*12x24"):
+        nest(Params(mat="12x12", nester="shelf"), outlines)
+    params = Params(nester="shelf")
     nested = nest(params, outlines)
-    assert (nested.sheet_width_mm, nested.sheet_height_mm) == (290.0, 600.0)
+    assert nested.mat == "12x24" and "Tx00 does not fit the 12x12 mat" in nested.mat_reason
+    assert (nested.sheet_width_mm, nested.sheet_height_mm) == MATS_MM["12x24"]
     check_layout(outlines, nested, params)
+    small = nest(Params(nester="shelf"), traces([150, 100]))
+    assert small.mat == "12x12"
 
 
 def test_custom_sheet_needs_both_sizes():
@@ -91,26 +112,6 @@ def test_custom_sheet_needs_both_sizes():
 
 def test_part_fitting_only_diagonally_gets_its_own_sheet():
     outlines = traces([112, 40])  # 112 mm + 9 mm tab: longer than the 118 mm sheet side, fits diagonally
-    params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, seconds=1, retry_seconds=1)
-    nested = nest(params, outlines)
-    check_layout(outlines, nested, params)
-    shelf = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester="shelf")
-    check_layout(outlines, nest(shelf, outlines), shelf)
-
-
-def test_spyrrow_failure_falls_back_to_shelves(monkeypatch):
-    import spyrrow
-
-    class Crashing:
-        def __init__(self, *args, **kwargs):
-            pass
-
-        def solve(self, config, progress=None):
-            raise RuntimeError("solver crashed")
-
-    monkeypatch.setattr(spyrrow, "StripPackingInstance", Crashing)
-    outlines = traces([150, 100, 80])
-    params = Params(seconds=1)
-    nested = nest(params, outlines)
-    assert nested.nester == "shelf" and "solver crashed" in nested.fallback_reason
-    check_layout(outlines, nested, params)
+    for nester in ("raster", "shelf"):
+        params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester=nester)
+        check_layout(outlines, nest(params, outlines), params)

@@ -22,7 +22,9 @@ from pydantic import Field
 
 from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
+from ..geometry import triangles
 from .outline import TraceOutlines
+from .timestamps import source_date
 
 
 class Params(NodeParams):
@@ -74,8 +76,7 @@ def render(mesh: Mesh, direction: np.ndarray, size: int) -> View:
     view = View(direction, right, up, scale, (lo + hi) / 2, size,
                 np.full((size, size, 3), 255, np.uint8), np.full((size, size), -np.inf, np.float32))
     px, depth = view.project(V)
-    normals = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    normals, _ = triangles.normals(triangles.corners(V, F))
     facing = normals @ direction
     front = np.nonzero(facing > 0)[0]
     order = front[np.argsort(depth[F[front]].mean(axis=1))]
@@ -125,7 +126,8 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
     buffer = io.BytesIO()
-    with PdfPages(buffer, metadata={"Title": "retrotouch assembly guide", "Creator": "retrotouch"}) as pdf:
+    metadata = {"Title": "retrotouch assembly guide", "Creator": "retrotouch", "CreationDate": source_date()}
+    with PdfPages(buffer, metadata=metadata) as pdf:
         fig = Figure(figsize=(11.69, 8.27))
         axes = fig.subplots(1, 3)
         source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]

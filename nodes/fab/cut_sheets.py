@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import io
 import json
+import re
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -28,12 +30,16 @@ from pydantic import Field
 from ...graph.node import Files, NodeParams, node
 from .nesting import NestedSheets, place, placed_polygons
 from .outline import TraceOutlines
+from .timestamps import source_date, with_pdf_creation_date
 from shapely.geometry import LineString
 
 
 class Params(NodeParams):
     preview_px_per_mm: float = Field(2.0, gt=0, le=20, description="preview.png resolution (pixels per mm)")
     decimals: int = Field(3, ge=1, le=6, description="coordinate decimals in SVG/DXF (3 = 1 micrometre)")
+    dxf_version: Literal["R2010", "R12"] = Field(
+        "R2010", description="DXF version: R2010 (LWPOLYLINE, units in the header) or R12 (POLYLINE, the oldest "
+        "and most widely read; Silhouette Studio)")
 
 
 def _sheet_geometry(outlines: TraceOutlines, nested: NestedSheets):
@@ -80,22 +86,47 @@ def sheet_svg(rings, labels, names, width: float, height: float, number: int, de
     )
 
 
-def sheet_dxf(rings, labels, decimals: int) -> bytes:
-    """One sheet as DXF R2010 in mm: closed LWPOLYLINEs on layers CUT and LABELS."""
+def sheet_dxf(rings, labels, width: float, height: float, decimals: int, version: str = "R2010") -> bytes:
+    """One sheet as DXF in mm: closed polylines on layers CUT and LABELS (LWPOLYLINE in R2010,
+    POLYLINE in R12); header extents = the drawing's bounds, limits = the sheet; creation and
+    update times from :func:`.timestamps.source_date`, fixed GUIDs."""
     import ezdxf  # heavy: imported when used
+    from ezdxf.tools import juliandate
 
-    doc = ezdxf.new("R2010", setup=False)
-    doc.units = ezdxf.units.MM
-    doc.header["$MEASUREMENT"] = 1
+    fixed = ezdxf.options.write_fixed_meta_data_for_testing
+    ezdxf.options.write_fixed_meta_data_for_testing = True  # fixed GUIDs, marker and times (replaced below)
+    try:
+        doc = ezdxf.new(version, setup=False, units=ezdxf.units.MM if version != "R12" else 0)
+        text = _dxf_text(doc, rings, labels, width, height, decimals)
+    finally:
+        ezdxf.options.write_fixed_meta_data_for_testing = fixed
+    when = juliandate(source_date().replace(tzinfo=None))
+    text = re.sub(r"(\$TDU?(?:CREATE|UPDATE)\n 40\n)[^\n]*", lambda m: f"{m.group(1)}{when}", text)
+    return text.encode("utf-8")
+
+
+def _dxf_text(doc, rings, labels, width: float, height: float, decimals: int) -> str:
+    """The document text with the polylines, extents and limits (see :func:`sheet_dxf`)."""
+    if doc.dxfversion != "AC1009":
+        doc.header["$MEASUREMENT"] = 1
     doc.layers.add("CUT", color=1)
     doc.layers.add("LABELS", color=5)
     msp = doc.modelspace()
     for layer, polylines in (("CUT", rings), ("LABELS", labels)):
         for poly in polylines:
-            msp.add_lwpolyline(np.round(poly, decimals).tolist(), close=True, dxfattribs={"layer": layer})
+            points = np.round(poly, decimals).tolist()
+            if doc.dxfversion == "AC1009":  # R12
+                msp.add_polyline2d(points, close=True, dxfattribs={"layer": layer})
+            else:
+                msp.add_lwpolyline(points, close=True, dxfattribs={"layer": layer})
+    everything = np.round(np.concatenate(list(rings) + list(labels)), decimals) if len(rings) else np.zeros((1, 2))
+    doc.header["$EXTMIN"] = (*everything.min(axis=0).tolist(), 0.0)
+    doc.header["$EXTMAX"] = (*everything.max(axis=0).tolist(), 0.0)
+    doc.header["$LIMMIN"] = (0.0, 0.0)
+    doc.header["$LIMMAX"] = (float(width), float(height))
     stream = io.StringIO()
     doc.write(stream)
-    return stream.getvalue().encode("utf-8")
+    return stream.getvalue()
 
 
 def preview_png(svgs: list[str], width: float, height: float, px_per_mm: float) -> bytes:
@@ -129,13 +160,17 @@ def cut_sheets(params: Params, outlines: TraceOutlines, nesting: NestedSheets) -
         svg = sheet_svg(rings, labels, names, width, height, k, params.decimals)
         svgs.append(svg)
         contents[f"sheets/sheet_{k}.svg"] = svg.encode("utf-8")
-        contents[f"sheets/sheet_{k}.pdf"] = cairosvg.svg2pdf(bytestring=svg.encode("utf-8"))
-        contents[f"sheets/sheet_{k}.dxf"] = sheet_dxf(rings, labels, params.decimals)
+        pdf = cairosvg.svg2pdf(bytestring=svg.encode("utf-8"))
+        contents[f"sheets/sheet_{k}.pdf"] = with_pdf_creation_date(pdf, source_date())
+        contents[f"sheets/sheet_{k}.dxf"] = sheet_dxf(rings, labels, width, height, params.decimals, params.dxf_version)
     contents["sheets/preview.png"] = preview_png(svgs, width, height, params.preview_px_per_mm)
     report = {
         "units": "mm",
         "sheet": {"width": width, "height": height, "count": nesting.sheet_count},
+        "mat": nesting.mat,
+        "mat_reason": nesting.mat_reason,
         "nester": nesting.nester,
+        "rotations": nesting.rotations,
         "fallback_reason": nesting.fallback_reason,
         "spacing_mm": nesting.spacing_mm,
         "min_gap_mm": nesting.min_gap_mm if np.isfinite(nesting.min_gap_mm) else None,
@@ -144,6 +179,7 @@ def cut_sheets(params: Params, outlines: TraceOutlines, nesting: NestedSheets) -
         "material_use": round(nesting.material_use, 5),
         "used_length_mm_last_sheet": round(nesting.used_length_mm, 3),
         "split_traces": list(outlines.split_traces),
+        "joints": outlines.joints,
         "parts": [
             {
                 "name": outlines.names[i],

@@ -77,6 +77,11 @@ class TraceOutlines:
     def count(self) -> int:
         return len(self.names)
 
+    @property
+    def joints(self) -> int:
+        """Places where two pieces of one split trace are soldered together."""
+        return self.count - len(np.unique(self.trace))
+
     def polygon(self, i: int) -> Polygon:
         return Polygon(self.ring[self.ring_offsets[i] : self.ring_offsets[i + 1]])
 
@@ -134,134 +139,166 @@ def _sub_polyline(points: np.ndarray, arc: np.ndarray, a0: float, a1: float) -> 
     return np.vstack([ends[0], points[inside], ends[1]])
 
 
-@node("fab.outline", params=Params, inputs=("unfolded",), outputs=("outlines",))
-def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
-    """Outline every unfolded trace as one closed polygon with landmarks, electrode pads and a named
-    solder tab; split (or report) traces whose outline would overlap itself."""
-    w2 = params.width_mm / 2
+def _trace_discs(params: Params, unfolded: UnfoldedTraces, c: int):
+    """Landmark and pad discs of trace ``c``: (marks, pad marks, centres, radii, distances from the base end)."""
+    rows = unfolded.trace(c)
+    length = float(unfolded.arc[rows][-1])
+    u_of = (lambda a: length - a) if unfolded.base_at_end[c] else (lambda a: a)
+    marks = np.nonzero(unfolded.mark_trace == c)[0]
+    pad_marks = marks[unfolded.mark_pad[marks]]
+    disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
+    disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, params.width_mm / 2)),
+                             np.full(len(pad_marks), params.pad_radius_mm)])
+    disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
+    return marks, pad_marks, disc_xy, disc_r, disc_u
+
+
+def _split_pieces(params: Params, name: str, points: np.ndarray, arc: np.ndarray, at_end: bool,
+                  discs: tuple) -> list[tuple[float, float]]:
+    """Pieces [u0, u1) of one trace (u = distance from its base end, mm), grown from the base: each
+    piece, with its own solder tab at u0, ends just before its first self-conflict."""
+    _, _, disc_xy, disc_r, disc_u = discs
+    w2, tab_len, tab_w2 = params.width_mm / 2, params.solder_tab_length_mm, params.solder_tab_width_mm / 2
+    length = float(arc[-1])
+    step = params.width_mm / 2
+    u = np.append(np.arange(0.0, length, step), length)
+    arc_of_u = length - u if at_end else u
+    centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
+    t = np.append(np.arange(0.0, tab_len, step), tab_len)
+    pieces: list[tuple[float, float]] = []
+    u0 = 0.0
+    while True:
+        tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
+        outward = tangent if at_end else -tangent
+        keep_c, keep_d = u >= u0, disc_u >= u0
+        samples = np.vstack([centre_samples[keep_c], disc_xy[keep_d], tab_xy + t[:, None] * outward])
+        radius = np.concatenate([np.full(keep_c.sum(), w2), disc_r[keep_d], np.full(len(t), tab_w2)])
+        sample_u = np.concatenate([u[keep_c], disc_u[keep_d], u0 - t])
+        conflict = _first_conflict(samples, radius, sample_u, params.self_clearance_mm)
+        if conflict is None:
+            pieces.append((u0, np.inf))
+            return pieces
+        if params.on_self_overlap == "error":
+            raise UserError(
+                f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
+                f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
+            )
+        lo, hi = conflict
+        u1 = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step)
+        if u1 >= hi:
+            raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
+        pieces.append((u0, u1))
+        u0 = u1
+
+
+def _tab_corners(tab_xy: np.ndarray, direction: np.ndarray, length: float, half_width: float) -> np.ndarray:
+    """(4, 2) corners of the solder tab starting at ``tab_xy`` and running along ``direction``."""
+    normal = np.array([-direction[1], direction[0]])
+    return np.array([
+        tab_xy + half_width * normal,
+        tab_xy - half_width * normal,
+        tab_xy + length * direction - half_width * normal,
+        tab_xy + length * direction + half_width * normal,
+    ])
+
+
+def _piece(params: Params, unfolded: UnfoldedTraces, c: int, discs: tuple, u0: float, u1: float, part_name: str):
+    """One part of trace ``c`` between distances u0 < u1 from its base end: a dict of its arc range,
+    ring, centreline, tab, area, glyphs, and its (landmark index, pad index) marks."""
+    rows = unfolded.trace(c)
+    points, arc = unfolded.points[rows], unfolded.arc[rows]
+    length = float(arc[-1])
+    at_end = bool(unfolded.base_at_end[c])
+    marks, pad_marks = discs[0], discs[1]
+    u_of = (lambda a: length - a) if at_end else (lambda a: a)
+    a0, a1 = (length - u1, length - u0) if at_end else (u0, u1)
+    centre = _sub_polyline(points, arc, a0, a1)
+    tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
+    direction = tangent if at_end else -tangent
     tab_len, tab_w2 = params.solder_tab_length_mm, params.solder_tab_width_mm / 2
-    parts: dict[str, list] = {k: [] for k in ("name", "trace", "arc", "ring", "centre", "tab", "area")}
-    pads, landmarks, labels = [], [], []
-    split = []
-    for c in range(unfolded.count):
-        rows = unfolded.trace(c)
-        points, arc = unfolded.points[rows], unfolded.arc[rows]
-        length = float(arc[-1])
-        at_end = bool(unfolded.base_at_end[c])
-        marks = np.nonzero(unfolded.mark_trace == c)[0]
-        pad_marks = marks[unfolded.mark_pad[marks]]
+    tab = _tab_corners(tab_xy, direction, tab_len, tab_w2)
+    shapes = [Polygon(tab)]
+    line = LineString(centre) if np.ptp(centre, axis=0).max() > 0 else Point(centre[0])
+    shapes.append(line.buffer(params.width_mm / 2, quad_segs=params.arc_segments))
+    mark_u, pad_u = u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])
+    landmarks = marks[(mark_u >= u0) & (mark_u < u1)] if params.landmark_radius_mm > 0 else marks[:0]
+    pads = pad_marks[(pad_u >= u0) & (pad_u < u1)]
+    for m in landmarks:
+        shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
+    for m in pads:
+        shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
+    shape = shapely.unary_union(shapes)
+    if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
+        shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
+    if shape.geom_type != "Polygon" or not shape.is_valid or len(shape.interiors) > 0:
+        raise UserError(
+            f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "
+            f"{len(getattr(shape, 'interiors', []))} holes); raise self_clearance_mm so the trace is split"
+        )
+    margin = params.label_margin_mm
+    glyphs = label_glyphs(part_name, tab_xy + (tab_len / 2) * direction, direction,
+                          tab_len - 2 * margin, 2 * tab_w2 - 2 * margin, params.label_height_mm)
+    return {"arc": (max(a0, 0.0), min(a1, length)), "ring": np.asarray(shape.exterior.coords)[:-1],
+            "centre": centre, "tab": tab, "area": shape.area, "glyphs": glyphs, "landmarks": landmarks, "pads": pads}
 
-        name = unfolded.names[c]
-        # u = distance from the base end along the trace; pieces [u0, u1) are grown from the base:
-        # each piece, with its own solder tab at u0, ends just before its first self-conflict
-        u_of = (lambda a: length - a) if at_end else (lambda a: a)
-        step = params.width_mm / 2
-        u = np.append(np.arange(0.0, length, step), length)
-        arc_of_u = length - u if at_end else u
-        centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
-        disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
-        disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, w2)),
-                                 np.full(len(pad_marks), params.pad_radius_mm)])
-        disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
-        t = np.append(np.arange(0.0, tab_len, step), tab_len)
-        pieces: list[tuple[float, float]] = []
-        u0 = 0.0
-        while True:
-            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
-            outward = tangent if at_end else -tangent
-            keep_c, keep_d = u >= u0, disc_u >= u0
-            samples = np.vstack([centre_samples[keep_c], disc_xy[keep_d], tab_xy + t[:, None] * outward])
-            radius = np.concatenate([np.full(keep_c.sum(), w2), disc_r[keep_d], np.full(len(t), tab_w2)])
-            sample_u = np.concatenate([u[keep_c], disc_u[keep_d], u0 - t])
-            conflict = _first_conflict(samples, radius, sample_u, params.self_clearance_mm)
-            if conflict is None:
-                pieces.append((u0, np.inf))
-                break
-            if params.on_self_overlap == "error":
-                raise UserError(
-                    f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
-                    f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
-                )
-            lo, hi = conflict
-            u1 = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step)
-            if u1 >= hi:
-                raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
-            pieces.append((u0, u1))
-            u0 = u1
-        if len(pieces) > 1:
-            split.append(name)
-        for number, (u0, u1) in enumerate(pieces, start=1):
-            part = len(parts["name"])
-            part_name = name if len(pieces) == 1 else f"{name}.{number}"
-            a0, a1 = (length - u1, length - u0) if at_end else (u0, u1)
-            centre = _sub_polyline(points, arc, a0, a1)
-            tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
-            direction = tangent if at_end else -tangent
-            normal = np.array([-direction[1], direction[0]])
-            tab = np.array([
-                tab_xy + tab_w2 * normal,
-                tab_xy - tab_w2 * normal,
-                tab_xy + tab_len * direction - tab_w2 * normal,
-                tab_xy + tab_len * direction + tab_w2 * normal,
-            ])
-            shapes = [Polygon(tab)]
-            line = LineString(centre) if np.ptp(centre, axis=0).max() > 0 else Point(centre[0])
-            shapes.append(line.buffer(w2, quad_segs=params.arc_segments))
-            mark_u, pad_u = u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])
-            if params.landmark_radius_mm > 0:
-                for m in marks[(mark_u >= u0) & (mark_u < u1)]:
-                    shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
-                    landmarks.append((part, unfolded.mark_xy[m], int(unfolded.mark_other[m])))
-            for m in pad_marks[(pad_u >= u0) & (pad_u < u1)]:
-                shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
-                pads.append((part, unfolded.pad_xy[m]))
-            shape = shapely.unary_union(shapes)
-            if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
-                shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
-            if shape.geom_type != "Polygon" or not shape.is_valid or len(shape.interiors) > 0:
-                raise UserError(
-                    f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "
-                    f"{len(getattr(shape, 'interiors', []))} holes); raise self_clearance_mm so the trace is split"
-                )
-            ring = np.asarray(shape.exterior.coords)[:-1]
-            margin = params.label_margin_mm
-            for glyph in label_glyphs(
-                part_name, tab_xy + (tab_len / 2) * direction, direction,
-                tab_len - 2 * margin, 2 * tab_w2 - 2 * margin, params.label_height_mm,
-            ):
-                labels.append((part, glyph))
-            for key, value in zip(parts, (part_name, c, (max(a0, 0.0), min(a1, length)), ring, centre, tab, shape.area)):
-                parts[key].append(value)
 
-    def flat(arrays):
-        return np.concatenate(arrays) if arrays else np.zeros((0, 2)), np.concatenate(
-            [[0], np.cumsum([len(a) for a in arrays])]
-        ).astype(np.int64)
+def _flat(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(concatenated (R, 2) rows, (len + 1,) int64 offsets)."""
+    rows = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+    return rows, np.concatenate([[0], np.cumsum([len(a) for a in arrays])]).astype(np.int64)
 
-    ring, ring_offsets = flat(parts["ring"])
-    centre, centre_offsets = flat(parts["centre"])
-    label, label_offsets = flat([g for _, g in labels])
+
+def _assemble(params: Params, unfolded: UnfoldedTraces, parts: list[tuple[str, int, dict]],
+              split: list[str]) -> TraceOutlines:
+    """TraceOutlines from (part name, trace, piece dict) in part order."""
+    ring, ring_offsets = _flat([p["ring"] for _, _, p in parts])
+    centre, centre_offsets = _flat([p["centre"] for _, _, p in parts])
+    label, label_offsets = _flat([g for _, _, p in parts for g in p["glyphs"]])
+    landmarks = np.concatenate([p["landmarks"] for _, _, p in parts] or [[]]).astype(np.int64)
+    pads = np.concatenate([p["pads"] for _, _, p in parts] or [[]]).astype(np.int64)
+
+    def owner(key: str) -> np.ndarray:
+        return np.repeat(np.arange(len(parts), dtype=np.int64), [len(p[key]) for _, _, p in parts])
+
     return TraceOutlines(
-        names=tuple(parts["name"]),
+        names=tuple(name for name, _, _ in parts),
         trace_names=unfolded.names,
-        trace=np.asarray(parts["trace"], dtype=np.int64),
-        arc_range=np.asarray(parts["arc"], dtype=np.float64).reshape(-1, 2),
+        trace=np.asarray([c for _, c, _ in parts], dtype=np.int64),
+        arc_range=np.asarray([p["arc"] for _, _, p in parts], dtype=np.float64).reshape(-1, 2),
         ring=ring,
         ring_offsets=ring_offsets,
         centre=centre,
         centre_offsets=centre_offsets,
-        pad_xy=np.asarray([p for _, p in pads], dtype=np.float64).reshape(-1, 2),
-        pad_part=np.asarray([i for i, _ in pads], dtype=np.int64),
-        landmark_xy=np.asarray([p for _, p, _ in landmarks], dtype=np.float64).reshape(-1, 2),
-        landmark_part=np.asarray([i for i, _, _ in landmarks], dtype=np.int64),
-        landmark_other=np.asarray([o for _, _, o in landmarks], dtype=np.int64),
-        tab=np.asarray(parts["tab"], dtype=np.float64).reshape(-1, 4, 2),
+        pad_xy=np.asarray(unfolded.pad_xy[pads], dtype=np.float64).reshape(-1, 2),
+        pad_part=owner("pads"),
+        landmark_xy=np.asarray(unfolded.mark_xy[landmarks], dtype=np.float64).reshape(-1, 2),
+        landmark_part=owner("landmarks"),
+        landmark_other=np.asarray(unfolded.mark_other[landmarks], dtype=np.int64),
+        tab=np.asarray([p["tab"] for _, _, p in parts], dtype=np.float64).reshape(-1, 4, 2),
         label=label,
         label_offsets=label_offsets,
-        label_part=np.asarray([i for i, _ in labels], dtype=np.int64),
-        area_mm2=np.asarray(parts["area"], dtype=np.float64),
+        label_part=owner("glyphs"),
+        area_mm2=np.asarray([p["area"] for _, _, p in parts], dtype=np.float64),
         split_traces=tuple(split),
         width_mm=params.width_mm,
         pad_radius_mm=params.pad_radius_mm,
         landmark_radius_mm=params.landmark_radius_mm,
     )
+
+
+@node("fab.outline", params=Params, inputs=("unfolded",), outputs=("outlines",))
+def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
+    """Outline every unfolded trace as one closed polygon with landmarks, electrode pads and a named
+    solder tab; split (or report) traces whose outline would overlap itself."""
+    parts, split = [], []
+    for c in range(unfolded.count):
+        rows = unfolded.trace(c)
+        discs = _trace_discs(params, unfolded, c)
+        pieces = _split_pieces(params, unfolded.names[c], unfolded.points[rows], unfolded.arc[rows],
+                               bool(unfolded.base_at_end[c]), discs)
+        if len(pieces) > 1:
+            split.append(unfolded.names[c])
+        for number, (u0, u1) in enumerate(pieces, start=1):
+            part_name = unfolded.names[c] if len(pieces) == 1 else f"{unfolded.names[c]}.{number}"
+            parts.append((part_name, c, _piece(params, unfolded, c, discs, u0, u1, part_name)))
+    return _assemble(params, unfolded, parts, split)

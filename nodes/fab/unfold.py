@@ -209,16 +209,11 @@ def _segment_fraction(p0: np.ndarray, p1: np.ndarray, q: np.ndarray) -> float:
     return 0.0 if dd == 0 else float(np.clip(np.dot(q - p0, d) / dd, 0.0, 1.0))
 
 
-@node("fab.unfold", params=Params, inputs=("mesh", "layout"), outputs=("unfolded",))
-def unfold(params: Params, mesh: Mesh, layout: Layout) -> UnfoldedTraces:
-    """Unfold every selected Tx and Rx curve isometrically into the plane and map its crossings and
-    electrode pads to 2D; fails when a trace's unfolded length differs from its 3D length."""
+def _unfold_traces(params: Params, mesh: Mesh, layout: Layout):
+    """(names, layers, channels, base_at_end, 2D points per trace, arc lengths per trace, 3D lengths)."""
     edge_faces = _edge_faces(mesh.faces)
-    names, layers, channels, base_at_end = [], [], [], []
-    all_points, all_arcs, lengths3d, offsets = [], [], [], [0]
-    first_trace = {}
+    traces: dict[str, list] = {k: [] for k in ("name", "layer", "channel", "at_end", "points", "arc", "length3d")}
     for layer, curves, at_end in (("tx", layout.tx, True), ("rx", layout.rx, False)):
-        first_trace[layer] = len(names)
         for c in range(curves.count):
             name = f"{layer.capitalize()}{c:02d}"
             rows = curves.curve(c)
@@ -234,23 +229,19 @@ def unfold(params: Params, mesh: Mesh, layout: Layout) -> UnfoldedTraces:
                     "consecutive faces — re-run curve tracing"
                 )
             seg_lengths = np.linalg.norm(np.diff(p2, axis=0), axis=1)
-            all_points.append(p2)
-            all_arcs.append(np.concatenate([[0.0], np.cumsum(seg_lengths)]))
-            lengths3d.append(length3d)
-            offsets.append(offsets[-1] + len(p2))
-            names.append(name)
-            layers.append(layer)
-            channels.append(c)
-            base_at_end.append(at_end)
-    points = np.concatenate(all_points)
-    arcs = np.concatenate(all_arcs)
-    offsets_arr = np.asarray(offsets, dtype=np.int64)
+            for key, value in zip(traces, (name, layer, c, at_end, p2, np.concatenate([[0.0], np.cumsum(seg_lengths)]),
+                                           length3d)):
+                traces[key].append(value)
+    return traces
 
+
+def _marks(params: Params, layout: Layout, points: np.ndarray, arcs: np.ndarray, offsets: np.ndarray) -> dict:
+    """Per crossing and per curve through it (Tx mark, then Rx mark): the mark fields as lists."""
     cells = layout.cells
     marks: dict[str, list] = {k: [] for k in ("trace", "other", "cell", "arc", "xy", "tangent", "pad", "pad_arc", "pad_xy")}
     for k in range(len(cells.curve_a)):
-        tx_trace = first_trace["tx"] + int(cells.curve_a[k])
-        rx_trace = first_trace["rx"] + int(cells.curve_b[k])
+        tx_trace = int(cells.curve_a[k])
+        rx_trace = layout.tx.count + int(cells.curve_b[k])
         for trace, other, curves, channel, seg in (
             (tx_trace, rx_trace, layout.tx, int(cells.curve_a[k]), int(cells.seg_a[k])),
             (rx_trace, tx_trace, layout.rx, int(cells.curve_b[k]), int(cells.seg_b[k])),
@@ -259,28 +250,39 @@ def unfold(params: Params, mesh: Mesh, layout: Layout) -> UnfoldedTraces:
             last = rows.stop - rows.start - 1
             seg = min(max(seg, 0), last - 1)
             t = _segment_fraction(curves.points[rows.start + seg], curves.points[rows.start + seg + 1], cells.points[k])
-            base = int(offsets_arr[trace])
-            p2 = points[base : int(offsets_arr[trace + 1])]
-            a2 = arcs[base : int(offsets_arr[trace + 1])]
+            p2 = points[int(offsets[trace]) : int(offsets[trace + 1])]
+            a2 = arcs[int(offsets[trace]) : int(offsets[trace + 1])]
             arc = a2[seg] + t * (a2[seg + 1] - a2[seg])
             xy, tangent = point_at_arc(p2, a2, arc)
             pad_arc = min(arc + params.pad_offset_mm, float(a2[-1]))
             pad_xy, _ = point_at_arc(p2, a2, pad_arc)
             for key, value in zip(marks, (trace, other, k, arc, xy, tangent, bool(layout.pad[k]), pad_arc, pad_xy)):
                 marks[key].append(value)
+    return marks
+
+
+@node("fab.unfold", params=Params, inputs=("mesh", "layout"), outputs=("unfolded",))
+def unfold(params: Params, mesh: Mesh, layout: Layout) -> UnfoldedTraces:
+    """Unfold every selected Tx and Rx curve isometrically into the plane and map its crossings and
+    electrode pads to 2D; fails when a trace's unfolded length differs from its 3D length."""
+    traces = _unfold_traces(params, mesh, layout)
+    points = np.concatenate(traces["points"])
+    arcs = np.concatenate(traces["arc"])
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in traces["points"]])]).astype(np.int64)
+    marks = _marks(params, layout, points, arcs, offsets)
 
     def arr(key, dtype, shape):
         return np.asarray(marks[key], dtype=dtype).reshape(shape)
 
     return UnfoldedTraces(
-        names=tuple(names),
-        layers=tuple(layers),
-        channels=np.asarray(channels, dtype=np.int64),
+        names=tuple(traces["name"]),
+        layers=tuple(traces["layer"]),
+        channels=np.asarray(traces["channel"], dtype=np.int64),
         points=points,
         arc=arcs,
-        offsets=offsets_arr,
-        length_3d=np.asarray(lengths3d),
-        base_at_end=np.asarray(base_at_end, dtype=bool),
+        offsets=offsets,
+        length_3d=np.asarray(traces["length3d"]),
+        base_at_end=np.asarray(traces["at_end"], dtype=bool),
         mark_trace=arr("trace", np.int64, (-1,)),
         mark_other=arr("other", np.int64, (-1,)),
         mark_cell=arr("cell", np.int64, (-1,)),

@@ -1,0 +1,34 @@
+"""Cutter mats: cut areas (mm) and the usable area inside a margin, shared by outline (split to fit)
+and nesting (place on the mat)."""
+from __future__ import annotations
+
+import numpy as np
+from shapely.geometry import Polygon
+
+MATS_MM = {"12x12": (292.0, 292.0), "12x24": (290.0, 600.0)}
+"""Cut areas of the Cricut mats (width, height) in mm, measured in Design Space; in the order a
+mat is chosen (smallest first)."""
+
+MARGIN_MM = 1.0
+"""Default empty border inside the cut area (mm)."""
+
+
+def usable_sides(width: float, height: float, margin: float) -> tuple[float, float]:
+    """(long, short) sides (mm) of a sheet's usable area inside ``margin``."""
+    return max(width, height) - 2 * margin, min(width, height) - 2 * margin
+
+
+def fit_angles(polygon: Polygon, long_side: float, short_side: float) -> np.ndarray:
+    """Rotations (deg, 0.5 deg grid over a half turn) at which the polygon's bounding box fits
+    long x short."""
+    return points_fit_angles(np.asarray(polygon.convex_hull.exterior.coords), long_side, short_side)
+
+
+def points_fit_angles(points: np.ndarray, long_side: float, short_side: float) -> np.ndarray:
+    """Rotations (deg, 0.5 deg grid over a half turn) at which the points' bounding box fits long x short."""
+    angles = np.radians(np.arange(0.0, 180.0, 0.5))
+    c, s = np.cos(angles), np.sin(angles)
+    x = np.outer(c, points[:, 0]) - np.outer(s, points[:, 1])
+    y = np.outer(s, points[:, 0]) + np.outer(c, points[:, 1])
+    fits = (np.ptp(x, axis=1) <= long_side) & (np.ptp(y, axis=1) <= short_side)
+    return np.degrees(angles[fits])
