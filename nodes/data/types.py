@@ -141,3 +141,7 @@ class SurfaceRegions:
     up: np.ndarray  # (3,) float64 unit vector, opposite to the resting direction
     base_boundary_edges: np.ndarray  # (E, 2) int64 vertex pairs, see above
     base_distance_mm: np.ndarray  # (n,) float64, geodesic distance of each vertex from the base
+    pose_kind: str  # what the object rests on: flat, foot_ring, feet, round or thin
+    pose_reason: str  # one sentence: the base, its share of the surface, the stability, why
+    tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
+    base_area_fraction: float  # base area / surface area
