@@ -162,7 +162,7 @@ def test_seed_face_out_of_range(sphere: Mesh) -> None:
         detect_regions(RegionParams(seed_face=99999), sphere)
 
 SHARED = sorted(SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is_dir() else []
-POSE_KINDS = {"flat", "foot_ring", "feet", "round", "thin"}
+POSE_KINDS = {"flat", "foot_ring", "patches", "round", "thin"}
 
 
 def assert_valid_regions(mesh: Mesh, r: SurfaceRegions) -> None:

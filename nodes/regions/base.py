@@ -3,20 +3,21 @@
 1. **Contact patches**: faces whose normal deviates less than ``angle_threshold_deg`` from ``down``
    and whose corners all lie within ``plane_tolerance_mm`` of the support plane (of the seed's
    height when a seed is given), in edge-connected patches.
-2. **The patch**: the seed's, or the largest by area. With several feet (several patches of at
-   least ``FOOT_SHARE`` of the largest's area) the base is the largest sole alone; the other soles
-   stay sensing, as part of the one sensing region (a foot cannot join the base without covering
-   the leg between them).
+2. **The patch**: the seed's, or the largest by area. With several contact patches of at least
+   ``PATCH_SHARE`` of the largest's area (the feet of a figurine, the legs of an animal, the two
+   ends of a lying spoon) the base is the largest patch alone; the other patches stay sensing, as
+   part of the one sensing region (a foot cannot join the base without covering the leg between).
 3. **Room for the Rx dipole**: the patch grows ring by ring (faces sharing a vertex with it) until
    some interior vertex is ``min_base_radius_mm`` from the nearest boundary vertex and two
    adjacent vertices are interior. A round or curved bottom gets a contact cap this way, a tiny
-   flat foot a disc around it. A patch that had to grow, or whose vertices lie on average deeper
-   than ``CURVED_DEPTH`` of the plane tolerance above the plane, is a round bottom's contact cap.
+   flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
+   the plane tolerance above the plane is a round bottom's contact cap.
 4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
    plates, dishes, lids): the base takes the whole bottom side, the faces connected to the patch
    whose normal is within ``THIN_SIDE_ANGLE_DEG`` of ``down``; top and rim stay sensing.
 5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
-   one piece: a foot ring takes the faces it encloses.
+   one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
+   of the object's height are a cavity opening downward.
 """
 from __future__ import annotations
 
@@ -28,12 +29,14 @@ from scipy.spatial import cKDTree
 from .faces import FaceGraph
 from .pose import plane_basis
 
-FOOT_SHARE = 0.25
-"""A contact patch with at least this share of the largest patch's area counts as another foot."""
+PATCH_SHARE = 0.25
+"""A contact patch with at least this share of the largest patch's area counts as another one."""
 THIN_RATIO = 0.25
 """Height / narrowest horizontal extent below which an object is thin (a plate, a lid)."""
 THIN_SIDE_ANGLE_DEG = 60.0
 """On a thin object, the bottom side: faces whose normal is within this angle of ``down``."""
+CAVITY_SHARE = 0.25
+"""Enclosed faces deeper than this share of the object's height make a cavity opening downward."""
 ISLAND_SHARE = 0.05
 """Enclosed faces worth this share of the base area make it a foot ring."""
 CURVED_DEPTH = 0.25
@@ -45,11 +48,13 @@ MAX_GROWTH_RINGS = 200
 @dataclasses.dataclass(frozen=True)
 class Base:
     """The base faces and how they were found: ``kind`` is one of ``flat``, ``foot_ring``,
-    ``feet``, ``round`` or ``thin``; ``feet`` the number of contact patches counted as feet."""
+    ``patches``, ``round`` or ``thin``; ``patches`` the number of contact patches counted;
+    ``cavity`` whether the base encloses a cavity opening downward (a bowl upside down)."""
 
     faces: np.ndarray
     kind: str
-    feet: int
+    patches: int
+    cavity: bool
 
 
 def contact_patches(
@@ -133,17 +138,19 @@ def find_base(
         patch_area = np.bincount(labels[on_plane], weights=areas[on_plane])
         chosen = labels[seed] if seed is not None else int(np.argmax(patch_area))
         patch = labels == chosen
-    feet = int(np.count_nonzero(patch_area >= FOOT_SHARE * patch_area.max())) if patch_area.max() > 0 else 0
+    patches = int(np.count_nonzero(patch_area >= PATCH_SHARE * patch_area.max())) if patch_area.max() > 0 else 1
     base = grow_for_dipole(vertices, graph, patch, params.min_base_radius_mm)
-    depth = (vertices @ down).max() - vertices[np.unique(graph.faces[patch])] @ down
-    curved = int(base.sum()) > int(patch.sum()) or depth.mean() > CURVED_DEPTH * params.plane_tolerance_mm
+    height = vertices @ down
+    depth = height.max() - height[np.unique(graph.faces[patch])]
+    curved = depth.mean() > CURVED_DEPTH * params.plane_tolerance_mm
     thin = is_thin(vertices, down)
     if thin:
         side = face_normals @ down >= np.cos(np.radians(THIN_SIDE_ANGLE_DEG))
         side_labels = graph.components(side | base)
         base = base | np.isin(side_labels, np.unique(side_labels[base]))
-    before = float(areas[base].sum())
-    base = absorb_islands(graph, base, areas)
-    ring = float(areas[base].sum()) > (1.0 + ISLAND_SHARE) * before
-    kind = "thin" if thin else "foot_ring" if ring else "feet" if feet > 1 else "round" if curved else "flat"
-    return Base(faces=base, kind=kind, feet=max(feet, 1))
+    islands = absorb_islands(graph, base, areas) & ~base
+    cavity = bool(islands.any()) and height.max() - height[graph.faces[islands]].min() > CAVITY_SHARE * np.ptp(height)
+    ring = float(areas[islands].sum()) > ISLAND_SHARE * float(areas[base].sum())
+    base = base | islands
+    kind = "thin" if thin else "foot_ring" if ring else "round" if curved else "patches" if patches > 1 else "flat"
+    return Base(faces=base, kind=kind, patches=patches, cavity=cavity)

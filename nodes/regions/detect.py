@@ -36,15 +36,18 @@ from ..data.types import Mesh, SurfaceRegions
 from ..geometry.triangles import corners, normals
 from .base import Base, find_base
 from .faces import FaceGraph
-from .pose import candidate_floors, centre_of_mass, choose_floor, tipping_angle_deg
+from .pose import candidate_floors, centre_of_mass, ranked_floors, tipping_angle_deg
+
+CANDIDATE_POSES = 6
+"""Automatic pose: how many of the best floors (at least angle_threshold_deg apart) are tried."""
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 KIND_WORDS = {
     "flat": "a flat bottom",
     "foot_ring": "a foot ring and the faces it encloses",
-    "feet": "the largest of {feet} feet (the other soles stay sensing)",
-    "round": "a contact cap grown around its lowest contact",
+    "patches": "the largest of {patches} contact patches (the others stay sensing)",
+    "round": "a contact cap on its curved bottom",
     "thin": "the bottom side of a thin object",
 }
 
@@ -112,6 +115,27 @@ def nearest_face(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> 
     return int(trimesh.proximity.closest_point(mesh, point[None, :])[2][0])
 
 
+def automatic_pose(
+    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams
+) -> tuple[Base, np.ndarray, str]:
+    """``(base, down, why)`` of the pose a person would set the object down in (:mod:`.pose`):
+    the best ranked floor whose base does not enclose a downward cavity (else the best)."""
+    floors = candidate_floors(
+        vertices, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
+    )
+    ranked = ranked_floors(floors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
+    stable = sum(f.tipping_deg >= params.min_tipping_deg for f in floors)
+    why = f"the stable pose with the most flat contact of {stable} stable hull planes"
+    first = None
+    for rank, floor in enumerate(ranked):
+        base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
+        if not base.cavity:
+            skipped = f", {rank} upside-down pose(s) passed over" if rank else ""
+            return base, floor.down, why + skipped
+        first = first or (base, floor.down)
+    return first[0], first[1], why + " (every candidate encloses a cavity)"
+
+
 def resting_base(
     vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams
 ) -> tuple[Base, np.ndarray, float, str]:
@@ -121,22 +145,18 @@ def resting_base(
         raise UserError(f"seed_face {seed} does not exist: the mesh has {len(graph.faces)} faces")
     if params.seed_point is not None:
         seed = nearest_face(vertices, graph.faces, np.asarray(params.seed_point, dtype=np.float64))
-    if params.up_axis is not None:
-        down, why = -parse_axis(params.up_axis), f"up_axis {params.up_axis} given"
-    elif seed is not None:
-        down, why = face_normals[seed].copy(), f"seed face {seed} given"
+    if params.up_axis is None and seed is None:
+        base, down, why = automatic_pose(vertices, graph, face_normals, areas, params)
     else:
-        floors = candidate_floors(
-            vertices, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
-        )
-        floor = choose_floor(floors, params.min_tipping_deg)
-        stable = sum(f.tipping_deg >= params.min_tipping_deg for f in floors)
-        down, why = floor.down, f"the stable pose with the most flat contact of {stable} stable hull planes"
+        if params.up_axis is not None:
+            down, why = -parse_axis(params.up_axis), f"up_axis {params.up_axis} given"
+        else:
+            down, why = face_normals[seed].copy(), f"seed face {seed} given"
+        base = find_base(vertices, graph, face_normals, areas, down, params, seed)
     tipping = tipping_angle_deg(vertices, down, centre_of_mass(vertices, graph.faces), params.plane_tolerance_mm)
-    base = find_base(vertices, graph, face_normals, areas, down, params, seed)
     share = float(areas[base.faces].sum() / areas.sum())
     reason = (
-        f"rests on {KIND_WORDS[base.kind].format(feet=base.feet)} ({100 * share:.1f}% of the surface), "
+        f"rests on {KIND_WORDS[base.kind].format(patches=base.patches)} ({100 * share:.1f}% of the surface), "
         f"tips over at {tipping:.0f} deg; {why}"
     )
     return base, down, tipping, reason

@@ -16,7 +16,9 @@ hull triangle). Each candidate gets
 The pose a person would set the object down in is the stable candidate (tipping angle at least
 ``min_tipping_deg``) with the largest contact area: a flat bottom or a foot ring however small,
 the soles of all the feet together, and on a round object (nothing flat anywhere) its flattest
-side, which is also its widest support. If no candidate is stable the most stable one is taken.
+side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
+or a cup upside down on its rim) is passed over for the next (``regions.detect``). If no
+candidate is stable the most stable one is taken.
 """
 from __future__ import annotations
 
@@ -106,9 +108,18 @@ def candidate_floors(
     ]
 
 
-def choose_floor(floors: list[Floor], min_tipping_deg: float) -> Floor:
-    """The stable floor with the largest contact area, else the most stable one (module docstring)."""
-    stable = [f for f in floors if f.tipping_deg >= min_tipping_deg and f.contact_mm2 > 0.0]
-    if stable:
-        return max(stable, key=lambda f: (f.contact_mm2, f.tipping_deg))
-    return max(floors, key=lambda f: f.tipping_deg)
+def ranked_floors(floors: list[Floor], min_tipping_deg: float, separation_deg: float, count: int) -> list[Floor]:
+    """Up to ``count`` floors at least ``separation_deg`` apart, best first: the stable ones by
+    contact area, then (if none is stable) the most stable one."""
+    stable = sorted(
+        (f for f in floors if f.tipping_deg >= min_tipping_deg and f.contact_mm2 > 0.0),
+        key=lambda f: (-f.contact_mm2, -f.tipping_deg),
+    )
+    cos_limit = np.cos(np.radians(separation_deg))
+    picked: list[Floor] = []
+    for floor in stable:
+        if len(picked) == count:
+            break
+        if all(floor.down @ other.down < cos_limit for other in picked):
+            picked.append(floor)
+    return picked or [max(floors, key=lambda f: f.tipping_deg)]
