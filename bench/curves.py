@@ -20,7 +20,6 @@ import time
 
 import numpy as np
 
-from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.connection import ConnectionParams, connection
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings, pair_multiplicity
 from retrotouch.nodes.data.types import CurveEnd
@@ -57,13 +56,7 @@ def main() -> None:
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
     mesh, remesh_s = timed(remesh, RemeshParams(target_vertices=args.vertices), mesh)
-    try:
-        regions = detect_regions(RegionParams(up_axis=args.up_axis), mesh)
-    except UserError as exc:
-        if args.up_axis is not None:
-            raise
-        print(f"regions.detect: {exc}; retrying with min_base_area_fraction 0.005")
-        regions = detect_regions(RegionParams(min_base_area_fraction=0.005), mesh)
+    regions = detect_regions(RegionParams(up_axis=args.up_axis), mesh)
 
     rows: list[tuple[str, float, str]] = []
     tx_field, t_ctx = timed(connection, ConnectionParams(layer="tx"), mesh, regions)

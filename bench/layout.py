@@ -24,7 +24,6 @@ import time
 import numpy as np
 from joblib import Parallel, delayed
 
-from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.connection import ConnectionParams, connection
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.selection import candidate_crossings
@@ -44,13 +43,7 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None):
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
     mesh = remesh(RemeshParams(target_vertices=vertices), mesh)
-    try:
-        regions = detect_regions(RegionParams(up_axis=up_axis), mesh)
-    except UserError as exc:
-        if up_axis is not None:
-            raise
-        print(f"regions.detect: {exc}; retrying with min_base_area_fraction 0.005")
-        regions = detect_regions(RegionParams(min_base_area_fraction=0.005), mesh)
+    regions = detect_regions(RegionParams(up_axis=up_axis), mesh)
     tx_field = connection(ConnectionParams(layer="tx"), mesh, regions)
     rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]

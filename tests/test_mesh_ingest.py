@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +12,8 @@ import trimesh
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
-from retrotouch.nodes.mesh.repair import (
-    RemeshParams,
-    RepairParams,
-    remesh,
-    repair_mesh,
-    signed_volume,
-)
+from retrotouch.nodes.geometry.triangles import signed_volume
+from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -78,7 +74,10 @@ def test_content_change_changes_source_hash(tmp_path: Path) -> None:
         ("empty.ply", b"", "is empty"),
         ("notamesh.obj", b"hello\nthis is a shopping list\n", "contains no triangles"),
         ("notamesh.stl", b"solid? no, just some words\n", "contains no triangles"),
-        ("points.xyz", b"1 2 3\n", "unsupported extension"),
+        ("points.xyz", b"1 2 3\n4 5 6\n", "holds 2 points and no faces: a scan needs at least 100 points"),
+        ("points.txt", b"1 2 3\n", "unsupported extension"),
+        ("random.obj", np.random.default_rng(1).bytes(4000), "cannot read mesh file|contains no triangles"),
+        ("random.stl", np.random.default_rng(2).bytes(4000), "cannot read mesh file|contains no triangles"),
     ],
 )
 def test_unreadable_files_give_one_line_errors(tmp_path: Path, name: str, content: bytes, message: str) -> None:
@@ -95,6 +94,61 @@ def test_truncated_ply(tmp_path: Path) -> None:
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(UserError, match=r"cannot read mesh file .*cut\.ply.*export it again"):
         load_mesh(LoadParams(path=str(path)))
+
+
+def test_obj_with_a_latin1_comment_loads(tmp_path: Path) -> None:
+    path = tmp_path / "tetra.obj"
+    path.write_bytes("# mod\xe8le de caf\xe9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n".encode("latin-1"))
+    mesh = load_mesh(LoadParams(path=str(path)))
+    assert mesh.vertices.shape == (4, 3) and mesh.faces.shape == (4, 3)
+
+
+def test_ply_face_index_out_of_range(tmp_path: Path) -> None:
+    path = tmp_path / "bad.ply"
+    path.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"
+    )
+    with pytest.raises(UserError, match=r"bad\.ply has faces with vertex indices outside 0\.\.2") as info:
+        load_mesh(LoadParams(path=str(path)))
+    assert "\n" not in str(info.value)
+
+
+def test_nan_coordinates_give_one_line_and_no_warnings(tmp_path: Path) -> None:
+    path = tmp_path / "nan.obj"
+    path.write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(UserError, match="has NaN or infinite coordinates"):
+            load_mesh(LoadParams(path=str(path)))
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
+
+
+def test_folder_as_mesh_path(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="is a folder, not a file"):
+        load_mesh(LoadParams(path=str(tmp_path)))
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".xyz"])
+def test_point_cloud_with_holes_and_fragments_becomes_one_closed_genus_zero_mesh(tmp_path: Path, suffix: str) -> None:
+    rng = np.random.default_rng(0)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    points = np.asarray(trimesh.sample.sample_surface_even(sphere, 6000, seed=0)[0])
+    points = points[np.linalg.norm(points - [0.0, 0.0, 40.0], axis=1) > 12.0]  # a hole at the top
+    fragment = rng.normal((90.0, 0.0, 0.0), 2.0, size=(80, 3))  # a loose cluster beside the object
+    path = tmp_path / f"scan{suffix}"
+    if suffix == ".xyz":
+        np.savetxt(path, np.vstack([points, fragment]))
+    else:
+        trimesh.PointCloud(np.vstack([points, fragment])).export(path)
+    loaded = load_mesh(LoadParams(path=str(path)))
+    assert loaded.repairs and loaded.repairs[0].startswith(f"reconstructed a closed surface from {len(points) + 80:,} points")
+    repaired = repair_mesh(RepairParams(), loaded)
+    report = check_topology(CheckTopologyParams(), repaired)["report"]
+    assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
+    assert any(line.startswith("dropped 1 loose fragment(s)") for line in repaired.repairs)
+    radius = np.linalg.norm(repaired.vertices, axis=1)
+    assert abs(np.median(radius) - 40.0) < 1.5 and radius.max() < 50.0  # the sphere, hole closed
 
 
 def test_missing_file_and_unknown_builtin(tmp_path: Path) -> None:
@@ -159,6 +213,31 @@ def test_remesh_to_vertex_count_lands_within_15_percent() -> None:
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
 
 
+def test_dense_input_is_decimated_before_remeshing() -> None:
+    dense = as_mesh(trimesh.creation.icosphere(subdivisions=6, radius=40.0))  # 81,920 faces
+    out = remesh(RemeshParams(target_vertices=1000), dense)
+    assert out.repairs[0].startswith("decimated a dense input from 81,920 to 8,000 faces")
+    assert abs(len(out.vertices) - 1000) / 1000 < 0.15
+    assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
+
+
+def test_missed_vertex_target_is_logged_and_listed(caplog: pytest.LogCaptureFixture) -> None:
+    coarse = as_mesh(trimesh.creation.icosphere(subdivisions=1, radius=40.0))
+    with caplog.at_level("WARNING"):
+        out = remesh(RemeshParams(target_vertices=20000, iterations=1, max_passes=1), coarse)
+    assert out.repairs[-1].startswith(f"remeshing missed its target: {len(out.vertices):,} vertices for 20,000")
+    assert "remeshing missed its target" in caplog.text
+
+
+def test_repairs_are_listed() -> None:
+    big = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    inward = Mesh(np.asarray(big.vertices), np.asarray(big.faces[1:, ::-1], dtype=np.int64), "holed", ("earlier step",))
+    repaired = repair_mesh(RepairParams(), inward)
+    assert repaired.repairs[0] == "earlier step"
+    assert repaired.repairs[1] == "closed 1 hole(s) with 1 faces"
+    assert repaired.repairs[-1] == "flipped the faces to point outward"
+
+
 def test_remesh_to_edge_length() -> None:
     sphere = as_mesh(trimesh.creation.icosphere(subdivisions=3, radius=40.0))
     out = remesh(RemeshParams(target_edge_mm=6.0), sphere)
@@ -182,7 +261,7 @@ def test_check_topology_passes_good_mesh(bunny: Mesh) -> None:
 def test_open_box_reports_boundary() -> None:
     box = trimesh.creation.box(extents=(10, 10, 10))
     mesh = Mesh(np.asarray(box.vertices), np.asarray(box.faces[2:], dtype=np.int64), "box.ply sha256:00")
-    with pytest.raises(UserError, match=r"^box\.ply: 4 boundary edges \(1 hole\(s\)\): run mesh.repair"):
+    with pytest.raises(UserError, match=r"^box\.ply: 4 boundary edges \(1 hole\(s\)\) left open: add mesh.repair"):
         check_topology(CheckTopologyParams(), mesh)
 
 
@@ -195,7 +274,7 @@ def test_torus_reports_genus_one() -> None:
 def test_two_spheres_report_components() -> None:
     a = trimesh.creation.icosphere(radius=10.0)
     b = trimesh.creation.icosphere(radius=10.0).apply_translation((50, 0, 0))
-    with pytest.raises(UserError, match="2 components: keep the largest with mesh.repair keep_largest: true"):
+    with pytest.raises(UserError, match=r"2 components: add mesh.repair \(keep_largest: true keeps the largest\)"):
         check_topology(CheckTopologyParams(), as_mesh(trimesh.util.concatenate([a, b])))
 
 

@@ -10,7 +10,9 @@ import trimesh
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh, SurfaceRegions
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
-from retrotouch.nodes.regions.detect import RegionParams, detect_regions, face_normals_areas, parse_axis
+from retrotouch.nodes.geometry.triangles import corners, normals
+from retrotouch.nodes.regions.faces import FaceGraph
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions, parse_axis
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
@@ -39,8 +41,8 @@ def test_bunny_rests_on_its_bottom(bunny: Mesh, bunny_regions: SurfaceRegions) -
     r = bunny_regions
     assert abs(np.linalg.norm(r.up) - 1.0) < 1e-12
     assert r.up[1] > 0.99  # pymeshlab's bunny stands on -y
-    normals, areas = face_normals_areas(bunny.vertices, bunny.faces)
-    mean_normal = (normals[r.base_faces] * areas[r.base_faces, None]).sum(0)
+    face_normals, areas = normals(corners(bunny.vertices, bunny.faces))
+    mean_normal = (face_normals[r.base_faces] * areas[r.base_faces, None]).sum(0)
     assert mean_normal @ r.up / np.linalg.norm(mean_normal) < -0.95  # base faces point down
     share = areas[r.base_faces].sum() / areas.sum()
     assert 0.03 < share < 0.2, share
@@ -107,9 +109,9 @@ def test_base_boundary_edges_separate_sensing_from_base(bunny: Mesh, bunny_regio
 def test_up_axis_override(bunny: Mesh) -> None:
     r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0), bunny)
     np.testing.assert_allclose(r.up, [0.0, 0.0, 1.0])
-    normals, _ = face_normals_areas(bunny.vertices, bunny.faces)
-    assert (normals[r.base_faces] @ r.up < -np.cos(np.radians(15.0)) + 1e-12).all()
     z = bunny.vertices[:, 2]
+    assert r.base_faces[vertex_faces(bunny, int(np.argmin(z)))].any()  # holds the lowest point
+    assert r.tipping_angle_deg < 0 and "up_axis +z given" in r.pose_reason  # the bunny would fall over
     assert z[np.unique(bunny.faces[r.base_faces])].max() <= z.min() + 0.25 * np.ptp(z)  # low side
     assert r.base_faces[vertex_faces(bunny, r.base_centre)].all()
     assert not r.exclusion_base.any()
@@ -126,9 +128,16 @@ def test_seed_point_and_angle_overrides(bunny: Mesh, bunny_regions: SurfaceRegio
     assert narrow.base_faces.sum() < bunny_regions.base_faces.sum()
 
 
-def test_sphere_has_no_flat_base(sphere: Mesh) -> None:
-    with pytest.raises(UserError, match=r"no flat resting region found .*set up_axis"):
-        detect_regions(RegionParams(), sphere)
+def test_sphere_rests_on_a_contact_cap(sphere: Mesh) -> None:
+    r = detect_regions(RegionParams(), sphere)
+    assert r.pose_kind == "round"
+    cap = sphere.vertices[np.unique(sphere.faces[r.base_faces])]
+    centre = sphere.vertices[r.base_centre]
+    # a cap around the lowest point, wide enough that the centre is >= min_base_radius_mm inside
+    assert np.linalg.norm(cap - centre, axis=1).max() < 25.0
+    assert 0.005 < r.base_area_fraction < 0.05, r.base_area_fraction
+    assert centre @ r.up < -49.0
+    assert sphere.vertices[r.far_vertex] @ r.up > 49.0
 
 
 def test_sphere_with_up_axis_gets_a_polar_cap(sphere: Mesh) -> None:
@@ -152,22 +161,36 @@ def test_seed_face_out_of_range(sphere: Mesh) -> None:
     with pytest.raises(UserError, match="seed_face 99999 does not exist"):
         detect_regions(RegionParams(seed_face=99999), sphere)
 
-SHARED_UP_AXES = {  # None: the automatic detection finds a flat base; else the mesh's up axis
-    "blub_fish.ply": None, "duck_gao.ply": None, "pear_gao.ply": None, "spoon_pfc.ply": None,
-    "penguin_oded.ply": "+y", "spot_crane.ply": "+y", "teddy1_gao.ply": "+y",
-}
+SHARED = sorted(SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is_dir() else []
+POSE_KINDS = {"flat", "foot_ring", "patches", "round", "thin"}
 
 
-@pytest.mark.parametrize("name", sorted(SHARED_UP_AXES))
-def test_shared_meshes_get_valid_regions(name: str) -> None:
-    path = SHARED_MESHES / name
-    if not path.is_file():
-        pytest.skip(f"{path} absent (shared test meshes are not checked out next to the repo)")
-    mesh = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
-    r = detect_regions(RegionParams(up_axis=SHARED_UP_AXES[name]), mesh)
+def assert_valid_regions(mesh: Mesh, r: SurfaceRegions) -> None:
+    """Partition, dipole inside the base, base and sensing each one edge-connected piece, the base
+    on the support plane, the recorded share right."""
     stacked = np.stack([r.base_faces, r.exclusion_base, r.exclusion_far, r.sensing_faces]).astype(int)
     assert (stacked.sum(axis=0) == 1).all()
     assert r.base_faces[vertex_faces(mesh, int(r.base_dipole[0]))].all()
     assert r.base_faces[vertex_faces(mesh, int(r.base_dipole[1]))].all()
-    assert r.sensing_faces.mean() > 0.6 and len(r.base_boundary_edges) > 10
-    assert r.base_distance_mm[r.far_vertex] > 50.0
+    graph = FaceGraph(mesh.faces, len(mesh.vertices))
+    assert graph.components(r.base_faces)[r.base_faces].max() == graph.components(r.base_faces)[r.base_faces].min()
+    rest = graph.components(~r.base_faces)
+    assert len(np.unique(rest[rest >= 0])) == 1  # the non-base surface is one piece
+    height = mesh.vertices @ -r.up
+    assert height[np.unique(mesh.faces[r.base_faces])].max() > height.max() - RegionParams().plane_tolerance_mm
+    _, areas = normals(corners(mesh.vertices, mesh.faces))
+    assert abs(r.base_area_fraction - areas[r.base_faces].sum() / areas.sum()) < 1e-9
+    assert r.pose_kind in POSE_KINDS and r.pose_reason.startswith("rests on")
+    assert len(r.base_boundary_edges) >= 6  # a closed loop around base and first exclusion
+
+
+@pytest.mark.skipif(not SHARED, reason=f"no shared meshes in {SHARED_MESHES}")
+@pytest.mark.parametrize("path", SHARED, ids=[p.stem for p in SHARED])
+def test_shared_meshes_rest_without_overrides(path: Path) -> None:
+    mesh = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
+    params = RegionParams()
+    r = detect_regions(params, mesh)
+    assert_valid_regions(mesh, r)
+    assert r.tipping_angle_deg >= params.min_tipping_deg  # a stable pose
+    assert r.sensing_faces.mean() > 0.45
+    assert r.base_distance_mm[r.far_vertex] > 0.8 * np.ptp(mesh.vertices @ r.up)  # far from the base

@@ -29,6 +29,7 @@ class Mesh:
     vertices: np.ndarray  # (n, 3) float64, mm
     faces: np.ndarray  # (m, 3) int64, CCW from outside
     source: str  # where it came from (file name or "builtin:bunny"), for reports only
+    repairs: tuple[str, ...] = ()  # what ingest changed (reconstruction, fragments, holes, ...), one line each
 
 
 class CurveEnd(IntEnum):
@@ -141,3 +142,7 @@ class SurfaceRegions:
     up: np.ndarray  # (3,) float64 unit vector, opposite to the resting direction
     base_boundary_edges: np.ndarray  # (E, 2) int64 vertex pairs, see above
     base_distance_mm: np.ndarray  # (n,) float64, geodesic distance of each vertex from the base
+    pose_kind: str  # what the object rests on: flat, foot_ring, patches, round or thin
+    pose_reason: str  # one sentence: the base, its share of the surface, the stability, why
+    tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
+    base_area_fraction: float  # base area / surface area

@@ -3,7 +3,9 @@
 Nodes:
 
 * ``mesh.load``  -- OBJ/PLY/STL/OFF/GLB via trimesh (a GLB scene is flattened into one mesh), or
-  ``builtin:bunny`` (pymeshlab's bundled Stanford bunny). The declared ``units`` convert the file's
+  ``builtin:bunny`` (pymeshlab's bundled Stanford bunny). A point cloud (a PLY or XYZ file with
+  points and no faces) is reconstructed into a closed surface (:mod:`.reconstruct`), listed in
+  ``Mesh.repairs``. The declared ``units`` convert the file's
   numbers to millimetres; ``unitless`` keeps them as they are (follow with ``mesh.scale``).
   ``Mesh.source`` is ``"<path> sha256:<hex of the file bytes>"``; ``Params.input_files()`` names
   the file so the engine keys the cache on its content.
@@ -12,6 +14,7 @@ Nodes:
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.resources
 from pathlib import Path
@@ -24,6 +27,7 @@ from pydantic import Field, model_validator
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
+from .reconstruct import reconstruct_from_points
 
 BUILTIN_MESHES = {"builtin:bunny": "tests/sample_meshes/bunny.obj"}
 """Embedded meshes: name -> path inside the installed pymeshlab package."""
@@ -31,7 +35,7 @@ BUILTIN_MESHES = {"builtin:bunny": "tests/sample_meshes/bunny.obj"}
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "unitless": 1.0}
 """Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
 
-SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".xyz")
 
 
 def resolve_mesh_path(path: str) -> Path:
@@ -49,10 +53,13 @@ def resolve_mesh_path(path: str) -> Path:
 class LoadParams(NodeParams):
     """Where the mesh comes from and what unit its numbers are in."""
 
-    path: str = Field("builtin:bunny", description="mesh file (OBJ/PLY/STL/OFF/GLB) or builtin:bunny")
+    path: str = Field(
+        "builtin:bunny", description="mesh file (OBJ/PLY/STL/OFF/GLB), point cloud (PLY/XYZ) or builtin:bunny"
+    )
     units: Literal["mm", "cm", "m", "in", "unitless"] = Field(
         "unitless", description="unit of the file's coordinates; unitless = keep numbers, scale later"
     )
+    poisson_depth: int = Field(7, ge=5, le=10, description="point clouds: screened Poisson octree depth")
 
     def input_files(self) -> list[str]:
         return [str(resolve_mesh_path(self.path))]
@@ -67,15 +74,42 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """``(vertices (n,3) float64, faces (m,3) int64)`` of a mesh file, scenes flattened.
+def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices, faces)`` as trimesh reads them (scenes flattened; a point cloud has no faces)."""
+    try:
+        loaded = trimesh.load(str(path), process=False)
+        if isinstance(loaded, trimesh.PointCloud):
+            return np.asarray(loaded.vertices, dtype=np.float64), np.zeros((0, 3), dtype=np.int64)
+        if not isinstance(loaded, trimesh.Trimesh):
+            loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for corrupt input
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(f"cannot read mesh file {path} ({reason[:120]}): {fix}") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise UserError(f"mesh file {path} contains no triangles: {fix}")
+    faces = np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(loaded.vertices)):
+        raise UserError(
+            f"mesh file {path} has faces with vertex indices outside 0..{len(loaded.vertices) - 1}: "
+            f"the file is damaged; {fix}"
+        )
+    if not np.isfinite(np.asarray(loaded.vertices, dtype=np.float64)).all():
+        raise UserError(f"mesh file {path} has NaN or infinite coordinates: {fix}")
+    if len(faces):
+        loaded.merge_vertices(merge_tex=True, merge_norm=True)
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64)
+
+
+def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """``(vertices (n,3) float64, faces (m,3) int64, repairs)`` of a mesh or point-cloud file.
 
     Coincident vertices (OBJ texture/normal seams, STL triangle soups) are merged so the surface
-    is connected. Raises :class:`UserError` naming the file and the fix for anything unreadable.
+    is connected; a point cloud is reconstructed (``repairs`` says so). Raises :class:`UserError`
+    naming the file and the fix for anything unreadable.
     """
     fix = "export it again as a binary PLY, OBJ, STL, OFF or GLB triangle mesh"
     if path.is_dir():
-        raise UserError(f"mesh file {path} is a folder: name a mesh file in it (or use builtin:bunny)")
+        raise UserError(f"mesh path {path} is a folder, not a file: name the mesh file inside it")
     if not path.is_file():
         raise UserError(f"mesh file {path} does not exist: check the path (or use builtin:bunny)")
     if path.stat().st_size == 0:
@@ -85,31 +119,33 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
             f"mesh file {path} has an unsupported extension {path.suffix!r}: "
             f"use one of {', '.join(SUPPORTED_SUFFIXES)}"
         )
-    try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for corrupt input
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError(f"cannot read mesh file {path} ({reason[:120]}): {fix}") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise UserError(f"mesh file {path} contains no triangles: {fix}")
-    loaded.merge_vertices(merge_tex=True, merge_norm=True)
-    vertices = np.ascontiguousarray(loaded.vertices, dtype=np.float64)
-    faces = np.ascontiguousarray(loaded.faces, dtype=np.int64)
-    if not np.isfinite(vertices).all():
+    vertices, faces = read_geometry(path, fix)
+    if not np.isfinite(vertices).all():  # a point cloud's points
         raise UserError(f"mesh file {path} has NaN or infinite coordinates: {fix}")
-    return vertices, faces
+    repairs: tuple[str, ...] = ()
+    if len(faces) == 0:
+        if len(vertices) == 0:
+            raise UserError(f"mesh file {path} contains no triangles: {fix}")
+        point_count = len(vertices)
+        vertices, faces = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
+        repairs = (
+            f"reconstructed a closed surface from {point_count:,} points "
+            f"(screened Poisson, depth {poisson_depth}): {len(faces):,} faces",
+        )
+    return np.ascontiguousarray(vertices), np.ascontiguousarray(faces), repairs
 
 
 @node("mesh.load", params=LoadParams, outputs=("mesh",))
 def load_mesh(params: LoadParams) -> Mesh:
     """Read a triangle mesh and convert its declared units to mm (``unitless`` keeps the numbers)."""
     path = resolve_mesh_path(params.path)
-    vertices, faces = read_mesh_file(path)
+    vertices, faces, repairs = read_mesh_file(path, params.poisson_depth)
     source_name = params.path if params.path.startswith("builtin:") else str(path)
     return Mesh(
         vertices=vertices * MM_PER_UNIT[params.units],
         faces=faces,
         source=f"{source_name} sha256:{file_sha256(path)}",
+        repairs=repairs,
     )
 
 
@@ -163,4 +199,4 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     else:
         centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
         vertices = (mesh.vertices - centre) * factor + centre
-    return Mesh(vertices=vertices, faces=mesh.faces, source=mesh.source)
+    return dataclasses.replace(mesh, vertices=vertices)

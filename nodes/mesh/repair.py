@@ -3,13 +3,17 @@
 Nodes:
 
 * ``mesh.repair`` -- remove duplicate vertices/faces, null faces and unreferenced vertices, repair
-  non-manifold edges and vertices, orient faces coherently, close small holes, optionally keep only
-  the largest connected component, and make the orientation outward (signed volume > 0).
+  non-manifold edges and vertices, orient faces coherently, close holes, keep only the largest
+  connected component (a scan's loose fragments), and make the orientation outward (signed
+  volume > 0). Each change is listed in ``Mesh.repairs``.
 * ``mesh.remesh`` -- isotropic explicit remeshing to a target edge length in mm, or to a target
-  vertex count (the edge length is solved for in a few passes).
+  vertex count (the edge length is solved for in a few passes). A dense input (a scan with
+  millions of faces) is decimated first; a vertex count that misses its target is logged and listed.
 """
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 from typing import Literal
 
@@ -22,6 +26,16 @@ from scipy.sparse.csgraph import connected_components
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
+from ..geometry.triangles import areas, corners, signed_volume
+
+log = logging.getLogger(__name__)
+
+DECIMATE_ABOVE = 8
+"""mesh.remesh decimates an input with more than this many times the target's faces ..."""
+DECIMATE_TO = 4
+"""... to this many times the target's faces (quadric edge collapse), before remeshing."""
+TARGET_TOLERANCE = 0.10
+"""mesh.remesh: a vertex count within this share of the target is on target."""
 
 
 def to_meshset(vertices: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
@@ -47,12 +61,6 @@ def from_meshset(meshset: pymeshlab.MeshSet) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Signed enclosed volume (mm^3); positive when faces are CCW seen from outside."""
-    p0, p1, p2 = (vertices[faces[:, k]] for k in range(3))
-    return float(np.einsum("ij,ij->i", p0, np.cross(p1, p2)).sum() / 6.0)
-
-
 def face_components(faces: np.ndarray, vertex_count: int) -> tuple[int, np.ndarray]:
     """Connected components of faces sharing a vertex: ``(count, label per face)``."""
     m = len(faces)
@@ -62,44 +70,65 @@ def face_components(faces: np.ndarray, vertex_count: int) -> tuple[int, np.ndarr
     return count, vertex_labels[faces[:, 0]]
 
 
-def keep_largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The connected component with the largest surface area, unreferenced vertices dropped."""
+def keep_largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """The connected component with the largest surface area, unreferenced vertices dropped, and
+    a line saying what was dropped (None when there was one component)."""
     count, labels = face_components(faces, len(vertices))
+    dropped = None
     if count > 1:
-        p0, p1, p2 = (vertices[faces[:, k]] for k in range(3))
-        areas = 0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
-        faces = faces[labels == np.argmax(np.bincount(labels, weights=areas))]
+        face_areas = areas(corners(vertices, faces))
+        per_label = np.bincount(labels, weights=face_areas)
+        keep = int(np.argmax(per_label))
+        dropped = (
+            f"dropped {count - 1} loose fragment(s) ({int((labels != keep).sum()):,} faces, "
+            f"{100 * (1 - per_label[keep] / per_label.sum()):.1f}% of the area), kept the largest component"
+        )
+        faces = faces[labels == keep]
     used = np.unique(faces)
     remap = np.full(len(vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    return np.ascontiguousarray(vertices[used]), np.ascontiguousarray(remap[faces])
+    return np.ascontiguousarray(vertices[used]), np.ascontiguousarray(remap[faces]), dropped
 
 
 class RepairParams(NodeParams):
     """Which clean-up steps run."""
 
     close_holes: bool = Field(True, description="fill holes bounded by at most max_hole_edges edges")
-    max_hole_edges: int = Field(30, ge=3, description="largest hole (in boundary edges) to close")
-    keep_largest: bool = Field(False, description="drop every component but the largest (by area)")
+    max_hole_edges: int = Field(1000, ge=3, description="largest hole (in boundary edges) to close")
+    keep_largest: bool = Field(True, description="drop every component but the largest (by area)")
     non_manifold_edges: Literal["remove_faces", "split_vertices"] = Field(
         "remove_faces", description="how non-manifold edges are repaired"
     )
 
 
-@node("mesh.repair", params=RepairParams, inputs=("mesh",), outputs=("mesh",))
-def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
-    """Clean a scanned mesh with pymeshlab and orient it outward (signed volume > 0)."""
-    meshset = to_meshset(mesh.vertices, mesh.faces)
+def counted(meshset: pymeshlab.MeshSet) -> tuple[int, int]:
+    """``(vertices, faces)`` of the current mesh."""
+    return meshset.current_mesh().vertex_number(), meshset.current_mesh().face_number()
+
+
+def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
+    """Run the pymeshlab clean-up filters on ``meshset``; one line per change they made."""
+    done = []
+    before = counted(meshset)
     meshset.meshing_remove_duplicate_vertices()
     meshset.meshing_remove_duplicate_faces()
     meshset.meshing_remove_null_faces()
     meshset.meshing_remove_unreferenced_vertices()
+    after = counted(meshset)
+    if after != before:
+        done.append(f"merged or removed {before[0] - after[0]:,} duplicate/unused vertices and "
+                    f"{before[1] - after[1]:,} duplicate/degenerate faces")
     method = "Remove Faces" if params.non_manifold_edges == "remove_faces" else "Split Vertices"
     meshset.meshing_repair_non_manifold_edges(method=method)
     meshset.meshing_repair_non_manifold_vertices()
     meshset.meshing_remove_unreferenced_vertices()
+    repaired = counted(meshset)
+    if repaired != after:
+        done.append(f"repaired non-manifold edges/vertices (vertices {after[0]:,} -> {repaired[0]:,}, "
+                    f"faces {after[1]:,} -> {repaired[1]:,})")
     meshset.meshing_re_orient_faces_coherently()
     if params.close_holes:
+        holes = meshset.get_topological_measures()["number_holes"]
         try:
             meshset.meshing_close_holes(maxholesize=params.max_hole_edges)
         except pymeshlab.PyMeshLabException as exc:
@@ -107,14 +136,28 @@ def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
                 f"closing holes failed ({str(exc).strip()[:100]}): set close_holes: false and "
                 "fill the holes in a mesh editor"
             ) from None
+        filled = counted(meshset)[1] - repaired[1]
+        if filled:
+            done.append(f"closed {max(holes, 1)} hole(s) with {filled:,} faces")
+    return done
+
+
+@node("mesh.repair", params=RepairParams, inputs=("mesh",), outputs=("mesh",))
+def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
+    """Clean a scanned mesh with pymeshlab and orient it outward (signed volume > 0); every change
+    is appended to ``Mesh.repairs``."""
+    meshset = to_meshset(mesh.vertices, mesh.faces)
+    done = clean(meshset, params)
     vertices, faces = from_meshset(meshset)
-    if params.keep_largest:
-        vertices, faces = keep_largest_component(vertices, faces)
+    if params.keep_largest and len(faces):
+        vertices, faces, dropped = keep_largest_component(vertices, faces)
+        done += [dropped] if dropped else []
     if len(faces) == 0:
         raise UserError(f"repair left no faces in {mesh.source}: the input is not a usable surface")
     if signed_volume(vertices, faces) < 0.0:
         faces = np.ascontiguousarray(faces[:, ::-1])
-    return Mesh(vertices=vertices, faces=faces, source=mesh.source)
+        done.append("flipped the faces to point outward")
+    return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))
 
 
 class RemeshParams(NodeParams):
@@ -131,12 +174,6 @@ class RemeshParams(NodeParams):
         if (self.target_edge_mm is None) == (self.target_vertices is None):
             raise ValueError("set exactly one of target_edge_mm and target_vertices")
         return self
-
-
-def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Total triangle area (mm^2)."""
-    p0, p1, p2 = (vertices[faces[:, k]] for k in range(3))
-    return float(0.5 * np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1).sum())
 
 
 def edge_length_for_vertices(area_mm2: float, vertex_count: int) -> float:
@@ -161,32 +198,58 @@ def isotropic_remesh(
     return from_meshset(meshset)
 
 
+def decimate_dense(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """A mesh with more than ``DECIMATE_ABOVE x target_faces`` faces decimated (quadric edge
+    collapse, topology kept) to ``DECIMATE_TO x target_faces``, and a line saying so."""
+    if len(faces) <= DECIMATE_ABOVE * target_faces:
+        return vertices, faces, None
+    meshset = to_meshset(vertices, faces)
+    meshset.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(DECIMATE_TO * target_faces), preservetopology=True, planarquadric=True
+    )
+    decimated_vertices, decimated_faces = from_meshset(meshset)
+    note = f"decimated a dense input from {len(faces):,} to {len(decimated_faces):,} faces before remeshing"
+    return decimated_vertices, decimated_faces, note
+
+
+def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[np.ndarray, np.ndarray]:
+    """Remesh to about ``params.target_vertices``: the equilateral edge estimate, corrected by
+    ``sqrt(V_got / V_target)`` until within ``TARGET_TOLERANCE`` (at most ``max_passes``)."""
+    target = params.target_vertices
+    edge = edge_length_for_vertices(float(areas(corners(vertices, faces)).sum()), target)
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for _ in range(params.max_passes):
+        got_vertices, got_faces = isotropic_remesh(vertices, faces, edge, params.iterations, params.feature_angle_deg)
+        error = abs(len(got_vertices) - target) / target
+        if best is None or error < best[0]:
+            best = (error, got_vertices, got_faces)
+        if error <= TARGET_TOLERANCE:
+            break
+        edge *= math.sqrt(len(got_vertices) / target)
+    return best[1], best[2]
+
+
 @node("mesh.remesh", params=RemeshParams, inputs=("mesh",), outputs=("mesh",))
 def remesh(params: RemeshParams, mesh: Mesh) -> Mesh:
-    """Isotropic remeshing to ``target_edge_mm``, or to about ``target_vertices`` vertices.
-
-    For a vertex target the edge length starts from the equilateral estimate and is corrected by
-    ``sqrt(V_got / V_target)`` from the original mesh until within 10% (at most ``max_passes``).
-    """
-    if params.target_edge_mm is not None:
-        vertices, faces = isotropic_remesh(
-            mesh.vertices, mesh.faces, params.target_edge_mm, params.iterations, params.feature_angle_deg
-        )
+    """Isotropic remeshing to ``target_edge_mm``, or to about ``target_vertices`` vertices (a dense
+    input decimated first, a missed vertex target logged; both listed in ``Mesh.repairs``)."""
+    if params.target_vertices is not None:
+        target_faces = 2 * params.target_vertices
     else:
-        target = params.target_vertices
-        edge = edge_length_for_vertices(surface_area(mesh.vertices, mesh.faces), target)
-        best: tuple[float, np.ndarray, np.ndarray] | None = None
-        for _ in range(params.max_passes):
-            vertices, faces = isotropic_remesh(
-                mesh.vertices, mesh.faces, edge, params.iterations, params.feature_angle_deg
-            )
-            error = abs(len(vertices) - target) / target
-            if best is None or error < best[0]:
-                best = (error, vertices, faces)
-            if error <= 0.10:
-                break
-            edge *= math.sqrt(len(vertices) / target)
-        _, vertices, faces = best
+        area = float(areas(corners(mesh.vertices, mesh.faces)).sum())
+        target_faces = max(1, int(area / (math.sqrt(3.0) / 4.0 * params.target_edge_mm**2)))
+    vertices, faces, note = decimate_dense(mesh.vertices, mesh.faces, target_faces)
+    done = [note] if note else []
+    if params.target_edge_mm is not None:
+        vertices, faces = isotropic_remesh(vertices, faces, params.target_edge_mm, params.iterations, params.feature_angle_deg)
+    else:
+        vertices, faces = remesh_to_count(vertices, faces, params)
+        miss = abs(len(vertices) - params.target_vertices) / params.target_vertices
+        if miss > TARGET_TOLERANCE:
+            line = (f"remeshing missed its target: {len(vertices):,} vertices for {params.target_vertices:,} "
+                    f"({100 * miss:.0f}% off)")
+            log.warning("mesh.remesh: %s", line)
+            done.append(line)
     if signed_volume(vertices, faces) * signed_volume(mesh.vertices, mesh.faces) < 0.0:
         faces = np.ascontiguousarray(faces[:, ::-1])
-    return Mesh(vertices=vertices, faces=faces, source=mesh.source)
+    return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))

@@ -15,7 +15,8 @@ from scipy.sparse.csgraph import connected_components
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from .repair import face_components, signed_volume, to_meshset
+from ..geometry.triangles import signed_volume
+from .repair import face_components, to_meshset
 
 
 def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | float]:
@@ -64,23 +65,25 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
     if report["non_manifold_edges"] or report["non_manifold_vertices"]:
         problems.append(
             f"{report['non_manifold_edges']} non-manifold edges and "
-            f"{report['non_manifold_vertices']} non-manifold vertices: run mesh.repair first"
+            f"{report['non_manifold_vertices']} non-manifold vertices that no mesh.repair before this node "
+            "removed: add mesh.repair, or fix them in a mesh editor"
         )
     if report["components"] > 1:
         problems.append(
-            f"{report['components']} components: keep the largest with mesh.repair keep_largest: true"
+            f"{report['components']} components: add mesh.repair (keep_largest: true keeps the largest)"
         )
     if report["boundary_edges"]:
         problems.append(
-            f"{report['boundary_edges']} boundary edges ({report['holes']} hole(s)): run mesh.repair "
-            "with close_holes (raise max_hole_edges) or fill them in a mesh editor"
+            f"{report['boundary_edges']} boundary edges ({report['holes']} hole(s)) left open: add "
+            "mesh.repair with close_holes, raise its max_hole_edges, or fill them in a mesh editor"
         )
     if report["inconsistent_edges"]:
         problems.append(
-            f"{report['inconsistent_edges']} edges with inconsistent face orientation: run mesh.repair"
+            f"{report['inconsistent_edges']} edges with inconsistent face orientation: add mesh.repair, "
+            "or, if it is there, re-orient the faces in a mesh editor (the surface may be non-orientable)"
         )
     elif report["signed_volume_mm3"] < 0 and not report["boundary_edges"]:
-        problems.append("faces point inward (negative signed volume): run mesh.repair")
+        problems.append("faces point inward (negative signed volume): add mesh.repair before this node")
     clean = not problems
     if clean and expected_genus is not None and report["genus"] != expected_genus:
         problems.append(

@@ -1,0 +1,156 @@
+"""The base: the non-sensing region the object rests on, given the resting direction ``down``.
+
+1. **Contact patches**: faces whose normal deviates less than ``angle_threshold_deg`` from ``down``
+   and whose corners all lie within ``plane_tolerance_mm`` of the support plane (of the seed's
+   height when a seed is given), in edge-connected patches.
+2. **The patch**: the seed's, or the largest by area. With several contact patches of at least
+   ``PATCH_SHARE`` of the largest's area (the feet of a figurine, the legs of an animal, the two
+   ends of a lying spoon) the base is the largest patch alone; the other patches stay sensing, as
+   part of the one sensing region (a foot cannot join the base without covering the leg between).
+3. **Room for the Rx dipole**: the patch grows ring by ring (faces sharing a vertex with it) until
+   some interior vertex is ``min_base_radius_mm`` from the nearest boundary vertex and two
+   adjacent vertices are interior. A round or curved bottom gets a contact cap this way, a tiny
+   flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
+   the plane tolerance above the plane is a round bottom's contact cap.
+4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
+   plates, dishes, lids): the base takes the whole bottom side, the faces connected to the patch
+   whose normal is within ``THIN_SIDE_ANGLE_DEG`` of ``down``; top and rim stay sensing.
+5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
+   one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
+   of the object's height are a cavity opening downward.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .faces import FaceGraph
+from .pose import plane_basis
+
+PATCH_SHARE = 0.25
+"""A contact patch with at least this share of the largest patch's area counts as another one."""
+THIN_RATIO = 0.25
+"""Height / narrowest horizontal extent below which an object is thin (a plate, a lid)."""
+THIN_SIDE_ANGLE_DEG = 60.0
+"""On a thin object, the bottom side: faces whose normal is within this angle of ``down``."""
+CAVITY_SHARE = 0.25
+"""Enclosed faces deeper than this share of the object's height make a cavity opening downward."""
+ISLAND_SHARE = 0.05
+"""Enclosed faces worth this share of the base area make it a foot ring."""
+CURVED_DEPTH = 0.25
+"""A patch whose vertices lie on average deeper than this share of the plane tolerance is curved."""
+MAX_GROWTH_RINGS = 200
+"""Ring growth gives up after this many rings (the base is then what it reached)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Base:
+    """The base faces and how they were found: ``kind`` is one of ``flat``, ``foot_ring``,
+    ``patches``, ``round`` or ``thin``; ``patches`` the number of contact patches counted;
+    ``cavity`` whether the base encloses a cavity opening downward (a bowl upside down)."""
+
+    faces: np.ndarray
+    kind: str
+    patches: int
+    cavity: bool
+
+
+def contact_patches(
+    vertices: np.ndarray,
+    graph: FaceGraph,
+    face_normals: np.ndarray,
+    down: np.ndarray,
+    angle_threshold_deg: float,
+    tolerance_mm: float,
+    seed: int | None,
+) -> np.ndarray:
+    """Patch label per face (-1 off the support plane), step 1 of the module docstring."""
+    height = vertices @ down
+    reference = height[graph.faces[seed]].mean() if seed is not None else height.max()
+    near = (np.abs(reference - height[graph.faces]) <= tolerance_mm).all(axis=1)
+    candidates = near & (face_normals @ down >= np.cos(np.radians(angle_threshold_deg)))
+    if seed is not None:
+        candidates[seed] = True
+    return graph.components(candidates)
+
+
+def inradius_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray) -> float:
+    """Largest distance (mm) from an interior base vertex to the nearest base boundary vertex."""
+    inside, outside = graph.vertex_masks(base)
+    interior, boundary = np.flatnonzero(inside & ~outside), np.flatnonzero(inside & outside)
+    if len(interior) == 0 or len(boundary) == 0:
+        return 0.0 if len(interior) == 0 else np.inf
+    return float(cKDTree(vertices[boundary]).query(vertices[interior])[0].max())
+
+
+def grow_for_dipole(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Step 3: ``base`` grown ring by ring until it gives the dipole room."""
+    for _ in range(MAX_GROWTH_RINGS):
+        if graph.has_interior_edge(base) and inradius_mm(vertices, graph, base) >= radius_mm:
+            break
+        grown = graph.ring(base)
+        if grown.all():
+            break
+        base = grown
+    return base
+
+
+def is_thin(vertices: np.ndarray, down: np.ndarray) -> bool:
+    """Whether the height along ``down`` is below ``THIN_RATIO`` of the narrowest horizontal extent."""
+    flat = vertices @ plane_basis(down)
+    flat = flat - flat.mean(axis=0)
+    axes = np.linalg.svd(flat, full_matrices=False)[2]
+    narrowest = float(np.ptp(flat @ axes[-1]))
+    return float(np.ptp(vertices @ down)) < THIN_RATIO * narrowest
+
+
+def absorb_islands(graph: FaceGraph, base: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    """Base plus every non-base component except the largest (by area), so the rest is one piece."""
+    labels = graph.components(~base)
+    rest = labels >= 0
+    if not rest.any():
+        return base
+    largest = int(np.argmax(np.bincount(labels[rest], weights=areas[rest])))
+    return base | (rest & (labels != largest))
+
+
+def find_base(
+    vertices: np.ndarray,
+    graph: FaceGraph,
+    face_normals: np.ndarray,
+    areas: np.ndarray,
+    down: np.ndarray,
+    params,
+    seed: int | None,
+) -> Base:
+    """The base for resting direction ``down`` (module docstring); ``params`` is a ``RegionParams``."""
+    labels = contact_patches(
+        vertices, graph, face_normals, down, params.angle_threshold_deg, params.plane_tolerance_mm, seed
+    )
+    on_plane = labels >= 0
+    if not on_plane.any():  # no face is flat enough: start from the faces at the lowest vertex
+        lowest = int(np.argmax(vertices @ down))
+        patch = (graph.faces == lowest).any(axis=1)
+        patch_area = np.zeros(1)
+    else:
+        patch_area = np.bincount(labels[on_plane], weights=areas[on_plane])
+        chosen = labels[seed] if seed is not None else int(np.argmax(patch_area))
+        patch = labels == chosen
+    patches = int(np.count_nonzero(patch_area >= PATCH_SHARE * patch_area.max())) if patch_area.max() > 0 else 1
+    base = grow_for_dipole(vertices, graph, patch, params.min_base_radius_mm)
+    height = vertices @ down
+    depth = height.max() - height[np.unique(graph.faces[patch])]
+    curved = depth.mean() > CURVED_DEPTH * params.plane_tolerance_mm
+    thin = is_thin(vertices, down)
+    if thin:
+        side = face_normals @ down >= np.cos(np.radians(THIN_SIDE_ANGLE_DEG))
+        side_labels = graph.components(side | base)
+        base = base | np.isin(side_labels, np.unique(side_labels[base]))
+    islands = absorb_islands(graph, base, areas) & ~base
+    cavity = bool(islands.any()) and height.max() - height[graph.faces[islands]].min() > CAVITY_SHARE * np.ptp(height)
+    ring = float(areas[islands].sum()) > ISLAND_SHARE * float(areas[base].sum())
+    base = base | islands
+    kind = "thin" if thin else "foot_ring" if ring else "round" if curved else "patches" if patches > 1 else "flat"
+    return Base(faces=base, kind=kind, patches=patches, cavity=cavity)

@@ -1,0 +1,125 @@
+"""Resting pose: the floor plane an object is set down on, by quasi-static analysis of its hull.
+
+A rigid object on a table rests on a plane of its convex hull. Candidate floors are convex-hull
+triangle planes, one per cell of ``direction_cells`` evenly spread directions (the cell's largest
+hull triangle). Each candidate gets
+
+* its **contact area** (mm^2): the faces whose normal is within ``angle_threshold_deg`` of the floor
+  normal and whose corners all lie within ``plane_tolerance_mm`` of it (connectivity not applied:
+  several feet add up), and
+* its **tipping angle** (degrees): the support polygon is the convex hull of the hull vertices
+  within ``plane_tolerance_mm`` of the floor; the angle is ``atan(margin / height)``, where
+  ``margin`` is the distance from the centre of mass's projection to the polygon's nearest edge
+  (negative outside: the object falls over) and ``height`` the centre of mass's height. It is the
+  smallest tilt that topples the object.
+
+The pose a person would set the object down in is the stable candidate (tipping angle at least
+``min_tipping_deg``) with the largest contact area: a flat bottom or a foot ring however small,
+the soles of all the feet together, and on a round object (nothing flat anywhere) its flattest
+side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
+or a cup upside down on its rim) is passed over for the next (``regions.detect``). If no
+candidate is stable the most stable one is taken.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+from ..geometry.triangles import corners, normals
+
+
+@dataclasses.dataclass(frozen=True)
+class Floor:
+    """A candidate floor plane: outward ``down`` unit normal, contact area mm^2, tipping angle deg."""
+
+    down: np.ndarray
+    contact_mm2: float
+    tipping_deg: float
+
+
+def fibonacci_directions(count: int) -> np.ndarray:
+    """``count`` unit vectors spread evenly over the sphere (Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    azimuth = np.pi * (1.0 + 5.0**0.5) * k
+    ring = np.sqrt(1.0 - z * z)
+    return np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+
+
+def centre_of_mass(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Centre of mass (mm) of the solid of uniform density bounded by a closed outward mesh."""
+    return np.asarray(trimesh.Trimesh(vertices, faces, process=False).center_mass, dtype=np.float64)
+
+
+def plane_basis(down: np.ndarray) -> np.ndarray:
+    """``(3, 2)`` orthonormal basis of the plane normal to the unit vector ``down``."""
+    axis_u = np.cross(down, np.eye(3)[int(np.argmin(np.abs(down)))])
+    axis_u /= np.linalg.norm(axis_u)
+    return np.stack([axis_u, np.cross(down, axis_u)], axis=1)
+
+
+def tipping_angle_deg(points: np.ndarray, down: np.ndarray, centre: np.ndarray, tolerance_mm: float) -> float:
+    """Smallest tilt (deg) that topples the object resting on ``points`` along ``down`` (module
+    docstring); negative when ``centre`` projects outside the support polygon."""
+    height = points @ down
+    support = height.max()
+    basis = plane_basis(down)
+    footprint = points[height >= support - tolerance_mm] @ basis
+    try:
+        hull = ConvexHull(footprint)
+    except (QhullError, ValueError):  # fewer than three points, or all on a line
+        hull = None
+    if hull is None:
+        margin = -float(np.linalg.norm(footprint - centre @ basis, axis=1).min())
+    else:
+        margin = -float((hull.equations[:, :2] @ (centre @ basis) + hull.equations[:, 2]).max())
+    return float(np.degrees(np.arctan2(margin, max(support - centre @ down, 1e-9))))
+
+
+def candidate_floors(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    direction_cells: int,
+    angle_threshold_deg: float,
+    plane_tolerance_mm: float,
+) -> list[Floor]:
+    """Every candidate floor plane with its contact area and tipping angle (module docstring)."""
+    hull = ConvexHull(vertices)
+    hull_areas = normals(hull.points[hull.simplices])[1]
+    cell = cKDTree(fibonacci_directions(direction_cells)).query(hull.equations[:, :3])[1]
+    order = np.lexsort((-hull_areas, cell))
+    keep = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
+    plane_normals, offsets = hull.equations[keep, :3], hull.equations[keep, 3]
+    face_normals, face_areas = normals(corners(vertices, faces))
+    chord = 2.0 * np.sin(np.radians(angle_threshold_deg) / 2.0)
+    pairs = cKDTree(face_normals).sparse_distance_matrix(cKDTree(plane_normals), chord, output_type="ndarray")
+    face, plane = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    depth = -(np.einsum("kcj,kj->kc", vertices[faces[face]], plane_normals[plane]) + offsets[plane, None])
+    touching = depth.max(axis=1) <= plane_tolerance_mm
+    contact = np.bincount(plane[touching], weights=face_areas[face[touching]], minlength=len(plane_normals))
+    centre = centre_of_mass(vertices, faces)
+    hull_points = hull.points[hull.vertices]
+    return [
+        Floor(down, float(area), tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm))
+        for down, area in zip(plane_normals, contact)
+    ]
+
+
+def ranked_floors(floors: list[Floor], min_tipping_deg: float, separation_deg: float, count: int) -> list[Floor]:
+    """Up to ``count`` floors at least ``separation_deg`` apart, best first: the stable ones by
+    contact area, then (if none is stable) the most stable one."""
+    stable = sorted(
+        (f for f in floors if f.tipping_deg >= min_tipping_deg and f.contact_mm2 > 0.0),
+        key=lambda f: (-f.contact_mm2, -f.tipping_deg),
+    )
+    cos_limit = np.cos(np.radians(separation_deg))
+    picked: list[Floor] = []
+    for floor in stable:
+        if len(picked) == count:
+            break
+        if all(floor.down @ other.down < cos_limit for other in picked):
+            picked.append(floor)
+    return picked or [max(floors, key=lambda f: f.tipping_deg)]

@@ -1,0 +1,150 @@
+"""Generated test objects, one per class of object a user brings (sizes in mm, +z up as designed).
+
+Each builder returns a closed genus-0 ``trimesh.Trimesh`` in its natural size, except
+:func:`point_cloud_scan`, which returns a scan's points (no faces). :data:`CLASSES` maps a class
+name to its builder; :func:`write_shape` writes one to a file the pipeline can load (PLY; a point
+cloud as a PLY with a vertex element only). ``bench/corpus.py`` imports this module too.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+
+SECTIONS = 96
+"""Angular sections of the solids of revolution."""
+
+
+def revolved(profile: list[tuple[float, float]]) -> trimesh.Trimesh:
+    """Solid of revolution about +z of a closed ``(radius, height)`` profile running from the axis
+    at the bottom, around the outside, back to the axis at the top (mm)."""
+    return trimesh.creation.revolve(np.asarray(profile, dtype=np.float64), sections=SECTIONS)
+
+
+def plate() -> trimesh.Trimesh:
+    """A dinner plate (240 mm across, 22 mm high, 4 mm thick): flat bottom, sloped rim."""
+    return revolved([(0, 0), (70, 0), (120, 18), (120, 22), (116, 22), (68, 4), (0, 4)])
+
+
+def bowl_with_foot_ring() -> trimesh.Trimesh:
+    """A bowl (150 mm across, 70 mm high, 4 mm wall) standing on a 6 mm foot ring (r 34-40 mm)."""
+    return revolved([
+        (0, 6), (34, 6), (34, 0), (40, 0), (41, 6), (62, 26), (75, 70), (71, 70), (58, 29), (38, 10), (0, 10),
+    ])
+
+
+def bust_with_cut_base() -> trimesh.Trimesh:
+    """A bust (head, neck, shoulders) cut flat at the chest: 160 mm high, base 44 mm in radius."""
+    profile = [(0, 0), (44, 0), (58, 18), (60, 34), (40, 50), (20, 62), (19, 78)]
+    profile += [(36 * np.sin(t), 115 - 36 * np.cos(t)) for t in np.linspace(0.55, np.pi, 14)]
+    mesh = revolved(profile)
+    nose = np.array([0.0, 36.0, 112.0])  # a bump on the face breaks the symmetry
+    offset = mesh.vertices - nose
+    mesh.vertices += np.array([0.0, 1.0, 0.0]) * 10.0 * np.exp(-(offset**2).sum(axis=1) / 120.0)[:, None]
+    return mesh
+
+
+def box() -> trimesh.Trimesh:
+    """A closed box, 120 x 80 x 50 mm, its faces subdivided to about 5 mm edges."""
+    mesh = trimesh.creation.box(extents=(120.0, 80.0, 50.0))
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=5.0)
+    return trimesh.Trimesh(vertices, faces)
+
+
+def radial(direction_radius: Callable[[np.ndarray], np.ndarray], subdivisions: int = 6) -> trimesh.Trimesh:
+    """An icosphere whose vertex in unit direction ``d`` moves to ``direction_radius(d) * d``."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+    directions = np.asarray(sphere.vertices)
+    return trimesh.Trimesh(directions * direction_radius(directions)[:, None], sphere.faces)
+
+
+def four_legged_figurine() -> trimesh.Trimesh:
+    """An animal figurine: an ellipsoid body (110 x 50 x 40 mm) on four legs with flat soles, a
+    head bump in front; stands on the soles (z = -45 mm)."""
+    axes = np.array([55.0, 25.0, 20.0])
+
+    def radius(d: np.ndarray) -> np.ndarray:
+        body = 1.0 / np.sqrt(((d / axes) ** 2).sum(axis=1))
+        extra = np.zeros(len(d))
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                leg = np.array([0.62 * sx, 0.3 * sy, -0.72])
+                leg /= np.linalg.norm(leg)
+                angle = np.arccos(np.clip(d @ leg, -1, 1))
+                extra = np.maximum(extra, 60.0 * np.exp(-((angle / 0.16) ** 4)))
+        head = np.array([0.9, 0.0, 0.43])
+        angle = np.arccos(np.clip(d @ (head / np.linalg.norm(head)), -1, 1))
+        return body + extra + 18.0 * np.exp(-((angle / 0.35) ** 2))
+
+    mesh = radial(radius)
+    vertices = mesh.vertices.copy()
+    vertices[:, 2] = np.maximum(vertices[:, 2], -45.0)  # flat soles
+    return trimesh.Trimesh(vertices, mesh.faces)
+
+
+def lying_spoon() -> trimesh.Trimesh:
+    """A spoon-like solid lying on its curved back: an oval bowl (70 x 44 mm) and a 110 mm handle,
+    along x, 14 mm high; nothing on it is flat."""
+    profile = [(0.0, 0.0)]
+    profile += [(22 * np.sin(t), 35 - 35 * np.cos(t)) for t in np.linspace(0.15, np.pi * 0.85, 12)]
+    profile += [(6.0, 80.0), (5.0, 150.0), (7.0, 170.0), (6.0, 178.0), (0.0, 180.0)]
+    mesh = revolved(profile)
+    vertices = mesh.vertices[:, [2, 0, 1]] * np.array([1.0, 1.0, 0.32])  # along x, flattened
+    return trimesh.Trimesh(vertices, mesh.faces[:, [0, 1, 2]])
+
+
+def point_cloud_scan(seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` points (mm) of a scanned bust: about 60,000 surface samples with 0.3 mm noise,
+    two holes (no samples within 12 mm of two surface points) and three loose fragments (small
+    clusters of floor and stray points away from the object)."""
+    rng = np.random.default_rng(seed)
+    mesh = bust_with_cut_base()
+    points = np.asarray(trimesh.sample.sample_surface_even(mesh, 60000, seed=seed)[0])
+    for centre in (np.array([0.0, -58.0, 30.0]), np.array([30.0, 0.0, 118.0])):
+        points = points[np.linalg.norm(points - centre, axis=1) > 12.0]
+    points = points + rng.normal(scale=0.3, size=points.shape)
+    fragments = [rng.normal(loc, scale, size=(count, 3)) for loc, scale, count in (
+        ((110.0, 0.0, 5.0), 4.0, 300), ((-90.0, 60.0, 20.0), 3.0, 150), ((0.0, 0.0, 200.0), 2.0, 80),
+    )]
+    return np.vstack([points, *fragments])
+
+
+CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
+    "plate": plate,
+    "bowl_foot_ring": bowl_with_foot_ring,
+    "four_legged_figurine": four_legged_figurine,
+    "lying_spoon": lying_spoon,
+    "bust_cut_base": bust_with_cut_base,
+    "box": box,
+    "point_cloud_scan": point_cloud_scan,
+}
+"""Class name -> builder (a mesh, or the points of a scan)."""
+
+
+def write_point_cloud_ply(path: Path, points: np.ndarray) -> None:
+    """A binary little-endian PLY holding only a float32 ``vertex`` element (x, y, z)."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    path.write_bytes(header.encode("ascii") + np.asarray(points, dtype="<f4").tobytes())
+
+
+def write_shape(name: str, folder: Path) -> Path:
+    """Write class ``name``'s shape as ``folder/<name>.ply`` and return the path."""
+    shape = CLASSES[name]()
+    path = Path(folder) / f"{name}.ply"
+    if isinstance(shape, trimesh.Trimesh):
+        shape.export(str(path))
+    else:
+        write_point_cloud_ply(path, shape)
+    return path
+
+
+def diagonal_mm(name: str) -> float:
+    """Bounding-box diagonal (mm) of class ``name``'s shape: its natural size."""
+    shape = CLASSES[name]()
+    points = shape.vertices if isinstance(shape, trimesh.Trimesh) else shape
+    return float(np.linalg.norm(np.ptp(points, axis=0)))
