@@ -26,7 +26,7 @@ from joblib import Parallel, delayed
 
 from retrotouch.nodes.curves.connection import ConnectionParams, connection
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.layout.selection import candidate_crossings
+from retrotouch.nodes.layout.problem import candidate_crossings
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
 from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh

@@ -7,7 +7,8 @@ import pytest
 from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
 
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
-from retrotouch.nodes.layout.samples import SamplesParams, face_areas, geodesics_for, surface_samples
+from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners
+from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 
 
 def locate(mesh, directions):
@@ -61,7 +62,7 @@ def test_samples_are_on_sensing_faces_and_spread():
     d = np.linalg.norm(samples.points[:, None] - samples.points[None], axis=2)
     assert min_pairwise(d) >= samples.spacing_mm - 1e-9
     assert samples.spacing_mm > 0.5 * np.sqrt(samples.sensing_area_mm2 / 120)
-    assert samples.sensing_area_mm2 == pytest.approx(face_areas(mesh.vertices, mesh.faces)[regions.sensing_faces].sum())
+    assert samples.sensing_area_mm2 == pytest.approx(triangle_areas(corners(mesh.vertices, mesh.faces))[regions.sensing_faces].sum())
     # the sample's own distance field is ~0 at the sample (within the heat method's O(h) smoothing)
     geo = geodesics_for(mesh)
     own = geo.evaluate(samples.distances, samples.faces, samples.bary)
@@ -77,7 +78,7 @@ def test_voronoi_cv_is_near_zero_for_octahedron_pads_and_high_for_clusters():
     octahedron = np.vstack([np.eye(3), -np.eye(3)]) + 1e-3  # off-vertex directions
     faces, bary = locate(mesh, octahedron)
     areas = voronoi_cell_areas(geo.fields(faces, bary), mesh.vertices, mesh.faces, everything)
-    assert areas.sum() == pytest.approx(face_areas(mesh.vertices, mesh.faces).sum())
+    assert areas.sum() == pytest.approx(triangle_areas(corners(mesh.vertices, mesh.faces)).sum())
     assert coefficient_of_variation(areas) < 0.05
     clustered = np.array([[0, 0, 1], [0.2, 0, 1], [0, 0.2, 1], [-0.2, 0, 1], [0, -0.2, 1], [0, 0, -1]], dtype=float)
     faces, bary = locate(mesh, clustered)

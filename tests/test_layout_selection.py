@@ -8,7 +8,8 @@ import pytest
 from test_layout_fixtures import synthetic_instance
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.layout.selection import SelectionProblem, evaluate_selection, select_curves
+from retrotouch.nodes.layout.problem import SelectionProblem, evaluate_selection
+from retrotouch.nodes.layout.selection import select_curves
 from retrotouch.nodes.layout.sweep import selection_problem
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 

@@ -9,18 +9,8 @@ from curves_fixture import bunny
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import drop_near, find_crossings, segments_of
 from retrotouch.nodes.data.types import CurveEnd
-from retrotouch.nodes.curves.tracing import (
-    TraceRxParams,
-    TraceTxParams,
-    fan_angles,
-    fan_sectors,
-    trace_rx,
-    trace_rx_curves,
-    trace_tx,
-    trace_tx_curves,
-    tx_starts,
-    uniform_angles,
-)
+from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_rx_curves, trace_tx, trace_tx_curves
+from retrotouch.nodes.curves.tx_seeding import fan_angles, fan_sectors, tx_starts, uniform_angles
 
 ANGLES = (-50.0, 0.0, 50.0)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .samples import face_areas
+from ..geometry.triangles import areas, corners
 
 
 def voronoi_cell_areas(
@@ -20,7 +20,7 @@ def voronoi_cell_areas(
     idx = np.flatnonzero(face_mask)
     centroid_distance = pad_fields[faces[idx]].mean(axis=1)  # (m_s, P)
     owner = np.argmin(centroid_distance, axis=1)
-    return np.bincount(owner, weights=face_areas(vertices, faces[idx]), minlength=P)
+    return np.bincount(owner, weights=areas(corners(vertices, faces[idx])), minlength=P)
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:

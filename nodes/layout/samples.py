@@ -27,6 +27,7 @@ from pydantic import Field
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
+from ..geometry.triangles import areas, corners, cross_products
 
 _COLUMNS_PER_BATCH = 48  # sources solved per block; bounds memory to ~(3 * faces * 48) floats
 
@@ -40,8 +41,7 @@ class HeatGeodesics:
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces, dtype=np.int64)
         n, m = len(V), len(F)
-        P0, P1, P2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-        normal2 = np.cross(P1 - P0, P2 - P0)  # length = 2 * area
+        normal2 = cross_products(corners(V, F))  # length = 2 * area
         double_area = np.linalg.norm(normal2, axis=1)
         if np.any(double_area <= 1e-14 * max(1.0, double_area.max())):
             raise UserError("mesh has degenerate (zero-area) faces: run mesh.repair before the layout")
@@ -158,12 +158,6 @@ def geodesics_for(mesh: Mesh) -> HeatGeodesics:
     return _cached_geodesics(mesh_digest(V, F), V.tobytes(), F.tobytes(), len(V), len(F))
 
 
-def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Triangle areas in mm^2."""
-    P = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
-
-
 def sample_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -182,9 +176,9 @@ def sample_surface(
     idx = np.flatnonzero(face_mask)
     if len(idx) == 0:
         raise UserError("the sensing region has no faces: check the regions.detect parameters")
-    areas = face_areas(vertices, faces[idx])
-    total = float(areas.sum())
-    cdf = np.cumsum(areas) / total
+    face_area = areas(corners(vertices, faces[idx]))
+    total = float(face_area.sum())
+    cdf = np.cumsum(face_area) / total
     rng = np.random.default_rng(seed)
     radius = spacing_factor * np.sqrt(total / count)
     kept_f: list[int] = []
@@ -263,5 +257,5 @@ def surface_samples(params: SamplesParams, mesh: Mesh, regions: object) -> Surfa
         distances=geo.fields(f, b),
         spacing_mm=r,
         sensing_faces=mask,
-        sensing_area_mm2=float(face_areas(mesh.vertices, mesh.faces)[mask].sum()),
+        sensing_area_mm2=float(areas(corners(mesh.vertices, mesh.faces))[mask].sum()),
     )

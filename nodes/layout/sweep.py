@@ -26,16 +26,20 @@ from pydantic import Field
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
-from .selection import (
+from .problem import (
+    PHASE1_MAX_MEMBERSHIPS,
+    PHASE1_POWER,
+    PHASE1_RESOLUTION_MM,
+    PHASE1_TIME_LIMIT_S,
     SelectionProblem,
     candidate_crossings,
     evaluate_selection,
     same_layer_conflicts,
-    select_curves,
 )
+from .selection import select_curves
 from ..data.types import Crossings, CurveEnd, CurveSet, Layout, Mesh
 from .metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
-from .pads import PadResult, place_pads, sparseness
+from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
 from .samples import HeatGeodesics, SurfaceSamples, geodesics_for
 
 log = logging.getLogger(__name__)
@@ -46,13 +50,13 @@ class OptimizeParams(NodeParams):
     n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the sample distances (off: ablation)")
     secondary_power: int = Field(
-        6, ge=1, le=8, description="secondary objective: power mean of sample distances (1 = plain mean)"
+        PHASE1_POWER, ge=1, le=8, description="secondary objective: power mean of sample distances (1 = plain mean)"
     )
-    resolution_mm: float = Field(0.5, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
-    time_limit_s: float = Field(1.0, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
-    pad_time_limit_s: float = Field(2.0, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
+    resolution_mm: float = Field(PHASE1_RESOLUTION_MM, gt=0, le=5, description="distance quantisation of the phase-1 model (mm)")
+    time_limit_s: float = Field(PHASE1_TIME_LIMIT_S, gt=0, description="per CP-SAT solve, deterministic seconds (wall guard 4x)")
+    pad_time_limit_s: float = Field(PAD_TIME_LIMIT_S, gt=0, description="phase-2 CP-SAT limit, deterministic seconds")
     max_model_memberships: int = Field(
-        15000, ge=100, description="phase-1 model size cap in (sample, crossing) pairs; beyond it a trust region"
+        PHASE1_MAX_MEMBERSHIPS, ge=100, description="phase-1 model size cap in (sample, crossing) pairs; beyond it a trust region"
     )
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
     seed: int = Field(0, description="CP-SAT random seed")
@@ -167,6 +171,67 @@ def _pads_with_ladder(
     return result, keep, radius, relaxations
 
 
+def _branch_report(params: OptimizeParams, angle_deg: float, tx: CurveSet, rx: CurveSet, problem: SelectionProblem) -> dict:
+    """The part of a branch's metrics known before solving: angle, objective settings, candidate counts."""
+    return {
+        "angle_deg": angle_deg,
+        "secondary": params.secondary,
+        "secondary_power": params.secondary_power,
+        "candidates": {"tx": tx.count, "rx": rx.count, "tx_usable": int(problem.tx_usable.sum()),
+                       "rx_usable": int(problem.rx_usable.sum()), "single_crossings": len(problem.cross_rows),
+                       "multi_crossing_pairs": len(problem.multi_pairs), "tx_conflicts": len(problem.tx_conflicts),
+                       "rx_conflicts": len(problem.rx_conflicts)},
+    }
+
+
+def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndarray, pad: np.ndarray) -> tuple[Layout, np.ndarray]:
+    """The layout of the kept crossings ``cells_rows`` (rows of ``tx_rx``) and their pad flags: channels
+    are the curves with at least one kept crossing, cells sorted by (Tx channel, Rx channel). Returns
+    the layout and the order applied to ``cells_rows``."""
+    tx_sel, rx_sel = np.unique(tx_rx.curve_a[cells_rows]), np.unique(tx_rx.curve_b[cells_rows])
+    order = np.lexsort((np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]),
+                        np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows])))
+    cells_rows = cells_rows[order]
+    cells = Crossings(
+        layer_a="tx", layer_b="rx",
+        curve_a=np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows]).astype(np.int64),
+        curve_b=np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]).astype(np.int64),
+        seg_a=tx_rx.seg_a[cells_rows], seg_b=tx_rx.seg_b[cells_rows],
+        arc_a=tx_rx.arc_a[cells_rows], arc_b=tx_rx.arc_b[cells_rows],
+        points=tx_rx.points[cells_rows], faces=tx_rx.faces[cells_rows], bary=tx_rx.bary[cells_rows],
+    )
+    layout = Layout(tx=subset_curves(tx, tx_sel), rx=subset_curves(rx, rx_sel), cells=cells, pad=pad[order],
+                    tx_source=tx_sel, rx_source=rx_sel)
+    return layout, order
+
+
+def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fields, pad_distance, pad_radius) -> dict:
+    """Quality figures of a branch's layout (coverage, Voronoi CV of the pads, counts, lengths)."""
+    tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
+    _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
+    cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
+    tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
+    return {
+        "coverage_radius_mm": float(nearest.max()),
+        "mean_distance_mm": float(nearest.mean()),
+        "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
+        "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
+        "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
+                                  "max": float(cell_area.max())} if pad.sum() else None,
+        "pads": int(pad.sum()),
+        "cells": int(len(pad)),
+        "tx_channels": int(len(tx_sel)),
+        "rx_channels": int(len(rx_sel)),
+        "pad_radius_mm": float(pad_radius),
+        "d_min_mm": float(d_min_for(params, pad_radius)),
+        "min_pad_spacing_mm": min_pairwise(pad_distance) if pad.sum() > 1 else None,
+        "curve_lengths_mm": {"tx": [float(v) for v in tx_lengths], "rx": [float(v) for v in rx_lengths],
+                             "total": float(tx_lengths.sum() + rx_lengths.sum())},
+        "unwired_selected_curves": {"tx": [int(a) for a in np.setdiff1d(selection.tx, tx_sel)],
+                                    "rx": [int(b) for b in np.setdiff1d(selection.rx, rx_sel)]},
+    }
+
+
 @node(
     "layout.optimize",
     params=OptimizeParams,
@@ -188,16 +253,7 @@ def optimize(
     angle_deg = float(np.rad2deg(rx.angle))
     geo = geodesics_for(mesh)
     problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end)
-    rows, multi = problem.cross_rows, problem.multi_pairs
-    base = {
-        "angle_deg": angle_deg,
-        "secondary": params.secondary,
-        "secondary_power": params.secondary_power,
-        "candidates": {"tx": tx.count, "rx": rx.count, "tx_usable": int(problem.tx_usable.sum()),
-                       "rx_usable": int(problem.rx_usable.sum()), "single_crossings": len(rows),
-                       "multi_crossing_pairs": len(multi), "tx_conflicts": len(problem.tx_conflicts),
-                       "rx_conflicts": len(problem.rx_conflicts)},
-    }
+    base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
                                   params.resolution_mm, params.time_limit_s, params.seed, params.workers,
@@ -206,13 +262,12 @@ def optimize(
         return AngleLayout(angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
     t1 = time.perf_counter()
 
-    active_rows = rows[selection.active]
+    active_rows = problem.cross_rows[selection.active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = 0.5 * (distance + distance.T)
-    ctx, crx = tx_rx.curve_a[active_rows], tx_rx.curve_b[active_rows]
     t2 = time.perf_counter()
-    pads, keep, pad_radius, relaxations = _pads_with_ladder(params, distance, ctx, crx)
+    pads, keep, pad_radius, relaxations = _pads_with_ladder(params, distance, tx_rx.curve_a[active_rows], tx_rx.curve_b[active_rows])
     if not pads.feasible:
         message = (f"no pad placement even with pad radius {pad_radius:g} mm and fewer curves: lower "
                    f"min_pads_per_curve or d_min_mm, or add smaller relax_pad_radii_mm")
@@ -221,58 +276,17 @@ def optimize(
                             "phase1": selection.report, "phase2": pads.report})
     t3 = time.perf_counter()
 
-    # channels = curves with at least one kept crossing; a selected curve without one senses nothing
-    tx_sel, rx_sel = np.unique(ctx[keep]), np.unique(crx[keep])
-    idle = {"tx": [int(a) for a in np.setdiff1d(selection.tx, tx_sel)],
-            "rx": [int(b) for b in np.setdiff1d(selection.rx, rx_sel)]}
-    _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-    cells_rows = active_rows[keep]
-    pad = pads.pad
-    order = np.lexsort((np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]),
-                        np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows])))
-    cells_rows, pad = cells_rows[order], pad[order]
-    kept_fields = fields[:, np.flatnonzero(keep)[order]]
-    cells = Crossings(
-        layer_a="tx", layer_b="rx",
-        curve_a=np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows]).astype(np.int64),
-        curve_b=np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]).astype(np.int64),
-        seg_a=tx_rx.seg_a[cells_rows], seg_b=tx_rx.seg_b[cells_rows],
-        arc_a=tx_rx.arc_a[cells_rows], arc_b=tx_rx.arc_b[cells_rows],
-        points=tx_rx.points[cells_rows], faces=tx_rx.faces[cells_rows], bary=tx_rx.bary[cells_rows],
-    )
-    layout = Layout(tx=subset_curves(tx, tx_sel), rx=subset_curves(rx, rx_sel), cells=cells, pad=pad,
-                    tx_source=tx_sel, rx_source=rx_sel)
-    cell_area = voronoi_cell_areas(kept_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
-    pad_distance = distance[np.ix_(np.flatnonzero(keep)[order][pad], np.flatnonzero(keep)[order][pad])]
+    layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad)
+    kept = np.flatnonzero(keep)[order]
+    pad_distance = distance[np.ix_(kept[layout.pad], kept[layout.pad])]
+    quality = _layout_metrics(params, mesh, samples, problem, selection, layout, fields[:, kept], pad_distance, pad_radius)
     t4 = time.perf_counter()
-    metrics = {
-        **base,
-        "feasible": True,
-        "coverage_radius_mm": float(nearest.max()),
-        "mean_distance_mm": float(nearest.mean()),
-        "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
-        "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
-        "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
-                                  "max": float(cell_area.max())} if pad.sum() else None,
-        "pads": int(pad.sum()),
-        "cells": int(len(pad)),
-        "tx_channels": int(len(tx_sel)),
-        "rx_channels": int(len(rx_sel)),
-        "pad_radius_mm": float(pad_radius),
-        "d_min_mm": float(d_min_for(params, pad_radius)),
-        "min_pad_spacing_mm": min_pairwise(pad_distance) if pad.sum() > 1 else None,
-        "curve_lengths_mm": {"tx": [float(v) for v in tx.lengths_mm[tx_sel]],
-                             "rx": [float(v) for v in rx.lengths_mm[rx_sel]],
-                             "total": float(tx.lengths_mm[tx_sel].sum() + rx.lengths_mm[rx_sel].sum())},
-        "phase1": selection.report,
-        "phase2": pads.report,
-        "relaxations": relaxations,
-        "unwired_selected_curves": idle,
-        "seconds": {"phase1": t1 - t0, "crossing_geodesics": t2 - t1, "phase2": t3 - t2, "metrics": t4 - t3,
-                    "total": t4 - t0},
-    }
+    idle = quality.pop("unwired_selected_curves")
+    metrics = {**base, "feasible": True, **quality, "phase1": selection.report, "phase2": pads.report,
+               "relaxations": relaxations, "unwired_selected_curves": idle,
+               "seconds": {"phase1": t1 - t0, "crossing_geodesics": t2 - t1, "phase2": t3 - t2, "metrics": t4 - t3,
+                           "total": t4 - t0}}
     return AngleLayout(angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
-
 
 
 class PickParams(NodeParams):

@@ -1,0 +1,76 @@
+"""Rx seeds: points on the apex line of the dipole loops, at equal arc length. Units: mm."""
+from __future__ import annotations
+
+import numpy as np
+
+from ...graph.errors import UserError
+from ..geometry.mesh_tables import MeshTables
+from .connection import DirectionField
+
+
+def zero_set(tables: MeshTables, values: np.ndarray, faces_allowed: np.ndarray):
+    """Zero level set of piecewise-linear vertex ``values`` inside ``faces_allowed``, as chained segments.
+
+    Returns per segment (in chain order): face (s,), end points ``p``, ``q`` (s, 3).
+    """
+    faces = tables.faces
+    d = values[faces]
+    fidx = np.flatnonzero((d.min(axis=1) < 0.0) & (d.max(axis=1) > 0.0) & faces_allowed)
+    dd = d[fidx]
+    pts, eids = [], []
+    for i in range(3):
+        a, b = (i + 1) % 3, (i + 2) % 3
+        da, db = dd[:, a], dd[:, b]
+        hit = (da < 0.0) != (db < 0.0)
+        t = np.where(hit, -da / np.where(hit, db - da, 1.0), 0.0)
+        pa = tables.vertices[faces[fidx, a]]
+        pb = tables.vertices[faces[fidx, b]]
+        pts.append(pa + t[:, None] * (pb - pa))
+        eids.append(np.where(hit, tables.face_edges[fidx, (i + 1) % 3], -1))
+    pts = np.stack(pts, axis=1)
+    eids = np.stack(eids, axis=1)
+    two = np.argsort(eids < 0, axis=1, kind="stable")[:, :2]
+    rows = np.arange(len(fidx))
+    p, q = pts[rows, two[:, 0]], pts[rows, two[:, 1]]
+    ep, eq = eids[rows, two[:, 0]], eids[rows, two[:, 1]]
+    # orient every segment so that values increase to its left (N x (q - p) . grad > 0)
+    grad = np.einsum("kij,ki->kj", tables.bary_gradients[fidx], dd)
+    flip = np.einsum("kj,kj->k", np.cross(tables.normals[fidx], q - p), grad) < 0
+    p, q = np.where(flip[:, None], q, p), np.where(flip[:, None], p, q)
+    ep, eq = np.where(flip, eq, ep), np.where(flip, ep, eq)
+    # chains: the segment starting on edge eq follows; start chains at segments nothing leads into
+    by_start = {int(e): s for s, e in enumerate(ep)}
+    has_pred = np.isin(ep, eq)
+    order, seen = [], np.zeros(len(fidx), dtype=bool)
+    for s0 in np.r_[np.flatnonzero(~has_pred), np.flatnonzero(has_pred)]:
+        s = int(s0)
+        while not seen[s]:
+            seen[s] = True
+            order.append(s)
+            s = by_start.get(int(eq[s]), s)
+    order = np.asarray(order, dtype=np.int64)
+    return fidx[order], p[order], q[order]
+
+
+def rx_seeds(tables: MeshTables, field: DirectionField, sensing: np.ndarray, n_curves: int):
+    """Seeds on the apex line of the dipole loops: where the field is tangent to the geodesic circles
+    around the dipole source (``u . grad d = 0``), inside the sensing faces, at equal arc length."""
+    grad = np.einsum("fij,fi->fj", tables.bary_gradients, field.start_distance[tables.faces])
+    radial = np.einsum("fj,fj->f", field.face_direction, grad)
+    weights = np.zeros(len(tables.vertices))
+    np.add.at(weights, tables.faces.reshape(-1), np.repeat(tables.areas, 3))
+    vertex_value = np.zeros(len(tables.vertices))
+    np.add.at(vertex_value, tables.faces.reshape(-1), np.repeat(radial * tables.areas, 3))
+    vertex_value /= weights
+    seg_face, p, q = zero_set(tables, vertex_value, sensing)
+    if len(seg_face) == 0:
+        raise UserError("the Rx dipole field has no loop apex inside the sensing region: check the base region and dipole")
+    length = np.linalg.norm(q - p, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(length)])
+    target = (np.arange(n_curves) + 0.5) / n_curves * cum[-1]
+    j = np.clip(np.searchsorted(cum, target, side="right") - 1, 0, len(length) - 1)
+    frac = np.clip((target - cum[j]) / np.where(length[j] > 0, length[j], 1.0), 0.0, 1.0)
+    points = p[j] + frac[:, None] * (q[j] - p[j])
+    faces = seg_face[j]
+    bary = np.maximum(tables.bary_of_points(faces, points), 1e-6)
+    return faces, bary / bary.sum(axis=1, keepdims=True)

@@ -1,0 +1,58 @@
+"""The phase-1 problem (candidate curves, crossings, conflicts, sample distances), its evaluation and
+the phase-1 defaults shared by the solver and the ``layout.optimize`` params. Units: mm."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..data.types import Crossings
+
+PHASE1_TIME_LIMIT_S = 1.0  # per CP-SAT solve, deterministic seconds
+PHASE1_RESOLUTION_MM = 0.5  # distance quantisation of the model
+PHASE1_MAX_MEMBERSHIPS = 15000  # (sample, crossing) pairs before a trust region
+PHASE1_POWER = 6  # secondary objective: power mean of the sample distances
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectionProblem:
+    """Phase-1 input: candidate curves, their valid crossings and the C1/C2 conflicts."""
+
+    tx_usable: np.ndarray  # (Ntx,) bool, candidate may be selected (e.g. connected to the base)
+    rx_usable: np.ndarray  # (Nrx,) bool
+    cross_tx: np.ndarray  # (C,) int64, Tx curve of candidate crossing c (pairs crossing exactly once)
+    cross_rx: np.ndarray  # (C,) int64
+    cross_rows: np.ndarray  # (C,) int64, row of c in the Tx x Rx Crossings
+    distance: np.ndarray  # (K, C) float, geodesic sample -> crossing distance in mm
+    multi_pairs: np.ndarray  # (P, 2) int64, Tx/Rx pairs crossing more than once (C2)
+    tx_conflicts: np.ndarray  # (Q, 2) int64, crossing Tx pairs (C1)
+    rx_conflicts: np.ndarray  # (R, 2) int64, crossing Rx pairs (C1)
+
+
+def candidate_crossings(tx_rx: Crossings, tx_count: int, rx_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``tx_rx`` whose Tx/Rx pair crosses exactly once, and the (P, 2) pairs crossing more often."""
+    key = tx_rx.curve_a.astype(np.int64) * rx_count + tx_rx.curve_b.astype(np.int64)
+    multiplicity = np.bincount(key, minlength=tx_count * rx_count)
+    single_rows = np.flatnonzero(multiplicity[key] == 1)
+    multi = np.flatnonzero(multiplicity > 1)
+    return single_rows, np.stack([multi // rx_count, multi % rx_count], axis=1).astype(np.int64)
+
+
+def same_layer_conflicts(crossings: Crossings) -> np.ndarray:
+    """Distinct (P, 2) curve pairs of one layer that cross (C1)."""
+    pairs = np.stack([crossings.curve_a, crossings.curve_b], axis=1).astype(np.int64)
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0) if len(pairs) else np.empty((0, 2), dtype=np.int64)
+
+
+def evaluate_selection(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Active candidate crossings of a selection and each sample's nearest active distance (inf if none)."""
+    tx_sel = np.zeros(len(problem.tx_usable), dtype=bool)
+    rx_sel = np.zeros(len(problem.rx_usable), dtype=bool)
+    tx_sel[tx] = True
+    rx_sel[rx] = True
+    active = np.flatnonzero(tx_sel[problem.cross_tx] & rx_sel[problem.cross_rx])
+    if len(active) == 0:
+        return active, np.full(problem.distance.shape[0], np.inf)
+    return active, problem.distance[:, active].min(axis=1)
