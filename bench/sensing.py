@@ -25,16 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from retrotouch.nodes.sensing.gestures import GestureRecognizer
-from retrotouch.nodes.sensing.simulator import (
-    DEMO_SCRIPT,
-    BoardParams,
-    ScriptBuilder,
-    VirtualBoard,
-    default_sensing_map_path,
-    frames_through_pty,
-)
+from retrotouch.nodes.data.sensing_map import load_sensing_map, resolve_sensing_map_path
+from retrotouch.nodes.sensing.processing import TouchProcessor
+from retrotouch.nodes.sensing.pty_board import frames_through_pty
+from retrotouch.nodes.sensing.scripts import DEMO_SCRIPT, ScriptBuilder
+from retrotouch.nodes.sensing.synthetic_map import default_sensing_map_path
+from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
 from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
-from retrotouch.nodes.sensing.processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -91,7 +88,7 @@ def rest(sensing_map, minutes: float) -> dict:
         result = processor.process(frame.values, frame.t)
         false_touches += sum(event["type"] == "touch_down" for event in result.events)
         if result.calibrated:
-            worst = max(worst, float(np.max(result.delta / processor._sigma())))
+            worst = max(worst, float(np.max(result.delta / processor.sigma())))
         count += 1
     return {"frames": count, "false_touches": false_touches, "max_delta_sigmas": worst}
 

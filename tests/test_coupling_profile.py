@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from retrotouch.nodes.sensing.coupling_profile import CouplingProfile, ProfileLearner
-from retrotouch.nodes.sensing.simulator import disc_coupling_profile
+from retrotouch.nodes.sensing.virtual_board import disc_coupling_profile
 
 WIDTH = 6.3  # mm, the default layout's nominal coupling width
 

@@ -35,10 +35,12 @@ def sensing_mask(mesh: Mesh) -> np.ndarray:
 
 
 class Regions:
-    """Stand-in for the regions node output: only ``sensing_faces`` is read by the layout nodes."""
+    """Stand-in for the regions node output: the layout nodes read ``sensing_faces``, the sensing
+    map sink ``up`` (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
 
     def __init__(self, mesh: Mesh):
         self.sensing_faces = sensing_mask(mesh)
+        self.up = np.array([0.0, 0.0, 1.0])
 
 
 def _to_xyz(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:

@@ -25,11 +25,11 @@ def bunny_run():
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     params = OptimizeParams(n_drive=10, n_sense=6, time_limit_s=1.0)
     candidate = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
-    return mesh, tx, rx, cross, params, candidate
+    return mesh, tx, rx, cross, params, candidate, regions
 
 
 def test_bunny_layout_respects_constraints_and_spacing(bunny_run):
-    mesh, tx, rx, cross, params, candidate = bunny_run
+    mesh, tx, rx, cross, params, candidate, _ = bunny_run
     assert candidate.feasible, candidate.message
     layout, m = candidate.layout, candidate.metrics
     assert 0 < layout.tx.count <= 10 and 0 < layout.rx.count <= 6
@@ -51,9 +51,9 @@ def test_bunny_layout_respects_constraints_and_spacing(bunny_run):
 
 
 def test_bunny_sensing_map(bunny_run):
-    mesh, _, _, _, _, candidate = bunny_run
+    mesh, _, _, _, _, candidate, regions = bunny_run
     picked = pick_best(PickParams(print_table=False), [candidate])
-    files = write_sensing_map(SensingMapParams(), mesh, picked["layout"], picked["metrics"])
+    files = write_sensing_map(SensingMapParams(), mesh, regions, picked["layout"], picked["metrics"])
     doc = json.loads(files.contents["sensing_map.json"])
     validate_sensing_map(doc)
     assert doc["tx_channels"] == picked["layout"].tx.count

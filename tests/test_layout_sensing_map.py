@@ -12,7 +12,7 @@ import trimesh
 from test_layout_fixtures import synthetic_instance
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.data.types import SENSING_MAP_FORMAT
+from retrotouch.nodes.data.sensing_map import SENSING_MAP_FORMAT
 from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
 from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
 from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
@@ -27,14 +27,15 @@ def run():
     rx_other = dataclasses.replace(rx, angle=np.deg2rad(-10.0))
     b = optimize(params.model_copy(update={"n_sense": 3}), mesh, samples, tx, rx_other, tx_rx, tx_tx, rx_rx)
     picked = pick_best(PickParams(print_table=False), [a, b])
-    files = write_sensing_map(SensingMapParams(), mesh, picked["layout"], picked["metrics"])
+    files = write_sensing_map(SensingMapParams(), mesh, regions, picked["layout"], picked["metrics"])
     return mesh, (a, b), picked, files
 
 
 def validate_sensing_map(doc: dict, n_tx_max: int = 21, n_rx_max: int = 12) -> None:
-    """Structure and types exactly as SENSING_MAP_FORMAT's docstring."""
-    assert set(doc) == {"format", "units", "mesh", "tx_channels", "rx_channels", "channels", "cells"}
+    """Structure and types exactly as the format in retrotouch.nodes.data.sensing_map."""
+    assert set(doc) == {"format", "units", "up", "mesh", "tx_channels", "rx_channels", "channels", "cells"}
     assert doc["format"] == SENSING_MAP_FORMAT and doc["units"] == "mm"
+    assert len(doc["up"]) == 3 and np.linalg.norm(doc["up"]) == pytest.approx(1.0)
     assert set(doc["mesh"]) == {"file", "sha256", "vertices", "faces"}
     assert doc["mesh"]["file"] == "mesh.ply" and len(doc["mesh"]["sha256"]) == 64
     for layer, prefix, limit in (("tx", "Tx", n_tx_max), ("rx", "Rx", n_rx_max)):
@@ -74,6 +75,7 @@ def test_sensing_map_matches_schema_and_mesh(run):
         assert np.allclose(np.asarray(cell["bary"]) @ corners, cell["point"], atol=1e-6)
         assert np.dot(cell["normal"], cell["point"]) > 0  # outward on the sphere
     assert sum(c["pad"] for c in doc["cells"]) == picked["metrics"]["pads"] == int(layout.pad.sum())
+    assert doc["up"] == [0.0, 0.0, 1.0]  # the regions' resting pose
 
 
 def test_metrics_and_pick(run):

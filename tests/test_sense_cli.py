@@ -20,9 +20,13 @@ from typer.testing import CliRunner
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.sensing.live_view import LiveView
-from retrotouch.nodes.sensing.simulator import BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty, synthetic_bunny_map
+from retrotouch.nodes.data.sensing_map import load_sensing_map
+from retrotouch.nodes.sensing.processing import TouchProcessor
+from retrotouch.nodes.sensing.pty_board import frames_through_pty
+from retrotouch.nodes.sensing.scripts import ScriptBuilder
+from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
+from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
 from retrotouch.nodes.sensing.cli import EventSinks, register
-from retrotouch.nodes.sensing.processing import TouchProcessor, load_sensing_map
 
 GESTURES = ["tap", "tap", "tap", "double_tap", "long_press", "swipe", "pinch", "spread"]
 

@@ -7,9 +7,12 @@ import numpy as np
 import pytest
 
 from retrotouch.nodes.sensing.gestures import GestureRecognizer
-from retrotouch.nodes.sensing.simulator import DEMO_SCRIPT, BoardParams, ScriptBuilder, VirtualBoard, frames_through_pty
+from retrotouch.nodes.data.sensing_map import load_sensing_map
+from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor
+from retrotouch.nodes.sensing.pty_board import frames_through_pty
+from retrotouch.nodes.sensing.scripts import DEMO_SCRIPT, ScriptBuilder
+from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
 from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
-from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor, load_sensing_map
 
 
 @pytest.fixture(scope="module")

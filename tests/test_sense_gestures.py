@@ -5,15 +5,12 @@ import numpy as np
 import pytest
 
 from retrotouch.nodes.sensing.gestures import GestureParams, GestureRecognizer
-from retrotouch.nodes.sensing.simulator import (
-    DEMO_SCRIPT,
-    BoardParams,
-    ScriptBuilder,
-    VirtualBoard,
-    frames_through_pty,
-    synthetic_bunny_map,
-)
-from retrotouch.nodes.sensing.processing import FrameResult, Touch, TouchProcessor, load_sensing_map
+from retrotouch.nodes.data.sensing_map import load_sensing_map
+from retrotouch.nodes.sensing.processing import FrameResult, Touch, TouchProcessor
+from retrotouch.nodes.sensing.pty_board import frames_through_pty
+from retrotouch.nodes.sensing.scripts import DEMO_SCRIPT, ScriptBuilder
+from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
+from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
 
 
 @pytest.fixture(scope="module")

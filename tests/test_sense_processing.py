@@ -8,21 +8,14 @@ import numpy as np
 import pytest
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.sensing.simulator import (
-    BoardParams,
-    ScriptBuilder,
-    VirtualBoard,
-    frames_through_pty,
-    synthetic_bunny_map,
-)
+from retrotouch.nodes.data.sensing_map import load_sensing_map
+from retrotouch.nodes.geometry.surface import closest_points_on_triangles, SurfaceProjector
+from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor
+from retrotouch.nodes.sensing.pty_board import frames_through_pty
+from retrotouch.nodes.sensing.scripts import ScriptBuilder
+from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
+from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
 from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_recording, evaluate_simulator
-from retrotouch.nodes.sensing.processing import (
-    ProcessingParams,
-    SurfaceProjector,
-    TouchProcessor,
-    closest_points_on_triangles,
-    load_sensing_map,
-)
 
 
 @pytest.fixture(scope="module")
@@ -149,19 +142,19 @@ def test_coupling_profile_is_learned_from_touches(bunny_map, bunny_map_path):
     the width, then the shape, to the board's half-maximum distance; with adapt_coupling off the
     start stays."""
     processor = TouchProcessor(bunny_map)
-    true_width = 1.25 * processor.coupling_sigma
+    true_width = 1.25 * processor.fit.coupling_sigma
     params = BoardParams(coupling_sigma_mm=true_width, seed=12)
     board = VirtualBoard(bunny_map, params)
     steps = [{"gesture": "press", "at": "random", "ms": 500} for _ in range(20)]
     script = ScriptBuilder(bunny_map, params, seed=12).build(steps)
     feed(processor, board, script.fingers_at, script.duration)
     half_maximum = true_width * np.sqrt(2 * np.log(2))
-    assert processor.coupling.updates >= 2
-    assert processor.profile.half_maximum_mm() == pytest.approx(half_maximum, rel=0.05)
+    assert processor.fit.coupling.updates >= 2
+    assert processor.fit.profile.half_maximum_mm() == pytest.approx(half_maximum, rel=0.05)
     fixed = TouchProcessor(bunny_map, ProcessingParams(adapt_coupling=False))
     feed(fixed, board, script.fingers_at, script.duration)
-    assert fixed.coupling.updates == 0
-    assert fixed.profile.half_maximum_mm() == pytest.approx(half_maximum / 1.25, rel=1e-9)
+    assert fixed.fit.coupling.updates == 0
+    assert fixed.fit.profile.half_maximum_mm() == pytest.approx(half_maximum / 1.25, rel=1e-9)
 
 
 def test_ten_minutes_at_rest_with_drift_give_no_touch(bunny_map):
@@ -243,9 +236,14 @@ def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
     bad = tmp_path / "bad" / "sensing_map.json"
     bad.parent.mkdir()
     bad.write_text(json.dumps({"format": "something/else"}))
-    with pytest.raises(UserError, match="expected 'retrotouch.sensing_map/1'"):
+    with pytest.raises(UserError, match="expected 'retrotouch.sensing_map/2'"):
         load_sensing_map(bad.parent)
     doc = json.loads(bunny_map_path.read_text())
+    old = {**doc, "format": "retrotouch.sensing_map/1"}
+    del old["up"]
+    bad.write_text(json.dumps(old))
+    with pytest.raises(UserError, match="format 'retrotouch.sensing_map/1', expected .* re-run the pipeline"):
+        load_sensing_map(bad)  # version 1 carries no up axis
     doc["mesh"]["sha256"] = "0" * 64
     tampered = bunny_map_path.parent / "tampered.json"
     tampered.write_text(json.dumps(doc))

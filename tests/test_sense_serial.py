@@ -13,17 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.sensing.muca_serial import (
-    AsciiFrameParser,
-    BinaryFrameParser,
-    FrameOptions,
-    MucaReader,
-    Recorder,
-    encode_ascii_frame,
-    encode_binary_frame,
-    parse_stream,
-    replay_frames,
-)
+from retrotouch.nodes.sensing.frames import AsciiFrameParser, BinaryFrameParser, encode_ascii_frame, encode_binary_frame, FrameOptions
+from retrotouch.nodes.sensing.muca_serial import MucaReader
+from retrotouch.nodes.sensing.recording import Recorder, replay_frames
+from sense_helpers import parse_stream
 
 
 def grid(seed: int, low: int = 9000, high: int = 10500) -> np.ndarray:

@@ -105,23 +105,6 @@ class Layout:
     rx_source: np.ndarray  # (Nrx,) int64
 
 
-SENSING_MAP_FORMAT = "retrotouch.sensing_map/1"
-"""``sensing_map.json``, the file the runtime reads (written next to ``mesh.ply`` in a run's output)::
-
-    {"format": "retrotouch.sensing_map/1",
-     "units": "mm",
-     "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
-     "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
-     "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
-                  "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},
-     "cells": [{"tx": 0, "rx": 3, "point": [x, y, z], "face": 123, "bary": [l0, l1, l2],
-                "normal": [nx, ny, nz], "pad": true}, ...]}
-
-Cells list only channel pairs whose curves cross; the Muca frame index of a cell is
-``tx * 12 + rx`` on a 21 x 12 board (TX-major).
-"""
-
-
 @dataclasses.dataclass(frozen=True)
 class SurfaceRegions:
     """Base (non-sensing), exclusion and sensing regions of a mesh, and the singularity anchors.

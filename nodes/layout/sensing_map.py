@@ -1,79 +1,36 @@
 """``layout.sensing_map``: the files the runtime reads (sensing_map.json, mesh.ply, metrics.json).
 
-``sensing_map.json`` follows :data:`retrotouch.nodes.data.types.SENSING_MAP_FORMAT` exactly. Cell
-normals are the unit area-weighted vertex normals interpolated with the cell's barycentrics (smooth
-across faces, outward because faces are CCW from outside). ``mesh.ply`` is the processed mesh as
-binary PLY (trimesh); its sha256 is written into the sensing map.
+``sensing_map.json`` and ``mesh.ply`` come from the one writer,
+:func:`retrotouch.nodes.data.sensing_map.sensing_map_files` (format and cell normals described
+there); the up axis is the resting pose ``regions.detect`` found.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 
 import numpy as np
 
 from ...graph.node import Files, NodeParams, node
-from ..data.types import SENSING_MAP_FORMAT, Layout, Mesh
-
-
-def mesh_ply_bytes(mesh: Mesh) -> bytes:
-    """Binary PLY of the mesh, vertices and faces in order (no merging or reordering)."""
-    import trimesh  # heavy: imported when writing, not on node discovery
-
-    return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type="ply", encoding="binary")
-
-
-def cell_normals(mesh: Mesh, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Unit normals at surface points from barycentric interpolation of area-weighted vertex normals."""
-    P = mesh.vertices[mesh.faces]
-    face_n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])  # length = 2 * area
-    vertex_n = np.zeros_like(mesh.vertices)
-    for corner in range(3):
-        np.add.at(vertex_n, mesh.faces[:, corner], face_n)
-    n = np.einsum("kc,kcd->kd", bary, vertex_n[mesh.faces[faces]])
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-
-def sensing_map(layout: Layout, mesh: Mesh, mesh_bytes: bytes) -> dict:
-    """The sensing_map.json document for a layout on a mesh whose PLY bytes are ``mesh_bytes``."""
-    cells = layout.cells
-    normals = cell_normals(mesh, cells.faces, cells.bary)
-
-    def channels(curves, source, prefix):
-        return [{"channel": i, "name": f"{prefix}{i:02d}", "curve": int(source[i]),
-                 "length_mm": float(curves.lengths_mm[i])} for i in range(curves.count)]
-
-    return {
-        "format": SENSING_MAP_FORMAT,
-        "units": "mm",
-        "mesh": {"file": "mesh.ply", "sha256": hashlib.sha256(mesh_bytes).hexdigest(),
-                 "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
-        "tx_channels": int(layout.tx.count),
-        "rx_channels": int(layout.rx.count),
-        "channels": {"tx": channels(layout.tx, layout.tx_source, "Tx"),
-                     "rx": channels(layout.rx, layout.rx_source, "Rx")},
-        "cells": [{"tx": int(cells.curve_a[k]), "rx": int(cells.curve_b[k]),
-                   "point": [float(v) for v in cells.points[k]], "face": int(cells.faces[k]),
-                   "bary": [float(v) for v in cells.bary[k]], "normal": [float(v) for v in normals[k]],
-                   "pad": bool(layout.pad[k])} for k in range(len(cells.curve_a))],
-    }
+from ..data.sensing_map import sensing_map_files
+from ..data.types import Layout, Mesh, SurfaceRegions
 
 
 class SensingMapParams(NodeParams):
     """No parameters: the file layout is fixed by the format."""
 
 
-@node("layout.sensing_map", params=SensingMapParams, inputs=("mesh", "layout", "metrics"),
+@node("layout.sensing_map", params=SensingMapParams, inputs=("mesh", "regions", "layout", "metrics"),
       outputs=("files",), sink=True)
-def write_sensing_map(params: SensingMapParams, mesh: Mesh, layout: Layout, metrics: dict) -> Files:
-    """sensing_map.json (channel pairs -> crossing point, face, barycentrics, normal, pad), mesh.ply, metrics.json."""
-    ply = mesh_ply_bytes(mesh)
-    document = sensing_map(layout, mesh, ply)
-    return Files({
-        "sensing_map.json": json.dumps(document, indent=1).encode(),
-        "mesh.ply": ply,
-        "metrics.json": json.dumps(metrics, indent=1, default=_json_default).encode(),
-    })
+def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout,
+                      metrics: dict) -> Files:
+    """sensing_map.json (up axis; channel pairs -> crossing point, face, barycentrics, normal, pad),
+    mesh.ply, metrics.json."""
+    cells = layout.cells
+    channels = {"tx": list(zip(layout.tx_source.tolist(), layout.tx.lengths_mm.tolist())),
+                "rx": list(zip(layout.rx_source.tolist(), layout.rx.lengths_mm.tolist()))}
+    files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
+                              cells.faces, cells.bary, layout.pad, channels)
+    return Files({**files, "metrics.json": json.dumps(metrics, indent=1, default=_json_default).encode()})
 
 
 def _json_default(value):

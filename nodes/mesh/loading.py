@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib.resources
 from pathlib import Path
 from typing import Literal
 
@@ -26,11 +25,9 @@ from pydantic import Field, model_validator
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
+from ..data.builtin import builtin_mesh_path
 from ..data.types import Mesh
 from .reconstruct import reconstruct_from_points
-
-BUILTIN_MESHES = {"builtin:bunny": "tests/sample_meshes/bunny.obj"}
-"""Embedded meshes: name -> path inside the installed pymeshlab package."""
 
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "unitless": 1.0}
 """Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
@@ -41,12 +38,7 @@ SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".xyz")
 def resolve_mesh_path(path: str) -> Path:
     """The file behind ``path``: a ``builtin:`` name resolves inside the installed pymeshlab."""
     if path.startswith("builtin:"):
-        if path not in BUILTIN_MESHES:
-            raise UserError(
-                f"unknown built-in mesh {path!r}: use one of {', '.join(sorted(BUILTIN_MESHES))} "
-                "or a file path"
-            )
-        return Path(str(importlib.resources.files("pymeshlab") / BUILTIN_MESHES[path]))
+        return builtin_mesh_path(path)
     return Path(path).expanduser()
 
 

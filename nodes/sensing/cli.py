@@ -16,6 +16,7 @@ datagrams and to every client of ``--websocket``. Diagnostics go to stderr.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import socket
 import sys
@@ -162,11 +163,30 @@ def sense(
                                            "round by round."),
 ) -> None:
     """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
-    from .gestures import GestureRecognizer
-    from .muca_serial import FrameOptions, MucaReader, replay_frames
-    from .simulator import BoardParams
-    from .processing import TouchProcessor, load_sensing_map, resolve_sensing_map_path
+    from ..data.sensing_map import resolve_sensing_map_path
+    from .virtual_board import BoardParams
 
+    _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
+    board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
+    if layout is None and not simulate:
+        raise UserError("--layout is required: pass the run folder or its sensing_map.json")
+    layout_path = _default_layout() if layout is None else resolve_sensing_map_path(layout)
+    if evaluate:
+        _evaluate(layout_path, replay, board_params, record, protocol)
+        return
+    from .frames import FrameOptions
+
+    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
+                           skip_rx=_parse_channels(skip_rx, "--skip-rx"))
+    source = Source(port=port, baudrate=baudrate, frame_format=frame_format, options=options, skip_lines=skip_lines,
+                    record=record, replay=replay, replay_options=flip_tx or flip_rx or bool(skip_tx or skip_rx),
+                    speed=speed, steps=None if not simulate else _steps(script), board_params=board_params,
+                    fast=fast, loop=loop)
+    _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration)
+
+
+def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format) -> None:
+    """One-line UserErrors for option combinations that cannot work."""
     sources = [name for name, on in (("--port", port), ("--simulate", simulate), ("--replay", replay)) if on]
     if len(sources) != 1:
         raise UserError("choose one input: --port DEVICE, --simulate [SCRIPT] or --replay FILE")
@@ -180,45 +200,58 @@ def sense(
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
     if coupling not in ("gaussian", "disc"):
         raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
-    board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
     if frame_format not in ("ascii", "binary"):
         raise UserError(f"--format {frame_format!r}: use ascii or binary")
-    if layout is None:
-        if not simulate:
-            raise UserError("--layout is required: pass the run folder or its sensing_map.json")
-        layout_path = _default_layout()
-    else:
-        layout_path = resolve_sensing_map_path(layout)
-    if evaluate:
-        _evaluate(layout_path, replay, board_params, record, protocol)
-        return
-    sensing_map = load_sensing_map(layout_path)
-    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
-                           skip_rx=_parse_channels(skip_rx, "--skip-rx"))
-    steps = _steps(script)
-    processor = TouchProcessor(sensing_map)
-    sinks = EventSinks(udp=udp or (), websocket_port=websocket)
-    live = None
-    reader = None
-    try:
-        if view:
-            from .live_view import LiveView
 
-            try:
-                live = LiveView(processor, port=view_port)
-            except OSError as exc:
-                raise UserError(f"--view-port {view_port}: cannot listen ({exc.strerror}): pick another port") from None
-            print(f"live view on {live.start()}", file=sys.stderr)
-        if port:
-            reader = MucaReader(port, baudrate=baudrate, frame_format=frame_format, options=options,
-                                skip_first_lines=skip_lines, record=record)
+
+@dataclasses.dataclass(frozen=True)
+class Source:
+    """Where frames come from: a board on ``port``, a recording ``replay`` or the simulator (``steps``)."""
+
+    port: Optional[str]
+    baudrate: int
+    frame_format: str
+    options: Any  # FrameOptions
+    skip_lines: int
+    record: Optional[str]
+    replay: Optional[str]
+    replay_options: bool  # the options override the recording's header
+    speed: float
+    steps: Optional[list[dict[str, Any]]]
+    board_params: Any  # BoardParams
+    fast: bool
+    loop: bool
+
+
+def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Optional[int],
+            view_port: Optional[int], duration: Optional[float]) -> None:
+    """Process frames from ``source`` into events until they end (or Ctrl-C)."""
+    from ..data.sensing_map import load_sensing_map
+    from .gestures import GestureRecognizer
+    from .processing import TouchProcessor
+
+    sensing_map = load_sensing_map(layout_path)
+    processor = TouchProcessor(sensing_map)
+    sinks = EventSinks(udp=udp, websocket_port=websocket)
+    live = reader = None
+    try:
+        if view_port is not None:
+            live = _live_view(processor, view_port)
+        if source.port:
+            from .muca_serial import MucaReader
+
+            reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
+                                options=source.options, skip_first_lines=source.skip_lines, record=source.record)
             frames: Iterable[Any] = reader.frames()
-        elif replay:
+        elif source.replay:
+            from .recording import replay_frames
+
             # A recording's header holds the board's orientation unless the options override it.
-            frames = replay_frames(replay, options=options if (flip_tx or flip_rx or skip_tx or skip_rx) else None,
-                                   speed=speed)
+            frames = replay_frames(source.replay, options=source.options if source.replay_options else None,
+                                   speed=source.speed)
         else:
-            frames = _simulated(sensing_map, steps, board_params, fast, loop, frame_format, record)
+            frames = _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
+                                source.frame_format, source.record)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
     except KeyboardInterrupt:
@@ -231,8 +264,19 @@ def sense(
         sinks.close()
 
 
+def _live_view(processor, port: int):
+    from .live_view import LiveView
+
+    try:
+        live = LiveView(processor, port=port)
+    except OSError as exc:
+        raise UserError(f"--view-port {port}: cannot listen ({exc.strerror}): pick another port") from None
+    print(f"live view on {live.start()}", file=sys.stderr)
+    return live
+
+
 def _default_layout() -> Path:
-    from .simulator import default_sensing_map_path
+    from .synthetic_map import default_sensing_map_path
 
     cache = Path.home() / ".cache" / "retrotouch" / "synthetic_bunny"
     path, description = default_sensing_map_path(Path.cwd(), cache)
@@ -241,13 +285,15 @@ def _default_layout() -> Path:
 
 
 def _steps(script: Optional[str]) -> list[dict[str, Any]]:
-    from .simulator import DEMO_SCRIPT, load_script
+    from .scripts import DEMO_SCRIPT, load_script
 
     return DEMO_SCRIPT if script is None else load_script(script)
 
 
 def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> Iterator[Any]:
-    from .simulator import ScriptBuilder, VirtualBoard, frames_through_pty
+    from .pty_board import frames_through_pty
+    from .scripts import ScriptBuilder
+    from .virtual_board import VirtualBoard
 
     board = VirtualBoard(sensing_map, params)
     built = ScriptBuilder(sensing_map, params, params.seed).build(steps)

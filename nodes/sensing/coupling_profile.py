@@ -2,10 +2,8 @@
 crossing at distance ``d`` (mm, 3D) from the finger reads, learned from touches.
 
 A real board's profile is not known in advance (finger size, overlay thickness, pad shape, the
-hand's own capacitance all shape it), and a position fit that assumes the wrong shape is biased: on
-the default layout a board with a flat-topped, heavy-tailed profile (the simulator's ``disc``) is
-localized with 2.1 mm mean error by a Gaussian fit of learned width (1.4 mm at the nominal width),
-0.86 mm once the shape is learned too.
+hand's own capacitance all shape it), and a position fit that assumes the wrong shape is biased
+(``bench/sensing.py`` measures it with the simulator's flat-topped, heavy-tailed ``disc`` profile).
 
 The profile is a table on knots at fixed multiples of a width (0 to 5 widths), ``K(0) = 1``,
 non-increasing, with ``log K`` linear in ``q = d^2`` between knots (a Gaussian is represented
@@ -15,7 +13,7 @@ from the fitted finger to a crossing, delta / (gain x fitted amplitude), weight 
 / noise sigma)^2): weighted least squares under the monotone constraint (NNLS on the knot-to-knot
 drops, with a small penalty on changes of slope between knots), accumulated as normal equations
 with a fading memory. The processing learns the width first (see
-:meth:`~retrotouch.nodes.sensing.processing.TouchProcessor._learn_coupling`) and the shape in units
+:meth:`.coupling_fit.CouplingFit._learn_coupling`) and the shape in units
 of it: the shape alone cannot tell a wider finger from a larger amplitude (``K(0) = 1`` rests on
 the few crossings right under a finger).
 """

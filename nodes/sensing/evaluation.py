@@ -33,21 +33,15 @@ from scipy.spatial import Delaunay, QhullError
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams
-from .muca_serial import Frame, replay_frames
-from .simulator import (
-    BoardParams,
-    ScriptBuilder,
-    VirtualBoard,
-    farthest_point_sampling,
-    frames_through_pty,
-)
-from .processing import (
-    ProcessingParams,
-    SensingMap,
-    SurfaceProjector,
-    TouchProcessor,
-    load_sensing_map,
-)
+from ..data.board import default_coupling_width_mm
+from ..data.sensing_map import SensingMap, load_sensing_map
+from ..geometry.surface import SurfaceProjector, farthest_point_sampling
+from .frames import Frame
+from .processing import ProcessingParams, TouchProcessor
+from .pty_board import frames_through_pty
+from .recording import replay_frames
+from .scripts import ScriptBuilder
+from .virtual_board import BoardParams, VirtualBoard
 
 
 class EvalParams(NodeParams):
@@ -102,7 +96,7 @@ def evaluation_locations(sensing_map: SensingMap, params: EvalParams = EvalParam
     builder = ScriptBuilder(sensing_map, board_params, params.seed)
     candidates = np.array([builder.location("random") for _ in range(20 * params.locations)])
     pitch = sensing_map.pitch_mm()
-    width = board_params.coupling_sigma_mm or float(np.hypot(board_params.finger_radius_mm, pitch / 2))
+    width = board_params.coupling_sigma_mm or default_coupling_width_mm(board_params.finger_radius_mm, pitch)
     inside = surrounded(sensing_map, candidates, 2.0 * width)
     pool = candidates[inside] if params.location_rule == "surrounded" else candidates
     if len(pool) < params.locations:

@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .simulator import up_axis
+from ..geometry.triangles import corners
+from ..geometry.triangles import normals as face_normals
 from .processing import FrameResult, TouchProcessor
 
 PAGE = """<!doctype html>
@@ -160,10 +161,9 @@ class LiveView:
 
     def __init__(self, processor: TouchProcessor, host: str = "127.0.0.1", port: int = 0):
         self.processor = processor
-        vertices, faces = processor.contact_vertices, processor.contact_faces
-        normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-        up = up_axis(vertices, faces)
+        vertices, faces = processor.contacts.contact_vertices, processor.contacts.contact_faces
+        normals = face_normals(corners(vertices, faces))[0]
+        up = processor.map.up
         self._mesh_json = json.dumps({
             "vertices": np.round(vertices, 2).ravel().tolist(), "faces": faces.ravel().tolist(),
             "normals": np.round(normals, 3).ravel().tolist(), "up": up.tolist(),
@@ -237,7 +237,7 @@ class LiveView:
     def publish(self, result: FrameResult, gestures: list[dict[str, Any]] = ()) -> None:
         """Make ``result`` the frame every open page shows next."""
         positive = np.maximum(result.delta, 0.0)
-        field = self.processor.vertex_to_cell @ positive
+        field = self.processor.contacts.vertex_to_cell @ positive
         scale = max(float(field.max(initial=0.0)), 10.0 * float(np.median(self.processor.noise)))
         heat = np.clip(np.rint(255.0 * field / max(scale, 1e-9)), 0, 255).astype(np.int64)
         payload = json.dumps({

@@ -1,0 +1,107 @@
+"""Contact areas of touches (see :mod:`.processing`, step 3): cell deltas interpolated over the
+vertices of a simplified copy of the mesh, connected components above the off threshold, split among
+the touch peaks; each part's intensity- and area-weighted centroid and its contact area.
+
+Units: mm, mm^2, counts.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ..data.sensing_map import SensingMap
+from ..geometry.triangles import vertex_areas
+
+
+def processing_mesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """A simplified copy of the mesh (quadric edge collapse, topology kept) for contact areas; the
+    mesh itself when it is already small enough."""
+    if len(faces) <= target_faces:
+        return vertices, faces
+    import pymeshlab
+
+    meshes = pymeshlab.MeshSet()
+    meshes.add_mesh(pymeshlab.Mesh(vertices, faces))
+    meshes.meshing_decimation_quadric_edge_collapse(targetfacenum=target_faces, preservetopology=True,
+                                                   preservenormal=True, planarquadric=True)
+    simplified = meshes.current_mesh()
+    return simplified.vertex_matrix().astype(np.float64), simplified.face_matrix().astype(np.int64)
+
+
+class ContactAreas:
+    """The contact mesh of a sensing map (``contact_vertices``, ``contact_faces``), its vertex areas
+    and edges, and the cell -> vertex interpolation ``vertex_to_cell`` (vertices x cells, sparse)."""
+
+    def __init__(self, sensing_map: SensingMap, target_faces: int, interpolation_radius: float, pitch: float):
+        self.map = sensing_map
+        self.contact_vertices, self.contact_faces = processing_mesh(sensing_map.vertices, sensing_map.faces,
+                                                                    target_faces)
+        self.areas = vertex_areas(self.contact_vertices, self.contact_faces)
+        edges = self.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        source, target = np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0).T  # sorted by source
+        degree = np.bincount(source, minlength=len(self.contact_vertices))
+        # (n, max degree) mesh neighbours of each contact vertex, padded with the vertex itself.
+        self.vertex_neighbours = np.repeat(np.arange(len(degree))[:, None], max(int(degree.max()), 1), axis=1)
+        self.vertex_neighbours[source, np.arange(len(source)) - (np.cumsum(degree) - degree)[source]] = target
+        self.vertex_to_cell = self._interpolation(interpolation_radius, pitch / 2)
+
+    def _interpolation(self, radius: float, bandwidth: float) -> sp.csr_matrix:
+        """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell
+        (Gaussian kernel of ``bandwidth``, mm)."""
+        vertices = self.contact_vertices
+        cell_tree = cKDTree(self.map.cell_points)
+        pairs = cell_tree.sparse_distance_matrix(cKDTree(vertices), radius, output_type="coo_matrix")
+        weights = np.exp(-(pairs.data**2) / (2 * bandwidth**2))
+        cell_to_vertex = sp.csr_matrix((weights, (pairs.row, pairs.col)), shape=(self.map.cell_count, len(vertices)))
+        totals = np.asarray(cell_to_vertex.sum(axis=0)).ravel()
+        return sp.csr_matrix(cell_to_vertex.T.multiply(1.0 / np.maximum(totals, 1e-300)[:, None]))
+
+    def parts(self, peaks: np.ndarray, delta: np.ndarray, floor: float) -> list[list[Any]]:
+        """One entry ``[cell, None, None, None, area_mm2, centroid]`` per peak cell (strongest first)
+        whose part of the contact area above ``floor`` (counts) is not empty: each vertex belongs to
+        the nearest peak of its own component (components without a peak drop); a peak's component is
+        its nearest vertex's. The centroid weighs vertices by area x (intensity - floor); the area is
+        that of the vertices at or above half the part's peak intensity."""
+        field = self.vertex_to_cell @ np.maximum(delta, 0.0)
+        inside = field > floor
+        region = np.flatnonzero(inside)
+        if len(region) == 0:
+            return []
+        field = field[region]
+        labels = self._component_labels(inside, region)
+        vertices = self.contact_vertices[region]
+        peak_points = self.map.cell_points[peaks]
+        d2 = np.sum((vertices[:, None] - peak_points[None]) ** 2, axis=2)
+        peak_label = labels[np.argmin(d2, axis=0)]
+        d2[labels[:, None] != peak_label[None]] = np.inf
+        owner = np.argmin(d2, axis=1)
+        owned = np.isfinite(d2[np.arange(len(region)), owner])
+        found = []
+        areas = self.areas[region]
+        for j, cell in enumerate(peaks.tolist()):
+            mine = np.flatnonzero(owned & (owner == j))
+            if len(mine) == 0:
+                continue
+            mine_field, mine_areas = field[mine], areas[mine]
+            weights = mine_areas * (mine_field - floor)
+            centroid = weights @ vertices[mine] / weights.sum()
+            area = float(mine_areas[mine_field >= 0.5 * mine_field.max()].sum())
+            found.append([cell, None, None, None, area, centroid])
+        return found
+
+    def _component_labels(self, inside: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """Connected-component labels of the contact vertices ``region`` (= ``flatnonzero(inside)``)
+        over the mesh edges between them."""
+        local = np.cumsum(inside, dtype=np.int32) - 1  # index in region
+        neighbours = self.vertex_neighbours[region]
+        linked = inside[neighbours]
+        # A symmetric graph in CSR form: row k lists region vertex k's neighbours inside (and itself).
+        targets = local[neighbours[linked]]
+        rows = np.zeros(len(region) + 1, dtype=np.int32)
+        np.cumsum(np.count_nonzero(linked, axis=1), out=rows[1:])
+        graph = sp.csr_matrix((np.ones(len(targets)), targets, rows), shape=(len(region), len(region)))
+        return connected_components(graph, directed=False)[1]

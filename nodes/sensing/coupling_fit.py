@@ -1,0 +1,243 @@
+"""Sub-cell touch refinement: the coupling model ``delta_i = g_i A K(|p - x_i|)`` fitted to the
+crossings around a touch peak by maximum likelihood, with the finger kept on the surface, and the
+coupling width, shape and amplitude learned from touches (see :mod:`.processing`, step 4).
+
+``g_i`` is 1 with a pad and ``no_pad_gain`` without; ``K`` the radial coupling profile
+(:mod:`.coupling_profile`). Units: mm, counts, deltas in noise sigmas inside the fit.
+"""
+from __future__ import annotations
+
+import collections
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..data.board import default_coupling_width_mm
+from ..data.sensing_map import SensingMap
+from ..geometry.surface import SurfaceProjector
+from .coupling_profile import CouplingProfile, ProfileLearner
+from .plane_fit import TangentPlaneFit
+
+if TYPE_CHECKING:
+    from .processing import ProcessingParams
+
+NORMAL_RIDGE = 0.05  # ridge on the width fit's normal component, relative to the in-plane information
+COUPLING_MIN_ESTIMATES = 30  # width estimates whose median becomes the coupling width
+COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
+AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
+AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
+AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
+
+
+def median(values: np.ndarray) -> float:
+    """Median of a small 1-D array of finite values (what ``np.median`` returns, at a tenth of its
+    per-call overhead)."""
+    ordered = np.sort(values)
+    middle = len(ordered) // 2
+    return float(ordered[middle]) if len(ordered) % 2 else float((ordered[middle - 1] + ordered[middle]) / 2)
+
+
+class CouplingFit:
+    """The coupling model of one sensing map and what it learned so far (width, shape, amplitude)."""
+
+    def __init__(self, sensing_map: SensingMap, params: ProcessingParams, projector: SurfaceProjector,
+                 cell_gain: np.ndarray, cell_distance: np.ndarray):
+        self.map, self.params, self.projector = sensing_map, params, projector
+        self.cell_gain, self.cell_distance = cell_gain, cell_distance
+        self.pitch = sensing_map.pitch_mm()
+        self.coupling_sigma = params.coupling_sigma_mm or default_coupling_width_mm(params.finger_radius_mm, self.pitch)
+        self.initial_coupling_sigma = self.coupling_sigma
+        self._width_estimates: list[float] = []
+        self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
+        self.amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
+        self._amplitude_count = 0  # well-posed fits seen
+        self.coupling = ProfileLearner(CouplingProfile.gaussian(1.0))  # the shape, in units of the width
+        self._use_profile()
+
+    def _use_profile(self) -> None:
+        """Fit with the learned shape stretched to the learned width from now on; the peak test's
+        tail bounds follow: a finger at most ``a = 0.6 pitch`` from a peak crossing (inside the sensed
+        region) gives a crossing ``D`` from that peak at most ``K(max(D - a, 0)) / K(a)`` times the
+        peak's delta."""
+        profile = self.profile = self.coupling.profile.scaled(self.coupling_sigma)
+        offset = 0.6 * self.pitch
+        reach = profile.at_distance(np.maximum(self.cell_distance - offset, 0.0))
+        self.tail_bound = reach / profile.at_distance(offset)
+
+    def refine_all(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> None:
+        """Refine every touch in place (entries ``[cell, point, face, bary, area, centroid]`` of
+        ``found``, strongest peak first; entries that are one finger are merged out). Each fit starts
+        at its peak crossing (on the touched side, within a pitch of the finger); with several
+        touches the first pass fits each one to its own cells (nearest to its peak), peaks whose fits
+        land within ``2 finger_radius`` of a stronger one's are dropped (their area added to it), and
+        a second pass fits each remaining touch to all deltas minus the other touches' fitted
+        coupling, starting from its first fit's point and amplitude. The coupling profile learns from
+        single touches and from second-pass fits (a first pass beside another touch carries that
+        touch's tail)."""
+        single = len(found) == 1
+        fits: list[tuple[np.ndarray, float] | None] = []  # (point, log amplitude) of each first-pass fit
+        peaks = np.array([entry[0] for entry in found])
+        # First pass: each touch sees only the cells nearer its own peak than any other peak.
+        nearest_peak = np.argmin(self.cell_distance[:, peaks], axis=1)
+        for j, entry in enumerate(found):
+            cell = entry[0]
+            own_cells = delta if single else np.where(nearest_peak == j, delta, np.nan)
+            refined = self.refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), own_cells, sigma,
+                                  learn_profile=single)
+            fits.append(None if refined is None else (refined[0], min(refined[3], 30.0)))
+            if refined is not None:
+                entry[1:4] = refined[:3]
+        if single:
+            return
+        fits = self._merge_same_finger(found, fits)
+        if len(found) == 1:  # merged into one finger after all: fit it to every delta
+            entry = found[0]
+            refined = self.refine(self.map.cell_points[entry[0]], int(self.map.cell_faces[entry[0]]), delta, sigma,
+                                  learn_profile=True)
+            if refined is not None:
+                entry[1:4] = refined[:3]
+            return
+        if sum(fit is not None for fit in fits) >= 2:
+            self._refit_beside_others(found, fits, delta, sigma)
+
+    def _merge_same_finger(self, found: list[list[Any]], fits: list) -> list:
+        """Drop the entries whose first fits land within a finger's width of a stronger one's (their
+        area goes to it); returns the fits of the entries kept."""
+        merge_mm = 2.0 * self.params.finger_radius_mm
+        kept: list[int] = []  # found is strongest peak first
+        for j, fit in enumerate(fits):
+            same = None if fit is None else next((k for k in kept if fits[k] is not None
+                                                  and math.dist(fits[k][0].tolist(), fit[0].tolist()) < merge_mm), None)
+            if same is None:
+                kept.append(j)
+            else:
+                found[same][4] += found[j][4]
+        if len(kept) < len(found):
+            found[:] = [found[j] for j in kept]
+            fits = [fits[j] for j in kept]
+        return fits
+
+    def _refit_beside_others(self, found: list[list[Any]], fits: list, delta: np.ndarray, sigma: np.ndarray) -> None:
+        """Second pass: each touch refitted to the deltas minus the other touches' fitted coupling."""
+        cells = self.map.cell_points
+        modelled = [np.zeros(len(cells)) if fit is None else
+                    self.cell_gain * math.exp(fit[1]) * self.profile.at_squared(np.sum((cells - fit[0]) ** 2, axis=1))[0]
+                    for fit in fits]
+        total = np.sum(modelled, axis=0)
+        for entry, fit, own in zip(found, fits, modelled):
+            if fit is None:
+                continue
+            others = total - own
+            if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
+                continue
+            refined = self.refine(entry[1], entry[2], delta - others, sigma, fit[1], learn_profile=True)
+            if refined is not None:
+                entry[1:4] = refined[:3]
+
+    def refine(self, point, face, values, sigma, log_amplitude=None, learn_profile=False):
+        """Maximum-likelihood coupling fit around ``point`` (the peak crossing, or a first fit's point
+        refitted from its log-amplitude ``log_amplitude``); returns (point, face, bary) on the surface
+        and the fitted log-amplitude ``a`` (log counts), or None when no crossing near ``point``
+        carries signal above 2 sigma.
+
+        Model ``delta_i = g_i exp(a) K(|p - x_i|)`` over every crossing within ``3 s + pitch`` of the
+        start (``s`` the coupling width), dark ones included (a crossing that reads nothing says the
+        finger is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is
+        additive, so this is the likelihood); the surface-constrained fit is :class:`.TangentPlaneFit`.
+
+        A first fit (no ``log_amplitude``) starts ``a`` at the log of the largest gain-normalised
+        delta, or at the amplitude prior's mean if higher. On thin parts (ears) and tips the strongest
+        crossing can sit on the far side, so a first fit also starts from the two strongest crossings
+        facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta) and
+        keeps the lowest cost; a refit starts from its first fit only. A well-posed fit with
+        ``learn_profile`` gives the coupling profile its (squared distance, delta / (g exp(a)),
+        weight) pairs (:class:`~retrotouch.nodes.sensing.coupling_profile.ProfileLearner`).
+        """
+        cells = self.map.cell_points
+        offsets = cells - point
+        distance2 = np.einsum("ij,ij->i", offsets, offsets)
+        near = np.flatnonzero((distance2 <= (3.0 * self.coupling_sigma + self.pitch) ** 2) & np.isfinite(values))
+        d, g, x, noise = values[near], self.cell_gain[near], cells[near], sigma[near]
+        strong = d > 2.0 * noise
+        if not strong.any():
+            return None
+        width_learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES
+        if self.params.adapt_coupling and not width_learned:
+            # Width estimates only from touches many crossings see around the peak (log-linear form).
+            learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
+            if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
+                self._learn_coupling(offsets[near[learn]], self.projector.face_frames[face], d[learn] / g[learn])
+        starts = [(point, face)]
+        if log_amplitude is None:
+            normalised = d / g
+            facing = self.projector.face_normals[face]
+            away = np.flatnonzero(strong & (self.map.cell_normals[near] @ facing < 0.5)
+                                  & (normalised >= 0.5 * normalised[strong].max()))
+            if len(away):
+                for k in away[np.argsort(-normalised[away])][:2].tolist():
+                    starts.append((x[k], int(self.map.cell_faces[near[k]])))
+            log_amplitude = math.log(normalised[strong].max())
+            if self.amplitude_prior is not None:
+                log_amplitude = max(log_amplitude, self.amplitude_prior[0])
+        z, h = d / noise, g / noise  # in noise sigmas
+        plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
+        fits = [plane_fit.run(p, f, log_amplitude) for p, f in starts]
+        _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
+        if self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
+            scale = h * math.exp(log_amplitude)
+            offsets = x - point
+            squared = np.einsum("ij,ij->i", offsets, offsets) / self.coupling_sigma**2  # in widths
+            if self.coupling.add(squared, z / scale, scale * scale):
+                self._use_profile()
+        return point, face, bary, log_amplitude
+
+    def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> bool:
+        """Keep the log-amplitude of fits whose tangential position the data alone pin within
+        ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
+        spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
+        later fits. Returns whether the fit was well posed."""
+        # Tangential 2 x 2 block of the inverse by cofactors, its largest eigenvalue in closed form.
+        i00, i01, i02, i11, i12, i22 = information  # upper triangle, in (u0, u1, log amplitude)
+        c00, c01, c11 = i11 * i22 - i12 * i12, i02 * i12 - i01 * i22, i00 * i22 - i02 * i02
+        determinant = i00 * c00 + i01 * c01 + i02 * (i01 * i12 - i02 * i11)
+        if determinant == 0.0 or not np.isfinite(determinant):
+            return False
+        v00, v01, v11 = c00 / determinant, c01 / determinant, c11 / determinant
+        largest = 0.5 * (v00 + v11) + float(np.hypot(0.5 * (v00 - v11), v01))
+        if not np.isfinite(largest) or largest > AMPLITUDE_WELL_POSED_MM**2:
+            return False
+        self._amplitude_estimates.append(float(log_amplitude))
+        self._amplitude_count += 1
+        if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES and self._amplitude_count % 10 == 0:
+            estimates = np.array(self._amplitude_estimates)
+            centre = float(np.median(estimates))
+            spread = max(1.4826 * float(np.median(np.abs(estimates - centre))), 0.05)
+            self.amplitude_prior = (centre, spread)
+        return True
+
+    def _learn_coupling(self, offsets: np.ndarray, frame: np.ndarray, normalised: np.ndarray) -> None:
+        """One estimate of the coupling width from a touch's strong crossings at ``offsets`` (k, 3) (mm)
+        from its peak crossing, with gain-normalised deltas ``normalised`` (counts): with ``y_i`` the
+        offsets in the face ``frame`` (rows t1, t2, n), ``log d_i = c + b.y_i / s^2 - a |y_i|^2`` is linear
+        in (c, b, a) and ``s = sqrt(1 / (2 a))``. The median of the first ``COUPLING_MIN_ESTIMATES``
+        estimates, kept within half to twice the initial width, becomes the width for good: the
+        profile's shape is learned in units of it from then on."""
+        full = np.empty((len(normalised), 5))
+        full[:, 0] = 1.0
+        full[:, 1:4] = offsets @ frame.T / self.coupling_sigma**2
+        full[:, 4] = -np.einsum("ij,ij->i", offsets, offsets)
+        weights = normalised * normalised
+        normal_matrix = full.T @ (full * weights[:, None])
+        normal_matrix[3, 3] += NORMAL_RIDGE * 0.5 * (normal_matrix[1, 1] + normal_matrix[2, 2])
+        try:
+            a = np.linalg.solve(normal_matrix, full.T @ (weights * np.log(normalised)))[4]
+        except np.linalg.LinAlgError:
+            return
+        if a <= 0:
+            return
+        self._width_estimates.append(float(np.sqrt(1.0 / (2.0 * a))))
+        if len(self._width_estimates) == COUPLING_MIN_ESTIMATES:
+            learned = median(np.array(self._width_estimates))
+            self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
+            self._use_profile()

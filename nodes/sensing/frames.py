@@ -1,0 +1,227 @@
+"""Muca board frames: the ASCII and binary wire formats, parsed incrementally from bytes in any
+chunking, and encoded (for the simulator).
+
+Frame conventions (stated once here, used by the simulator and the touch processing):
+
+* A frame is a ``(num_tx, num_rx)`` int32 array of raw mutual-capacitance counts (0..65535),
+  TX-major: wire index ``tx * num_rx + rx`` (21 x 12 = 252 values on a Muca/FT5316 board,
+  :mod:`..data.board`).
+* Orientation differs between firmware versions (the 2020 library reverses RX, master reverses TX):
+  ``flip_tx``/``flip_rx`` reverse the channel order after parsing so that channel 0 is always the
+  layout's Tx00/Rx00. Channels listed in ``skip_tx``/``skip_rx`` (unwired or broken lines) read
+  ``-1`` (= no reading) and are ignored downstream.
+* ASCII format (Muca_Raw.ino): one frame per line, ``num_tx * num_rx`` unsigned decimal fields
+  separated by commas, CRLF. Empty fields (sketches that print only positive values) read 0. Any
+  other line (``[Muca] ...``, ``Calibration performed k/20``, garbage, truncated frames) is skipped
+  and counted; a line whose frame follows status text glued on without a newline (the 2020 library
+  prints ``i2c write failed`` without one) is salvaged when the text ends in a non-digit.
+* Binary format (Muca_Raw_Basic.ino SendRawByte): ``2 + num_tx * num_rx`` bytes per frame,
+  ``[min_hi, min_lo, uint8(value - min) ...]``, no sync marker. Frames are cut every
+  ``2 + cells`` bytes from the start of the stream (after any status lines); the reader drops a
+  partial frame after a read timeout without a byte (a pause between frames), which re-aligns the
+  stream. A board that streams without pauses stays aligned only while no byte is lost: prefer
+  the ASCII format when the link is unreliable.
+"""
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+
+from ...graph.errors import UserError
+from ..data.board import MAX_COUNT, NUM_RX, NUM_TX
+
+STATUS_PREFIXES = (b"[Muca]", b"Calibration performed", b"i2c write failed", b"RX:")
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameOptions:
+    """How raw board output maps to channels (see the module conventions)."""
+
+    num_tx: int = NUM_TX
+    num_rx: int = NUM_RX
+    flip_tx: bool = False
+    flip_rx: bool = False
+    skip_tx: tuple[int, ...] = ()
+    skip_rx: tuple[int, ...] = ()
+
+    @property
+    def cells(self) -> int:
+        return self.num_tx * self.num_rx
+
+    def orient(self, wire_values: np.ndarray) -> np.ndarray:
+        """Wire-order values (cells,) -> channel-order (num_tx, num_rx) int32 with skips = -1."""
+        grid = wire_values.astype(np.int32).reshape(self.num_tx, self.num_rx)
+        if self.flip_tx:
+            grid = grid[::-1]
+        if self.flip_rx:
+            grid = grid[:, ::-1]
+        grid = np.ascontiguousarray(grid)
+        if self.skip_tx:
+            grid[list(self.skip_tx), :] = -1
+        if self.skip_rx:
+            grid[:, list(self.skip_rx)] = -1
+        return grid
+
+
+@dataclasses.dataclass
+class ParserStats:
+    """Counters of what a parser saw (lines for ASCII, bytes dropped for binary)."""
+
+    frames: int = 0
+    status_lines: int = 0
+    rejected_lines: int = 0
+    salvaged_lines: int = 0
+    dropped_bytes: int = 0
+
+
+class AsciiFrameParser:
+    """Incremental parser for the ASCII frame format; feed it bytes in any chunking."""
+
+    def __init__(self, options: FrameOptions = FrameOptions(), skip_first_lines: int = 0):
+        self.options = options
+        self.stats = ParserStats()
+        self._pending = bytearray()
+        self._lines_to_skip = skip_first_lines
+        n = options.cells
+        self._frame_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}" % (n - 1))
+        self._suffix_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}\Z" % (n - 1))
+        # A frame line is at most n fields of 5 digits plus commas; keep a little more than two so a
+        # frame glued behind newline-less garbage survives the trimming of the pending buffer.
+        self._max_pending = 2 * (6 * n + 64)
+
+    def feed(self, data: bytes) -> list[np.ndarray]:
+        """Parse ``data``; returns the complete frames it finished, in order."""
+        self._pending += data
+        parts = re.split(rb"[\r\n]", bytes(self._pending))
+        self._pending = bytearray(parts.pop())
+        if len(self._pending) > self._max_pending:
+            self.stats.dropped_bytes += len(self._pending) - self._max_pending
+            del self._pending[: len(self._pending) - self._max_pending]
+        frames = []
+        for line in parts:
+            frame = self.parse_line(line)
+            if frame is not None:
+                frames.append(frame)
+        return frames
+
+    def reset(self) -> None:
+        """Forget a partial line (after a reconnect)."""
+        self._pending.clear()
+
+    def parse_line(self, line: bytes) -> np.ndarray | None:
+        """One line without its terminator -> oriented frame, or None (counted in ``stats``)."""
+        line = line.strip(b" \t\x00")
+        if not line:
+            return None
+        if self._lines_to_skip > 0:
+            self._lines_to_skip -= 1
+            self.stats.rejected_lines += 1
+            return None
+        if self._frame_re.fullmatch(line):
+            values = self._values(line)
+        else:
+            values = None
+            match = self._suffix_re.search(line)
+            if match is not None and match.start() > 0 and line[match.start() - 1] not in b"0123456789,":
+                values = self._values(match.group())
+                if values is not None:
+                    self.stats.salvaged_lines += 1
+            if values is None:
+                if line.startswith(STATUS_PREFIXES):
+                    self.stats.status_lines += 1
+                else:
+                    self.stats.rejected_lines += 1
+                return None
+        if values is None:
+            self.stats.rejected_lines += 1
+            return None
+        self.stats.frames += 1
+        return self.options.orient(values)
+
+    @staticmethod
+    def _values(text: bytes) -> np.ndarray | None:
+        """Fields already matched ``[0-9]{0,5}``; empty ones read 0."""
+        fields = text.split(b",")
+        if b",," in text or text.startswith(b",") or text.endswith(b","):
+            values = np.array([int(f) if f else 0 for f in fields], dtype=np.int64)
+        else:
+            values = np.array(list(map(int, fields)), dtype=np.int64)
+        if values.max(initial=0) > MAX_COUNT:
+            return None
+        return values
+
+
+class BinaryFrameParser:
+    """Incremental parser for the binary format (``[min_hi, min_lo, 252 x uint8]`` per frame)."""
+
+    def __init__(self, options: FrameOptions = FrameOptions()):
+        self.options = options
+        self.stats = ParserStats()
+        self.frame_bytes = 2 + options.cells
+        self._pending = bytearray()
+
+    def feed(self, data: bytes) -> list[np.ndarray]:
+        self._pending += data
+        frames = []
+        while True:
+            self._drop_status_line()
+            if len(self._pending) < self.frame_bytes:
+                return frames
+            chunk = bytes(self._pending[: self.frame_bytes])
+            del self._pending[: self.frame_bytes]
+            base = (chunk[0] << 8) | chunk[1]
+            values = base + np.frombuffer(chunk, dtype=np.uint8, offset=2).astype(np.int64)
+            if values.max() > MAX_COUNT:
+                self.stats.rejected_lines += 1
+                continue
+            self.stats.frames += 1
+            frames.append(self.options.orient(values))
+
+    def _drop_status_line(self) -> None:
+        """ASCII status lines printed before streaming starts are not frame bytes."""
+        while self._pending.startswith(STATUS_PREFIXES):
+            end = self._pending.find(b"\n")
+            if end < 0:
+                return
+            self.stats.status_lines += 1
+            del self._pending[: end + 1]
+
+    def resync(self) -> None:
+        """Drop a partial frame; called after a pause in the byte stream (frames come in bursts)."""
+        self.stats.dropped_bytes += len(self._pending)
+        self._pending.clear()
+
+    reset = resync
+
+
+def make_parser(frame_format: str, options: FrameOptions, skip_first_lines: int = 0):
+    """``"ascii"`` or ``"binary"`` -> a fresh parser."""
+    if frame_format == "ascii":
+        return AsciiFrameParser(options, skip_first_lines)
+    if frame_format == "binary":
+        return BinaryFrameParser(options)
+    raise UserError(f"unknown frame format {frame_format!r}: use 'ascii' or 'binary'")
+
+
+def encode_ascii_frame(grid: np.ndarray) -> bytes:
+    """Wire-order counts (num_tx, num_rx) -> one ASCII frame line with CRLF, as Muca_Raw.ino prints."""
+    return (",".join(map(str, np.asarray(grid, dtype=np.int64).ravel().tolist())) + "\r\n").encode()
+
+
+def encode_binary_frame(grid: np.ndarray) -> bytes:
+    """Wire-order counts -> one binary frame; values more than 255 above the minimum wrap, as on the board."""
+    values = np.asarray(grid, dtype=np.int64).ravel()
+    base = int(values.min())
+    return bytes([base >> 8, base & 0xFF]) + ((values - base) & 0xFF).astype(np.uint8).tobytes()
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One parsed frame: ``values`` (num_tx, num_rx) int32, channel order, -1 = no reading;
+    ``t`` seconds (monotonic clock when read live, recording time when replayed)."""
+
+    values: np.ndarray
+    t: float
+    seq: int
