@@ -28,7 +28,7 @@ import pytest
 import trimesh
 
 from proj_fixtures import bunny_layout, bunny_mm
-from retrotouch.nodes.layout.sensing_map import mesh_ply_bytes
+from retrotouch.nodes.data.ply import ply_bytes
 from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures
 
 THREE = Path(__file__).resolve().parent / "glb_viewer" / "node_modules" / "three"
@@ -110,7 +110,7 @@ def test_glb_is_metres_with_a_matte_material_and_the_texture_embedded(baked):
 def test_obj_and_glb_face_order_is_mesh_ply_face_order(baked, tmp_path):
     """Face k of the OBJ and of the GLB has the corners of face k of mesh.ply, in the same order."""
     mesh, contents = baked
-    (tmp_path / "mesh.ply").write_bytes(mesh_ply_bytes(mesh))
+    (tmp_path / "mesh.ply").write_bytes(ply_bytes(mesh.vertices, mesh.faces))
     ply = trimesh.load(tmp_path / "mesh.ply", process=False)
     ply_corners = ply.vertices[ply.faces]
     np.testing.assert_array_equal(ply.faces, mesh.faces)
