@@ -37,9 +37,9 @@ CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: 
 
 
 def _store(cache_dir: Optional[str]):
-    from .store import Store, default_cache_dir
+    from .store import default_cache_dir, open_store
 
-    return Store(cache_dir or default_cache_dir())
+    return open_store(cache_dir or default_cache_dir())
 
 
 def run(
@@ -238,6 +238,8 @@ def main(application: App, argv: list[str] | None = None) -> None:
     previous = interrupts.install()
     try:
         _main(application, argv)
+    except interrupts.Interrupted as exc:  # between the handler's installation and _main's own handling
+        interrupts.exit_interrupted(application.name, exc)
     finally:
         if argv is None:
             interrupts.ignore()

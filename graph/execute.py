@@ -35,7 +35,7 @@ from .app import App, configure, current
 from .errors import NodeFailed, UserError
 from .node import REGISTRY, Files
 from .plan import Instance, Plan
-from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem
+from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem, open_store
 
 SCHEDULERS = ("auto", "sync", "threads", "processes", "local-cluster")
 
@@ -73,7 +73,7 @@ def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
     configure(spec.app)
     registry.load([spec.node_type], spec.extra_modules)
     artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
-    store = Store(spec.cache_root)
+    store = open_store(spec.cache_root)
     lock_path = store.lock_path(spec.key)
     try:
         os.makedirs(os.path.dirname(lock_path), exist_ok=True)
@@ -136,7 +136,7 @@ def _check_output(name: str, outputs: tuple[str, ...], sink: bool, value: Any) -
 
 
 def _write_log(store: Store, spec: TaskSpec, text: str) -> str:
-    folder = os.path.join(store.root, "logs")
+    folder = os.path.join(store.local, "logs")
     os.makedirs(folder, exist_ok=True)
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in spec.instance_id)
@@ -200,8 +200,13 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
     tasks = build_tasks(plan, run_id)
     if not tasks:
         return {}
+    in_process = plan.store.in_process_only
     if scheduler == "auto":
-        scheduler = "processes" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
+        parallel = parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2
+        scheduler = ("threads" if in_process else "processes") if parallel else "sync"
+    elif in_process and scheduler not in ("sync", "threads"):
+        raise UserError(f"--cache-dir {plan.store.root} lives in this process only, which --scheduler {scheduler} "
+                        "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
     if scheduler == "sync":
         return _run_sync(tasks, on_done, on_start)
     if scheduler in ("threads", "processes"):
@@ -267,7 +272,7 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
             from .pool import process_pool
 
             context = "fork" if _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
-            store = Store(next(iter(tasks.values()))[0].cache_root)
+            store = open_store(next(iter(tasks.values()))[0].cache_root)
             with process_pool(os.cpu_count() or 1, context, store.drop_tmp_of) as pool:
                 values = get(_dask_graph(tasks), names, pool=pool)
     return dict(zip(names, values))

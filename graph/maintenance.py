@@ -16,37 +16,26 @@ from .store import CorruptEntry, Store
 STALE_TMP_SECONDS = 3600.0
 
 
-def _size(path: str) -> int:
-    total = 0
-    for folder, _, names in os.walk(path):
-        for name in names:
-            try:
-                total += os.path.getsize(os.path.join(folder, name))
-            except OSError:
-                pass
-    return total
-
-
 def _count(path: str) -> int:
     return len(os.listdir(path)) if os.path.isdir(path) else 0
 
 
 def info(store: Store) -> list[str]:
     entries = store.entries()
-    size = sum(_size(folder) for _, folder in entries)
+    size = sum(store.entry_size(folder) for _, folder in entries)
+    local = store.local
     return [
-        f"cache dir: {store.root}",
+        f"cache dir: {store.root}" + (f" (temp dirs, locks, run records, logs: {local})" if local != store.root else ""),
         f"entries:   {len(entries)} ({size / 1e6:.1f} MB)",
-        f"temp dirs: {_count(os.path.join(store.root, 'tmp'))}, scratch runs: {_count(os.path.join(store.root, 'scratch'))}",
-        f"pipelines with run records: {_count(os.path.join(store.root, 'runs'))}, crash logs: {_count(os.path.join(store.root, 'logs'))}",
+        f"temp dirs: {_count(os.path.join(local, 'tmp'))}, scratch runs: {_count(os.path.join(store.root, 'scratch'))}",
+        f"pipelines with run records: {_count(os.path.join(local, 'runs'))}, crash logs: {_count(os.path.join(local, 'logs'))}",
     ]
 
 
 def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> list[str]:
     now = time.time()
     removed_tmp = 0
-    for area in ("tmp", "scratch"):
-        root = os.path.join(store.root, area)
+    for root in (os.path.join(store.local, "tmp"), os.path.join(store.root, "scratch")):
         for name in os.listdir(root) if os.path.isdir(root) else []:
             path = os.path.join(root, name)
             if now - os.path.getmtime(path) > STALE_TMP_SECONDS:
@@ -61,10 +50,10 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
             corrupt += 1
             continue
         unused = keep is not None and key not in keep
-        old = older_than_days is not None and now - os.path.getmtime(folder) > older_than_days * 86400
+        old = older_than_days is not None and store.entry_age_s(folder) > older_than_days * 86400
         if (keep is not None or older_than_days is not None) and \
                 (unused or keep is None) and (old or older_than_days is None):
-            freed += _size(folder)
+            freed += store.entry_size(folder)
             store.discard(folder)
             dropped += 1
     return [f"removed {removed_tmp} stale temp dirs, {corrupt} corrupt entries, "
@@ -73,6 +62,5 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
 
 def clear(store: Store) -> str:
     entries = len(store.entries())
-    for area in ("objects", "tmp", "scratch", "locks", "runs", "logs"):
-        shutil.rmtree(os.path.join(store.root, area), ignore_errors=True)
+    store.clear()
     return f"cleared {entries} entries from {store.root}"

@@ -6,6 +6,7 @@ Subprocess runs see them through ``PYTHONPATH=tests/engine_nodes`` and
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -102,3 +103,15 @@ class RangeParams(NodeParams):
 def value_range(params: RangeParams) -> np.ndarray:
     """low and high (a params model with a validator over two fields)."""
     return np.array([params.low, params.high])
+
+
+class PidParams(NodeParams):
+    branch: int = Field(0, description="only tells the branches apart")
+    sleep_s: float = Field(0.0, ge=0, description="pause before returning (s), so that branches spread over workers")
+
+
+@node("t.pid", params=PidParams, outputs=("pid",))
+def worker_pid(params: PidParams) -> int:
+    """The id of the process that ran this node."""
+    time.sleep(params.sleep_s)
+    return os.getpid()
