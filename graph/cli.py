@@ -27,7 +27,7 @@ from . import interrupts
 from .app import App, configure, current
 from .errors import NodeFailed, UserError
 
-CORE_COMMANDS = ("run", "plan", "dag", "nodes", "cache")
+CORE_COMMANDS = ("run", "plan", "dag", "watch", "nodes", "cache")
 
 SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
                          help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
@@ -123,6 +123,23 @@ def dag(
     sys.stdout.write(graph.render(pipe, fmt, states))
 
 
+def watch_command(
+    pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
+    overrides: Optional[list[str]] = SetOption,
+    out: Optional[str] = typer.Option(None, "--out", help="Output folder (default: out/<pipeline name>)."),
+    port: int = typer.Option(8770, "--port", help="Port of the page on 127.0.0.1 (0: any free port)."),
+    scheduler: str = typer.Option("auto", "--scheduler", help="As for run."),
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Rerun the pipeline on every save of its file and serve a page of the result (Ctrl-C stops)."""
+    from .runner import check_scheduler, default_out_dir
+    from .watch import watch
+
+    check_scheduler(scheduler)
+    watch(pipeline, overrides or [], out or default_out_dir(pipeline), port=port, scheduler=scheduler,
+          cache_dir=cache_dir, say=lambda line: print(line, flush=True))
+
+
 def nodes(name: Optional[str] = typer.Argument(None, help="Only node types containing this text.")) -> None:
     """List the node types with their inputs, outputs, params (type, default, description) and docs."""
     from pydantic_core import PydanticUndefined
@@ -216,6 +233,7 @@ def build_app(with_extensions: bool = True) -> typer.Typer:
     app.command("run")(run)
     app.command("plan")(plan_command)
     app.command("dag")(dag)
+    app.command("watch")(watch_command)
     app.command("nodes")(nodes)
     app.add_typer(cache_app, name="cache")
     if with_extensions:

@@ -115,3 +115,17 @@ def worker_pid(params: PidParams) -> int:
     """The id of the process that ran this node."""
     time.sleep(params.sleep_s)
     return os.getpid()
+
+
+@node("t.rows", params=NoParams, inputs=("xs",), outputs=("rows",))
+def rows(params: NoParams, xs: list) -> list:
+    """One record per fan-in branch: its index and the sum of its values."""
+    return [{"index": i, "total": float(np.sum(x))} for i, x in enumerate(xs)]
+
+
+@node("t.picture", params=NoParams, inputs=("value",), outputs=("files",), sink=True)
+def picture(params: NoParams, value) -> Files:
+    """An SVG image showing the value as text."""
+    svg = (f'<svg xmlns="http://www.w3.org/2000/svg" width="200" height="40"><text x="5" y="25">{value}</text>'
+           "</svg>")
+    return Files({"picture.svg": svg.encode()})
