@@ -298,7 +298,11 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
             # Forked workers start in ~0.15 s and inherit the imported node modules; spawned ones
             # take seconds to re-import everything (see _fork_is_safe).
             method = "fork" if _fork_is_safe() else "spawn"
-            with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+            from .pool import signals_blocked
+
+            # the workers (and the cluster's threads) keep SIGINT blocked: Ctrl-C stops this process,
+            # which closes the cluster, instead of printing a traceback from every worker
+            with signals_blocked(), dask.config.set({"distributed.worker.multiprocessing-method": method}):
                 cluster = LocalCluster(n_workers=os.cpu_count() or 1, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=logging.CRITICAL)
             client = Client(cluster)
