@@ -271,6 +271,7 @@ def _main(application: App, argv: list[str] | None) -> None:
     try:
         app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
         command = typer.main.get_command(app)
+        _whole_short_help(command)
         result = command.main(args=args, prog_name=application.name, standalone_mode=False)
     except interrupts.Interrupted as exc:
         _fail("interrupted", exc.exit_code)
@@ -290,6 +291,15 @@ def _main(application: App, argv: list[str] | None) -> None:
     except Exception as exc:  # an engine bug: keep the traceback, show one line
         _fail(f"unexpected {type(exc).__name__}: {exc} (traceback: {_crash_log()})", 1)
     sys.exit(result if isinstance(result, int) else 0)
+
+
+def _whole_short_help(group: Any) -> None:
+    """Command lists in ``--help`` show each command's first sentence whole (click cuts it at 45
+    characters with '...', also when piped)."""
+    for command in getattr(group, "commands", {}).values():
+        if not command.short_help and command.help:
+            command.short_help = command.help.strip().split("\n\n")[0].replace("\n", " ").split(". ")[0].rstrip(".")
+        _whole_short_help(command)
 
 
 def _fail(message: str, code: int) -> None:
