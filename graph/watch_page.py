@@ -21,6 +21,7 @@ table{border-collapse:collapse;font-size:.85em;margin:.3em 0} td,th{border:1px s
 .state-queued{background:#fce5cd}.state-failed{background:#f4cccc}.state-skipped{background:#eee}
 img.out{max-width:48%;border:1px solid #ccc;margin:.2em;vertical-align:top;background:#fff}
 iframe{width:100%;height:480px;border:1px solid #ccc} pre{background:#f6f6f6;padding:.5em;overflow:auto;max-height:360px}
+#pipeline{display:flex;gap:1em;align-items:flex-start} #graph{flex:1;max-height:520px;overflow:auto;border:1px solid #ddd}
 #graph img{max-width:100%}
 """
 SCRIPT = """
@@ -138,7 +139,7 @@ def render_page(state: dict[str, Any], out_dir: str) -> str:
 <h1>{_esc(state['pipeline'])} <span id="phase" class="phase {state['phase']}">{_esc(state['phase'])}</span></h1>
 <p>runs: <span id="runs">{state['runs']}</span>; last good output: {_esc(state['out_dir'])}</p>
 <div id="error"{'' if state['error'] else ' hidden'}>{_esc(state['error'])}</div>
-<h2>Pipeline</h2><div id="graph"><img id="graph-img" src="/graph.svg?v={state['version']}" alt="" onerror="this.remove()"></div>
-<table id="nodes"><tr><th>node</th><th>branches</th><th>state</th></tr>{nodes}</table>
+<div id="pipeline"><table id="nodes"><tr><th>node</th><th>branches</th><th>state</th></tr>{nodes}</table>
+<div id="graph"><img id="graph-img" src="/graph.svg?v={state['version']}" alt="" onerror="this.remove()"></div></div>
 <div id="result" data-result-version="{state['result_version']}">{''.join(sections) or '<p>no result yet</p>'}</div>
 <script>{SCRIPT % {'shown': shown}}</script></body></html>"""
