@@ -1,7 +1,8 @@
 """The ``cache info|gc|clear`` commands.
 
 ``gc`` always removes temp dirs and scratch areas older than an hour (left by killed runs) and
-entries that fail validation (meta.json, file sizes and every file's sha256). With pipelines given it drops the entries those pipelines do not use
+entries that fail validation (meta.json, file sizes and every file's sha256); on object storage
+also the files of losing or killed writers (see :mod:`.remote`), once an hour old. With pipelines given it drops the entries those pipelines do not use
 (their current plans' keys are kept); with ``--older-than DAYS`` it drops entries not used (run or
 hit) for that many days; with both, an entry must be unused by the pipelines AND old to go.
 """
@@ -46,9 +47,12 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
         try:
             store.verify(folder, key)
         except CorruptEntry:
+            if store.being_written(folder, STALE_TMP_SECONDS):
+                continue
             store.discard(folder)
             corrupt += 1
             continue
+        removed_tmp += store.drop_orphans(folder, STALE_TMP_SECONDS)
         unused = keep is not None and key not in keep
         old = older_than_days is not None and store.entry_age_s(folder) > older_than_days * 86400
         if (keep is not None or older_than_days is not None) and \

@@ -32,9 +32,6 @@ from .errors import UserError
 from .hashing import file_sha256
 from .store import META, META_FORMAT, ArtifactRef, CorruptEntry, Store, check_room
 
-STALE_COMMIT_SECONDS = 3600.0
-
-
 def local_dir_for(url: str) -> str:
     """The local folder holding the temp dirs, locks, run records and logs of a remote cache."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -175,9 +172,20 @@ class RemoteStore(Store):
         except (FileNotFoundError, OSError, NotImplementedError):
             return 0.0
 
-    def drop_orphans(self, folder: str, key: str) -> int:
+    def _age_s(self, path: str) -> float:
+        """Seconds since the newest file under ``path`` was written."""
+        try:
+            return time.time() - max(self.fs.modified(p).timestamp() for p in self.fs.find(path))
+        except (ValueError, OSError, NotImplementedError):
+            return float("inf")
+
+    def being_written(self, folder: str, grace_s: float) -> bool:
+        """No meta.json yet and files younger than ``grace_s``: a writer may be uploading."""
+        return not self.fs.exists(f"{folder}/{META}") and self._age_s(folder) < grace_s
+
+    def drop_orphans(self, folder: str, grace_s: float) -> int:
         """Delete the commit folders of ``folder`` that its meta.json does not name (left by a
-        losing or killed writer) once older than an hour; return how many."""
+        losing or killed writer) once older than ``grace_s``; return how many."""
         try:
             named = json.loads(self.fs.cat_file(f"{folder}/{META}")).get("commit")
         except (OSError, ValueError):
@@ -187,11 +195,7 @@ class RemoteStore(Store):
             path = f"{folder}/{name}"
             if name == META or name == named:
                 continue
-            try:
-                age = time.time() - min(self.fs.modified(p).timestamp() for p in self.fs.find(path))
-            except (ValueError, OSError, NotImplementedError):
-                age = STALE_COMMIT_SECONDS + 1
-            if age > STALE_COMMIT_SECONDS:
+            if self._age_s(path) > grace_s:
                 self.fs.rm(path, recursive=True)
                 dropped += 1
         return dropped

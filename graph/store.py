@@ -278,6 +278,15 @@ class Store:
     def drop_scratch(self, run_id: str) -> None:
         shutil.rmtree(os.path.join(self.root, "scratch", run_id), ignore_errors=True)
 
+    def being_written(self, folder: str, grace_s: float) -> bool:
+        """Whether an entry that fails validation may still be in the middle of its commit (never,
+        here: a folder appears in objects/ complete, by one rename)."""
+        return False
+
+    def drop_orphans(self, folder: str, grace_s: float) -> int:
+        """Delete files of ``folder`` that its meta.json does not name (none can exist here)."""
+        return 0
+
     def entry_size(self, folder: str) -> int:
         """Bytes of an entry's files."""
         return sum(os.path.getsize(os.path.join(folder, n)) for n in os.listdir(folder)) if os.path.isdir(folder) else 0

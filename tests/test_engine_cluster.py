@@ -191,5 +191,16 @@ def test_memory_cache_in_one_process(tmp_path, test_nodes, monkeypatch):
     store.fs.pipe_file(path, bytes(len(store.fs.cat_file(path))))
     assert "1 corrupt entries" in maintenance.gc(store, None, None)[0]
     assert len(store.entries()) == 15
+    # a losing writer's commit beside a sound one, and a writer still uploading (no meta.json yet)
+    sound_key, sound = store.entries()[0]
+    store.fs.pipe_file(f"{sound}/0123abcd/value.json", b"{}")
+    uploading = store.entry_dir("ff" + "0" * 62)
+    store.fs.pipe_file(f"{uploading}/4567cdef/value.json", b"{}")
+    assert "0 stale temp dirs, 0 corrupt entries" in maintenance.gc(store, None, None)[0]  # both too young
+    assert len(store.entries()) == 16
+    monkeypatch.setattr(maintenance, "STALE_TMP_SECONDS", 0.0)
+    assert "1 stale temp dirs, 1 corrupt entries" in maintenance.gc(store, None, None)[0]
+    assert store._ls(sound) == sorted([store.read_meta(sound, sound_key)["commit"], "meta.json"])
+    assert len(store.entries()) == 15
     with pytest.raises(UserError, match="lives in this process only"):
         run_pipeline(str(tmp_path / "p.yaml"), ["plus.delta=1"], scheduler="processes", **kw)
