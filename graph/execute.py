@@ -16,7 +16,8 @@ Schedulers (``--scheduler``):
 * ``local-cluster``: a ``dask.distributed.LocalCluster`` (one single-threaded worker process per
   core), started for this run only.
 * ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need the app installed
-  and the cache dir at the same path (a shared filesystem).
+  and the cache: the same path on a shared filesystem, or object storage for all
+  (``--cache-dir s3://bucket/prefix``, see :mod:`.remote`).
 """
 from __future__ import annotations
 
