@@ -73,7 +73,7 @@ def run(
     ran = len(result.ran())
     if result.status:
         display.print_table(["node", "branch", "cached/ran", "seconds"],
-                            display.instance_rows(result.plan, result.status, only_sent=True))
+                            display.instance_rows(result.plan, result.status))
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 
