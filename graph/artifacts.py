@@ -123,8 +123,9 @@ def encode(value: Any, folder: str) -> list[str]:
     return names
 
 
-def decode(folder: str) -> Any:
-    """Read a value written by :func:`encode` from ``folder``."""
+def decode(folder: str, mmap: bool = True) -> Any:
+    """Read a value written by :func:`encode` from ``folder`` (``mmap=False``: every array is read
+    into memory, for folders deleted right after)."""
     with open(os.path.join(folder, VALUE_FILE), encoding="utf-8") as f:
         tree = json.load(f)
 
@@ -139,8 +140,8 @@ def decode(folder: str) -> Any:
             return v
         if "$array" in v:
             path = os.path.join(folder, v["$array"])
-            mmap = "r" if os.path.getsize(path) >= MMAP_MIN_BYTES else None
-            arr = np.load(path, allow_pickle=False, mmap_mode=mmap)
+            mode = "r" if mmap and os.path.getsize(path) >= MMAP_MIN_BYTES else None
+            arr = np.load(path, allow_pickle=False, mmap_mode=mode)
             return arr[()] if v.get("$scalar") else arr
         if "$tuple" in v:
             return tuple(walk(x) for x in v["$tuple"])

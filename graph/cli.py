@@ -27,7 +27,7 @@ from . import interrupts
 from .app import App, configure, current
 from .errors import NodeFailed, UserError
 
-CORE_COMMANDS = ("run", "plan", "dag", "nodes", "cache")
+CORE_COMMANDS = ("run", "plan", "dag", "watch", "nodes", "cache")
 
 SetOption = typer.Option(None, "-S", "--set", metavar="PATH=VALUE",
                          help="Override a value of the pipeline (VALUE is YAML), e.g. -S params.diagonal_mm=200 "
@@ -37,9 +37,9 @@ CacheDirOption = typer.Option(None, "--cache-dir", help="Cache folder (default: 
 
 
 def _store(cache_dir: Optional[str]):
-    from .store import Store, default_cache_dir
+    from .store import default_cache_dir, open_store
 
-    return Store(cache_dir or default_cache_dir())
+    return open_store(cache_dir or default_cache_dir())
 
 
 def run(
@@ -73,7 +73,7 @@ def run(
     ran = len(result.ran())
     if result.status:
         display.print_table(["node", "branch", "cached/ran", "seconds"],
-                            display.instance_rows(result.plan, result.status, only_sent=True))
+                            display.instance_rows(result.plan, result.status))
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 
@@ -121,6 +121,23 @@ def dag(
     else:
         pipe = load_pipeline(pipeline, overrides or [])
     sys.stdout.write(graph.render(pipe, fmt, states))
+
+
+def watch_command(
+    pipeline: str = typer.Argument(..., help="Pipeline YAML file."),
+    overrides: Optional[list[str]] = SetOption,
+    out: Optional[str] = typer.Option(None, "--out", help="Output folder (default: out/<pipeline name>)."),
+    port: int = typer.Option(8770, "--port", help="Port of the page on 127.0.0.1 (0: any free port)."),
+    scheduler: str = typer.Option("auto", "--scheduler", help="As for run."),
+    cache_dir: Optional[str] = CacheDirOption,
+) -> None:
+    """Rerun the pipeline on every save of its file and serve a page of the result (Ctrl-C stops)."""
+    from .runner import check_scheduler, default_out_dir
+    from .watch import watch
+
+    check_scheduler(scheduler)
+    watch(pipeline, overrides or [], out or default_out_dir(pipeline), port=port, scheduler=scheduler,
+          cache_dir=cache_dir, say=lambda line: print(line, flush=True))
 
 
 def nodes(name: Optional[str] = typer.Argument(None, help="Only node types containing this text.")) -> None:
@@ -216,6 +233,7 @@ def build_app(with_extensions: bool = True) -> typer.Typer:
     app.command("run")(run)
     app.command("plan")(plan_command)
     app.command("dag")(dag)
+    app.command("watch")(watch_command)
     app.command("nodes")(nodes)
     app.add_typer(cache_app, name="cache")
     if with_extensions:
@@ -238,6 +256,8 @@ def main(application: App, argv: list[str] | None = None) -> None:
     previous = interrupts.install()
     try:
         _main(application, argv)
+    except interrupts.Interrupted as exc:  # between the handler's installation and _main's own handling
+        interrupts.exit_interrupted(application.name, exc)
     finally:
         if argv is None:
             interrupts.ignore()
@@ -251,6 +271,7 @@ def _main(application: App, argv: list[str] | None) -> None:
     try:
         app = build_app(with_extensions=not args or args[0] not in CORE_COMMANDS)
         command = typer.main.get_command(app)
+        _whole_short_help(command)
         result = command.main(args=args, prog_name=application.name, standalone_mode=False)
     except interrupts.Interrupted as exc:
         _fail("interrupted", exc.exit_code)
@@ -270,6 +291,15 @@ def _main(application: App, argv: list[str] | None) -> None:
     except Exception as exc:  # an engine bug: keep the traceback, show one line
         _fail(f"unexpected {type(exc).__name__}: {exc} (traceback: {_crash_log()})", 1)
     sys.exit(result if isinstance(result, int) else 0)
+
+
+def _whole_short_help(group: Any) -> None:
+    """Command lists in ``--help`` show each command's first sentence whole (click cuts it at 45
+    characters with '...', also when piped)."""
+    for command in getattr(group, "commands", {}).values():
+        if not command.short_help and command.help:
+            command.short_help = command.help.strip().split("\n\n")[0].replace("\n", " ").split(". ")[0].rstrip(".")
+        _whole_short_help(command)
 
 
 def _fail(message: str, code: int) -> None:

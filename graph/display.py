@@ -84,16 +84,10 @@ def print_table(headers: list[str], rows: list[list[str]], file: TextIO | None =
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip(), file=out)
 
 
-def instance_rows(plan: Any, status: dict[int, dict[str, Any]], only_sent: bool) -> list[list[str]]:
-    """``node, branch, cached/ran, seconds`` rows (only the instances sent to run when ``only_sent``)."""
-    rows = []
-    for inst in plan.instances:
-        s = status.get(id(inst))
-        if s is not None:
-            rows.append([inst.node, inst.label, s["status"], f"{s['seconds']:.2f}"])
-        elif not only_sent:
-            rows.append([inst.node, inst.label, "cached" if inst.cached else "skipped", ""])
-    return rows
+def instance_rows(plan: Any, status: dict[int, dict[str, Any]]) -> list[list[str]]:
+    """``node, branch, cached/ran, seconds`` rows of the instances the run sent to a scheduler."""
+    return [[i.node, i.label, status[id(i)]["status"], f"{status[id(i)]['seconds']:.2f}"]
+            for i in plan.instances if id(i) in status]
 
 
 def run_summary(app_name: str, result: Any) -> dict[str, Any]:
@@ -106,5 +100,5 @@ def run_summary(app_name: str, result: Any) -> dict[str, Any]:
                       "seconds": round(s.get("seconds", 0.0), 6)})
     ran = len(result.ran())
     return {"format": f"{app_name}.run-summary/{SUMMARY_FORMAT_VERSION}", "pipeline": os.path.abspath(result.plan.file),
-            "out_dir": result.out_dir, "manifest": result.out_dir + "/manifest.json", "seconds": round(result.seconds, 6),
+            "out_dir": result.out_dir, "manifest": os.path.join(result.out_dir, "manifest.json"), "seconds": round(result.seconds, 6),
             "ran": ran, "cached": len(result.plan.instances) - ran, "repaired": result.repaired, "nodes": nodes}

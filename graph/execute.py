@@ -16,7 +16,8 @@ Schedulers (``--scheduler``):
 * ``local-cluster``: a ``dask.distributed.LocalCluster`` (one single-threaded worker process per
   core), started for this run only.
 * ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need the app installed
-  and the cache dir at the same path (a shared filesystem).
+  and the cache: the same path on a shared filesystem, or object storage for all
+  (``--cache-dir s3://bucket/prefix``, see :mod:`.remote`).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from .app import App, configure, current
 from .errors import NodeFailed, UserError
 from .node import REGISTRY, Files
 from .plan import Instance, Plan
-from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem
+from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem, open_store
 
 SCHEDULERS = ("auto", "sync", "threads", "processes", "local-cluster")
 
@@ -73,7 +74,7 @@ def run_task(spec: TaskSpec, *refs: ArtifactRef) -> TaskResult:
     configure(spec.app)
     registry.load([spec.node_type], spec.extra_modules)
     artifacts.TRUSTED_PREFIXES[:] = sorted(set(artifacts.TRUSTED_PREFIXES) | {m + "." for m in spec.extra_modules})
-    store = Store(spec.cache_root)
+    store = open_store(spec.cache_root)
     lock_path = store.lock_path(spec.key)
     try:
         os.makedirs(os.path.dirname(lock_path), exist_ok=True)
@@ -136,7 +137,7 @@ def _check_output(name: str, outputs: tuple[str, ...], sink: bool, value: Any) -
 
 
 def _write_log(store: Store, spec: TaskSpec, text: str) -> str:
-    folder = os.path.join(store.root, "logs")
+    folder = os.path.join(store.local, "logs")
     os.makedirs(folder, exist_ok=True)
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in spec.instance_id)
@@ -200,8 +201,13 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
     tasks = build_tasks(plan, run_id)
     if not tasks:
         return {}
+    in_process = plan.store.in_process_only
     if scheduler == "auto":
-        scheduler = "processes" if parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2 else "sync"
+        parallel = parallel_width(plan) >= 2 and (os.cpu_count() or 1) >= 2
+        scheduler = ("threads" if in_process else "processes") if parallel else "sync"
+    elif in_process and scheduler not in ("sync", "threads"):
+        raise UserError(f"--cache-dir {plan.store.root} lives in this process only, which --scheduler {scheduler} "
+                        "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
     if scheduler == "sync":
         return _run_sync(tasks, on_done, on_start)
     if scheduler in ("threads", "processes"):
@@ -267,7 +273,7 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
             from .pool import process_pool
 
             context = "fork" if _fork_is_safe() else dask.config.get("multiprocessing.context", "spawn")
-            store = Store(next(iter(tasks.values()))[0].cache_root)
+            store = open_store(next(iter(tasks.values()))[0].cache_root)
             with process_pool(os.cpu_count() or 1, context, store.drop_tmp_of) as pool:
                 values = get(_dask_graph(tasks), names, pool=pool)
     return dict(zip(names, values))
@@ -293,7 +299,11 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
             # Forked workers start in ~0.15 s and inherit the imported node modules; spawned ones
             # take seconds to re-import everything (see _fork_is_safe).
             method = "fork" if _fork_is_safe() else "spawn"
-            with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+            from .pool import signals_blocked
+
+            # the workers (and the cluster's threads) keep SIGINT blocked: Ctrl-C stops this process,
+            # which closes the cluster, instead of printing a traceback from every worker
+            with signals_blocked(), dask.config.set({"distributed.worker.multiprocessing-method": method}):
                 cluster = LocalCluster(n_workers=os.cpu_count() or 1, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=logging.CRITICAL)
             client = Client(cluster)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 from typing import Iterator
 
@@ -80,3 +81,11 @@ def deferred() -> Iterator[None]:
         if _depth == 0 and _pending is not None:
             signum, _pending = _pending, None
             raise Interrupted(signum)
+
+
+def exit_interrupted(program: str, exc: Interrupted) -> None:
+    """Print the one ``interrupted`` line and exit with the signal's code (for entry points,
+    interrupted before the command line's own handling is in place)."""
+    ignore()
+    print(f"{program}: error: interrupted", file=sys.stderr)
+    sys.exit(exc.exit_code)

@@ -1,7 +1,8 @@
 """The ``cache info|gc|clear`` commands.
 
 ``gc`` always removes temp dirs and scratch areas older than an hour (left by killed runs) and
-entries that fail validation (meta.json, file sizes and every file's sha256). With pipelines given it drops the entries those pipelines do not use
+entries that fail validation (meta.json, file sizes and every file's sha256); on object storage
+also the files of losing or killed writers (see :mod:`.remote`), once an hour old. With pipelines given it drops the entries those pipelines do not use
 (their current plans' keys are kept); with ``--older-than DAYS`` it drops entries not used (run or
 hit) for that many days; with both, an entry must be unused by the pipelines AND old to go.
 """
@@ -16,37 +17,26 @@ from .store import CorruptEntry, Store
 STALE_TMP_SECONDS = 3600.0
 
 
-def _size(path: str) -> int:
-    total = 0
-    for folder, _, names in os.walk(path):
-        for name in names:
-            try:
-                total += os.path.getsize(os.path.join(folder, name))
-            except OSError:
-                pass
-    return total
-
-
 def _count(path: str) -> int:
     return len(os.listdir(path)) if os.path.isdir(path) else 0
 
 
 def info(store: Store) -> list[str]:
     entries = store.entries()
-    size = sum(_size(folder) for _, folder in entries)
+    size = sum(store.entry_size(folder) for _, folder in entries)
+    local = store.local
     return [
-        f"cache dir: {store.root}",
+        f"cache dir: {store.root}" + (f" (temp dirs, locks, run records, logs: {local})" if local != store.root else ""),
         f"entries:   {len(entries)} ({size / 1e6:.1f} MB)",
-        f"temp dirs: {_count(os.path.join(store.root, 'tmp'))}, scratch runs: {_count(os.path.join(store.root, 'scratch'))}",
-        f"pipelines with run records: {_count(os.path.join(store.root, 'runs'))}, crash logs: {_count(os.path.join(store.root, 'logs'))}",
+        f"temp dirs: {_count(os.path.join(local, 'tmp'))}, scratch runs: {_count(os.path.join(store.root, 'scratch'))}",
+        f"pipelines with run records: {_count(os.path.join(local, 'runs'))}, crash logs: {_count(os.path.join(local, 'logs'))}",
     ]
 
 
 def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> list[str]:
     now = time.time()
     removed_tmp = 0
-    for area in ("tmp", "scratch"):
-        root = os.path.join(store.root, area)
+    for root in (os.path.join(store.local, "tmp"), os.path.join(store.root, "scratch")):
         for name in os.listdir(root) if os.path.isdir(root) else []:
             path = os.path.join(root, name)
             if now - os.path.getmtime(path) > STALE_TMP_SECONDS:
@@ -57,14 +47,17 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
         try:
             store.verify(folder, key)
         except CorruptEntry:
+            if store.being_written(folder, STALE_TMP_SECONDS):
+                continue
             store.discard(folder)
             corrupt += 1
             continue
+        removed_tmp += store.drop_orphans(folder, STALE_TMP_SECONDS)
         unused = keep is not None and key not in keep
-        old = older_than_days is not None and now - os.path.getmtime(folder) > older_than_days * 86400
+        old = older_than_days is not None and store.entry_age_s(folder) > older_than_days * 86400
         if (keep is not None or older_than_days is not None) and \
                 (unused or keep is None) and (old or older_than_days is None):
-            freed += _size(folder)
+            freed += store.entry_size(folder)
             store.discard(folder)
             dropped += 1
     return [f"removed {removed_tmp} stale temp dirs, {corrupt} corrupt entries, "
@@ -73,6 +66,5 @@ def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> li
 
 def clear(store: Store) -> str:
     entries = len(store.entries())
-    for area in ("objects", "tmp", "scratch", "locks", "runs", "logs"):
-        shutil.rmtree(os.path.join(store.root, area), ignore_errors=True)
+    store.clear()
     return f"cleared {entries} entries from {store.root}"

@@ -64,7 +64,7 @@ def check_out_dir(out_dir: str) -> None:
     if _foreign(out_dir):
         raise UserError(f"--out {out_dir} exists and was not written by {current().name} (no {MANIFEST}); "
                         "choose a new or empty folder")
-    check_room("--out", out_dir, OUT_FIX)
+    check_room("--out", out_dir, OUT_FIX, probe_at=os.path.dirname(out_dir))  # where the new folder is written
 
 
 def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:

@@ -231,7 +231,7 @@ def _decide(plan: Plan) -> None:
 def _index_path(plan: Plan) -> str:
     ident = hashlib.sha256(os.path.abspath(plan.file).encode()).hexdigest()[:16]
     stem = os.path.splitext(os.path.basename(plan.file))[0]
-    return os.path.join(plan.store.root, "runs", f"{stem}-{ident}.json")
+    return os.path.join(plan.store.local, "runs", f"{stem}-{ident}.json")
 
 
 def _record(inst: Instance) -> dict[str, Any]:

@@ -48,21 +48,30 @@ def _init_worker(parent_pid: int) -> None:
 
 
 @contextlib.contextmanager
-def process_pool(workers: int, context: str, on_killed: Callable[[list[int]], None]) -> Iterator[ProcessPoolExecutor]:
-    """A started pool of ``workers`` processes; killed (then ``on_killed(pids)``) unless the block
-    ends normally, shut down cleanly when it does."""
+def signals_blocked() -> Iterator[None]:
+    """SIGINT/SIGTERM held back in this thread while the block starts child processes and threads:
+    they inherit the blocked mask (and never see a Ctrl-C meant for the parent unless they unblock
+    it themselves); a signal that came meanwhile is delivered to the parent when the block ends."""
     blocked = {signal.SIGINT, signal.SIGTERM}
     in_main = threading.current_thread() is threading.main_thread()
     if in_main:
         signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
     try:
+        yield
+    finally:
+        if in_main:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
+
+
+@contextlib.contextmanager
+def process_pool(workers: int, context: str, on_killed: Callable[[list[int]], None]) -> Iterator[ProcessPoolExecutor]:
+    """A started pool of ``workers`` processes; killed (then ``on_killed(pids)``) unless the block
+    ends normally, shut down cleanly when it does."""
+    with signals_blocked():
         pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(context),
                                    initializer=_init_worker, initargs=(os.getpid(),))
         for future in [pool.submit(os.getpid) for _ in range(workers)]:
             future.result()  # forked workers all start with the first task
-    finally:
-        if in_main:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
     finished = False
     try:
         yield pool

@@ -11,7 +11,7 @@ from typing import Any, Callable
 from . import plan as planning
 from .app import current
 from .errors import UserError
-from .store import CorruptEntry, Store, check_room, default_cache_dir
+from .store import CorruptEntry, Store, default_cache_dir, open_store
 
 
 @dataclasses.dataclass
@@ -44,7 +44,7 @@ def make_plan(pipeline: str, overrides: list[str] | None = None, cache_dir: str 
     """The full plan, or with ``targets`` only those nodes and what they need (see :func:`.plan.restrict`)."""
     from .pipeline import load_pipeline
 
-    plan = planning.expand(load_pipeline(pipeline, overrides or []), Store(cache_dir or default_cache_dir()))
+    plan = planning.expand(load_pipeline(pipeline, overrides or []), open_store(cache_dir or default_cache_dir()))
     return planning.restrict(plan, targets) if targets else plan
 
 
@@ -58,7 +58,7 @@ def preflight(out_dir: str, store: Store) -> None:
     from .outputs import check_out_dir, created_time
 
     check_out_dir(out_dir)
-    check_room("cache", store.root, "pass --cache-dir on another disk")
+    store.check()
     created_time()
 
 
@@ -87,7 +87,7 @@ def run_pipeline(
     check_scheduler(scheduler)
     start = time.perf_counter()
     overrides = list(overrides or [])
-    store = Store(cache_dir or default_cache_dir())
+    store = open_store(cache_dir or default_cache_dir())
     out_dir = out_dir or default_out_dir(pipeline)
     targets = list(targets or [])
     plan = None if targets else snapshot.load(pipeline, overrides, store)

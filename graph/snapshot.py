@@ -63,7 +63,7 @@ def fingerprint(pipeline: str, overrides: list[str]) -> str | None:
 
 
 def _path(store: Store, fp: str) -> str:
-    return os.path.join(store.root, "runs", "plans", fp + ".json")
+    return os.path.join(store.local, "runs", "plans", fp + ".json")
 
 
 @dataclasses.dataclass

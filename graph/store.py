@@ -49,10 +49,10 @@ def disk_problem(what: str, path: str, exc: OSError, fix: str) -> UserError:
     return UserError(f"{what} {path} is not writable ({exc.strerror}); {fix}")
 
 
-def check_room(what: str, path: str, fix: str, min_free: int = MIN_FREE_BYTES) -> None:
-    """Fail early when ``path`` (or its nearest existing parent) cannot take a write: read-only,
-    not a folder, or under ``min_free`` bytes free."""
-    probe = os.path.abspath(path)
+def check_room(what: str, path: str, fix: str, probe_at: str | None = None, min_free: int = MIN_FREE_BYTES) -> None:
+    """Fail early when ``path`` (or its nearest existing parent; ``probe_at`` instead when given)
+    cannot take a write: read-only, not a folder, or under ``min_free`` bytes free."""
+    probe = os.path.abspath(probe_at or path)
     while not os.path.exists(probe):
         probe = os.path.dirname(probe)
     if not os.path.isdir(probe):
@@ -70,9 +70,24 @@ def check_room(what: str, path: str, fix: str, min_free: int = MIN_FREE_BYTES) -
                         f"needed); free some space or {fix}")
 
 
+def is_url(root: str) -> bool:
+    """Whether a cache root names object storage through fsspec (``s3://...``, ``memory://...``)."""
+    return "://" in root and not root.startswith("file://")
+
+
 def default_cache_dir() -> str:
     """``$<APP>_CACHE_DIR`` (see :mod:`.app`) or ``./cache`` relative to the current directory."""
-    return os.path.abspath(os.environ.get(current().cache_env) or "cache")
+    root = os.environ.get(current().cache_env) or "cache"
+    return root if is_url(root) else os.path.abspath(root)
+
+
+def open_store(root: str) -> "Store":
+    """The store at ``root``: a local folder, or object storage for a URL (see :mod:`.remote`)."""
+    if is_url(root):
+        from .remote import RemoteStore
+
+        return RemoteStore(root)
+    return Store(root.removeprefix("file://"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +109,14 @@ class Store:
 
     def __init__(self, root: str):
         self.root = os.path.abspath(root)
+        self.local = self.root
+        """Local folder for temp dirs, locks, run records and logs (the root itself, here)."""
+        self.in_process_only = False
+        """Whether only this process can see the entries (then nodes must run in this process)."""
+
+    def check(self) -> None:
+        """Fail early when the cache cannot take writes (read-only, full disk)."""
+        check_room("cache", self.root, "pass --cache-dir on another disk")
 
     # -- paths --------------------------------------------------------------------------------
     def entry_dir(self, key: str) -> str:
@@ -103,16 +126,16 @@ class Store:
         return os.path.join(self.root, "scratch", run_id, key)
 
     def lock_path(self, key: str) -> str:
-        return os.path.join(self.root, "locks", key[:2], key + ".lock")
+        return os.path.join(self.local, "locks", key[:2], key + ".lock")
 
     def _new_tmp(self) -> str:
-        path = os.path.join(self.root, "tmp", f"{os.getpid()}-{uuid.uuid4().hex}")
+        path = os.path.join(self.local, "tmp", f"{os.getpid()}-{uuid.uuid4().hex}")
         os.makedirs(path)
         return path
 
     def drop_tmp_of(self, pids: list[int]) -> None:
         """Remove the temp folders of (killed) writer processes ``pids``."""
-        root = os.path.join(self.root, "tmp")
+        root = os.path.join(self.local, "tmp")
         prefixes = tuple(f"{pid}-" for pid in pids)
         for name in os.listdir(root) if os.path.isdir(root) and prefixes else []:
             if name.startswith(prefixes):
@@ -140,7 +163,7 @@ class Store:
     def lookup(self, key: str) -> ArtifactRef | None:
         """The committed entry for ``key``, or None (a corrupt entry is discarded)."""
         folder = self.entry_dir(key)
-        if not os.path.isdir(folder):
+        if not self._present(folder):
             return None
         try:
             meta = self.read_meta(folder, key)
@@ -166,6 +189,9 @@ class Store:
             self.discard(ref.path)
             raise
         return artifacts.decode(ref.path)
+
+    def _present(self, folder: str) -> bool:
+        return os.path.isdir(folder)
 
     def touch(self, ref: ArtifactRef) -> None:
         """Mark an entry as used now (``cache gc --older-than`` looks at this)."""
@@ -235,7 +261,7 @@ class Store:
     def replace(self, key: str, value: Any, *, info: dict[str, Any]) -> ArtifactRef:
         """Store ``value`` under ``key``, replacing an existing entry (``cache: recompute``)."""
         folder = self.entry_dir(key)
-        if os.path.isdir(folder):
+        if self._present(folder):
             self.discard(folder)
         return self.write(key, value, info=info)
 
@@ -251,6 +277,28 @@ class Store:
 
     def drop_scratch(self, run_id: str) -> None:
         shutil.rmtree(os.path.join(self.root, "scratch", run_id), ignore_errors=True)
+
+    def being_written(self, folder: str, grace_s: float) -> bool:
+        """Whether an entry that fails validation may still be in the middle of its commit (never,
+        here: a folder appears in objects/ complete, by one rename)."""
+        return False
+
+    def drop_orphans(self, folder: str, grace_s: float) -> int:
+        """Delete files of ``folder`` that its meta.json does not name (none can exist here)."""
+        return 0
+
+    def entry_size(self, folder: str) -> int:
+        """Bytes of an entry's files."""
+        return sum(os.path.getsize(os.path.join(folder, n)) for n in os.listdir(folder)) if os.path.isdir(folder) else 0
+
+    def entry_age_s(self, folder: str) -> float:
+        """Seconds since the entry was last used (written or hit)."""
+        return time.time() - os.path.getmtime(folder)
+
+    def clear(self) -> None:
+        """Delete every entry, lock, run record, log and temp dir."""
+        for area in ("objects", "tmp", "scratch", "locks", "runs", "logs"):
+            shutil.rmtree(os.path.join(self.root, area), ignore_errors=True)
 
     # -- maintenance ----------------------------------------------------------------------------
     def entries(self) -> list[tuple[str, str]]:

@@ -37,6 +37,8 @@ def main(argv: list[str] | None = None) -> None:
 
     if argv is None:  # this process's own command line: Ctrl-C from the first moment is one clean line
         interrupts.install()
-    from ..graph.cli import main as engine_main
-
+    try:
+        from ..graph.cli import main as engine_main
+    except interrupts.Interrupted as exc:
+        interrupts.exit_interrupted(APP.name, exc)
     engine_main(APP, argv)

@@ -132,6 +132,7 @@ def test_version_and_short_help(capsys):
         assert code == 0 and out.startswith(f"retrotouch {version}") and out.count("\n") == 1
     code, out, _ = main(capsys, "-h")
     assert code == 0 and out.startswith("Usage: retrotouch") and "dag" in out and "--version" in out
+    assert "..." not in out.split("Commands:")[1]  # every command's first sentence whole
     code, out, _ = main(capsys, "run", "-h")
     assert code == 0 and "--target" in out and "--json" in out
 

@@ -102,6 +102,24 @@ def test_ctrl_c_to_the_process_group_at_any_moment(tmp_path, test_nodes, delay_s
         store.load(store.lookup(key))  # whatever was committed is sound
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to find the run's processes")
+@pytest.mark.parametrize("scheduler", ["local-cluster", "threads", "sync"])
+def test_ctrl_c_with_the_other_schedulers(tmp_path, test_nodes, scheduler):
+    proc = _start(tmp_path, SLOW, "--scheduler", scheduler)
+    try:
+        time.sleep(3.0)  # the local cluster's workers are running nodes by then
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert (proc.returncode, err) == (130, "retrotouch: error: interrupted\n"), out
+    deadline = time.time() + 5
+    while _process_group(proc.pid) and time.time() < deadline:
+        time.sleep(0.05)
+    assert _process_group(proc.pid) == [] and _leftovers(tmp_path) == []
+
+
 def test_sigterm_stops_the_same_way(tmp_path, test_nodes):
     proc = _start(tmp_path, SLOW)
     time.sleep(1.0)

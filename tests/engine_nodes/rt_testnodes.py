@@ -6,6 +6,7 @@ Subprocess runs see them through ``PYTHONPATH=tests/engine_nodes`` and
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -102,3 +103,29 @@ class RangeParams(NodeParams):
 def value_range(params: RangeParams) -> np.ndarray:
     """low and high (a params model with a validator over two fields)."""
     return np.array([params.low, params.high])
+
+
+class PidParams(NodeParams):
+    branch: int = Field(0, description="only tells the branches apart")
+    sleep_s: float = Field(0.0, ge=0, description="pause before returning (s), so that branches spread over workers")
+
+
+@node("t.pid", params=PidParams, outputs=("pid",))
+def worker_pid(params: PidParams) -> int:
+    """The id of the process that ran this node."""
+    time.sleep(params.sleep_s)
+    return os.getpid()
+
+
+@node("t.rows", params=NoParams, inputs=("xs",), outputs=("rows",))
+def rows(params: NoParams, xs: list) -> list:
+    """One record per fan-in branch: its index and the sum of its values."""
+    return [{"index": i, "total": float(np.sum(x))} for i, x in enumerate(xs)]
+
+
+@node("t.picture", params=NoParams, inputs=("value",), outputs=("files",), sink=True)
+def picture(params: NoParams, value) -> Files:
+    """An SVG image showing the value as text."""
+    svg = (f'<svg xmlns="http://www.w3.org/2000/svg" width="200" height="40"><text x="5" y="25">{value}</text>'
+           "</svg>")
+    return Files({"picture.svg": svg.encode()})
