@@ -1,8 +1,9 @@
 """Projection textures: the layout baked into a UV texture of the object (sink ``projection.textures``).
 
 An xatlas atlas of the faces the layout paints (``padding_px`` gutter, ``texture_px`` square;
-:mod:`.atlas`) parametrises the mesh; the other faces show the background. Each curve segment lies inside one face (``CurveSet`` convention), so both its ends are
-mapped to UV with barycentrics of that face and drawn there: a line never jumps across a seam.
+:mod:`.atlas`) parametrises the mesh; the other faces show the background. Each curve segment
+lies inside one face (``CurveSet`` convention), so both its ends are mapped to UV with
+barycentrics of that face and drawn there: a line never jumps across a seam.
 Crossings are drawn as rings and pads as filled discs in the UV of their face. Widths are given
 in millimetres on the surface and converted with the atlas' mean texel density.
 
