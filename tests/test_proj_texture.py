@@ -15,7 +15,8 @@ from retrotouch.nodes.data.scene import load_scene
 from retrotouch.nodes.projection.depth_frames import demo_trajectory
 from retrotouch.nodes.projection.raster import render_textured
 from retrotouch.nodes.projection.render import RenderStyle, render_layers
-from retrotouch.nodes.projection.textures import TextureParams, build_atlas, face_uv_pixels, name_from_source, projection_textures
+from retrotouch.nodes.projection.atlas import face_uv_pixels
+from retrotouch.nodes.projection.textures import TextureParams, layout_atlas, name_from_source, projection_textures
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +59,7 @@ def test_exports_load_with_the_texture(baked):
 def test_crossings_and_curves_are_baked_where_they_map(baked):
     mesh, layout, params, files, _ = baked
     tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
-    atlas = build_atlas(mesh, params.texture_px, params.padding_px)
+    atlas = layout_atlas(mesh, layout, params)
     px = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, params.texture_px)).astype(int)
     background = np.array([0xD8, 0xD8, 0xD8])
     at_crossings = tex[px[:, 1], px[:, 0]].astype(int)
@@ -138,6 +139,28 @@ def test_textures_code_version_leaves_out_the_projector_runtime():
         if name not in seen:
             seen.add(name)
             todo.extend(module_hash(name)[1])
-    runtime = {m for m in seen if m.startswith("retrotouch.nodes.projection.")} - {"retrotouch.nodes.projection.textures"}
-    assert runtime == set()
+    runtime = {f"retrotouch.nodes.projection.{m}" for m in
+               ("calibration", "camera", "cli", "depth_frames", "raster", "render", "smoothing", "structured_light", "tracking")}
+    assert seen & runtime == set()
     assert "retrotouch.nodes.data.scene" in seen
+
+
+def test_only_faces_within_paint_reach_get_charts_the_rest_show_background(baked):
+    mesh, layout, params, files, out = baked
+    atlas = layout_atlas(mesh, layout, params)
+    assert 0.2 < atlas.charted.mean() < 0.95  # the layout's bands, not the whole mesh
+    for curves in (layout.tx, layout.rx):
+        assert atlas.charted[curves.faces].all()  # every face a curve segment runs through
+    centroids = mesh.vertices[mesh.faces].mean(axis=1)
+    for point, has_pad in zip(layout.cells.points, layout.pad):
+        reach = params.pad_radius_mm if has_pad else params.crossing_radius_mm
+        assert atlas.charted[np.linalg.norm(centroids - point, axis=1) < reach].all()
+    rest_uv = atlas.uv[atlas.faces[~atlas.charted]].reshape(-1, 2)
+    assert np.ptp(rest_uv, axis=0).max() == 0.0  # one texel for all of them
+    px = np.rint([rest_uv[0, 0] * params.texture_px - 0.5, (1 - rest_uv[0, 1]) * params.texture_px - 0.5]).astype(int)
+    tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
+    window = tex[px[1] - 2 : px[1] + 3, px[0] - 2 : px[0] + 3].reshape(-1, 3)
+    assert (window == [0xD8, 0xD8, 0xD8]).all()  # background all around it (bilinear sampling stays clean)
+    scene = load_scene(out / "projection/bunny_scene.npz")
+    for layer_texture in scene.layer_textures:
+        assert (layer_texture[px[1] - 2 : px[1] + 3, px[0] - 2 : px[0] + 3] == 0).all()  # no light there

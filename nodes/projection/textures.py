@@ -1,8 +1,9 @@
 """Projection textures: the layout baked into a UV texture of the object (sink ``projection.textures``).
 
-An xatlas atlas (one chart set, ``padding_px`` gutter, ``texture_px`` square) parametrises the
-mesh. Each curve segment lies inside one face (``CurveSet`` convention), so both its ends are
-mapped to UV with barycentrics of that face and drawn there: a line never jumps across a seam.
+An xatlas atlas of the faces the layout paints (``padding_px`` gutter, ``texture_px`` square;
+:mod:`.atlas`) parametrises the mesh; the other faces show the background. Each curve segment
+lies inside one face (``CurveSet`` convention), so both its ends are mapped to UV with
+barycentrics of that face and drawn there: a line never jumps across a seam.
 Crossings are drawn as rings and pads as filled discs in the UV of their face. Widths are given
 in millimetres on the surface and converted with the atlas' mean texel density.
 
@@ -36,7 +37,8 @@ from ...graph.errors import UserError
 from ...graph.node import Files, NodeParams, node
 from ..data.scene import build_scene, save_scene
 from ..data.types import CurveSet, Layout, Mesh
-from ..geometry.triangles import areas, corners, vertex_normals
+from ..geometry.triangles import vertex_normals
+from .atlas import Atlas, build_atlas, face_uv_pixels, layout_band, texels_per_mm
 
 # Heavy libraries (cv2, trimesh, xatlas, PIL) are imported inside the functions: node modules must
 # import cheaply (the engine imports them to discover node types).
@@ -89,47 +91,6 @@ def name_from_source(source: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", stem) or "mesh"
 
 
-@dataclasses.dataclass(frozen=True)
-class Atlas:
-    """A UV atlas: split vertices ``vertex_map`` (into the mesh), ``faces`` (same order as the mesh's), ``uv`` in [0, 1]."""
-
-    vertex_map: np.ndarray  # (n', ) int64
-    faces: np.ndarray  # (m, 3) int64
-    uv: np.ndarray  # (n', 2) float64
-
-
-def build_atlas(mesh: Mesh, texture_px: int, padding_px: int) -> Atlas:
-    """xatlas parametrisation packed into a ``texture_px`` square with ``padding_px`` gutters."""
-    import xatlas
-
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
-    pack = xatlas.PackOptions()
-    pack.resolution = texture_px
-    pack.padding = padding_px
-    pack.bilinear = True
-    atlas.generate(pack_options=pack)
-    vmap, faces, uv = atlas[0]
-    if not np.array_equal(vmap[faces], mesh.faces):
-        raise RuntimeError("xatlas reordered faces; the face -> UV mapping would be wrong")
-    return Atlas(np.asarray(vmap, np.int64), np.asarray(faces, np.int64), np.asarray(uv, np.float64))
-
-
-def texels_per_mm(mesh: Mesh, atlas: Atlas, texture_px: int) -> float:
-    """Mean texel density: sqrt(UV area in px^2 / surface area in mm^2)."""
-    area_3d = areas(corners(mesh.vertices, mesh.faces)).sum()
-    t = atlas.uv[atlas.faces] * texture_px
-    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    area_uv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
-    return float(np.sqrt(area_uv / area_3d))
-
-
-def face_uv_pixels(atlas: Atlas, faces: np.ndarray, bary: np.ndarray, texture_px: int) -> np.ndarray:
-    """Texture pixel coordinates (k, 2) (x right, y down) of surface points given by face + barycentrics."""
-    uv = np.einsum("kj,kjd->kd", bary, atlas.uv[atlas.faces[faces]])
-    return np.stack([uv[:, 0] * texture_px - 0.5, (1.0 - uv[:, 1]) * texture_px - 0.5], axis=1)
-
-
 def segment_uv_pixels(mesh: Mesh, atlas: Atlas, curves: CurveSet, texture_px: int) -> np.ndarray:
     """(S, 2, 2) texture pixel coordinates of every curve segment, both ends in the segment's own face."""
     import trimesh
@@ -171,7 +132,7 @@ def _bake(
         if len(segs):
             cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
     centres = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, size) * scale).astype(np.int64)
-    pad_r = int(round(params.pad_radius_mm * density * scale))
+    pad_r = int(round(pad_radius_mm(params, layout) * density * scale))
     ring_r = int(round(params.crossing_radius_mm * density * scale))
     ring_w = max(1, width // 2)
     for (x, y), has_pad in zip(centres, np.asarray(layout.pad, bool)):
@@ -237,6 +198,24 @@ def mtl_text(texture_file: str) -> str:
     return f"newmtl layout\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {texture_file}\n"
 
 
+def pad_radius_mm(params: TextureParams, layout: Layout) -> float:
+    """The electrode pad radius drawn (mm): the one place the bake and the atlas read it."""
+    return params.pad_radius_mm
+
+
+def paint_reach_mm(params: TextureParams, layout: Layout) -> tuple[float, float]:
+    """How far (mm) paint reaches from a curve and from a crossing (pad disc or ring)."""
+    line = params.line_width_mm / 2
+    return line, max(pad_radius_mm(params, layout), params.crossing_radius_mm + line)
+
+
+def layout_atlas(mesh: Mesh, layout: Layout, params: TextureParams) -> Atlas:
+    """The atlas the sink bakes into: charts for the faces within paint reach of the layout."""
+    line_reach, cell_reach = paint_reach_mm(params, layout)
+    band = layout_band(mesh, layout, params.texture_px, line_reach, cell_reach)
+    return build_atlas(mesh, params.texture_px, params.padding_px, band, max(line_reach, cell_reach))
+
+
 def check_layout_on_mesh(mesh: Mesh, layout: Layout) -> None:
     """UserError when the layout's face ids do not fit the mesh."""
     m = len(mesh.faces)
@@ -252,7 +231,7 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
 
     check_layout_on_mesh(mesh, layout)
     stem = params.name or name_from_source(mesh.source)
-    atlas = build_atlas(mesh, params.texture_px, params.padding_px)
+    atlas = layout_atlas(mesh, layout, params)
     texture = bake_texture(mesh, layout, atlas, params)
     ok, png = cv2.imencode(".png", texture)
     if not ok:
