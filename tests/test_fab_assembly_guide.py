@@ -83,3 +83,34 @@ def test_split_pieces_are_laid_out_apart_with_their_joint_drawn():
     assert any("joint" in t.get_text() for t in pages.flat.texts)
     labels = [t for t in pages.flat.texts if t.get_text().startswith("Rx")]
     assert labels == [] or len(labels) == len(outlines.landmark_xy)
+
+
+def test_crossing_labels_do_not_overlap_where_crossings_cluster():
+    from retrotouch.nodes.fab.assembly_guide import _label_offsets
+
+    anchors = np.array([[100.0, 100.0]] * 6 + [[104.0, 101.0]] * 4)  # ten labels on two nearby points
+    sizes = np.full((10, 2), [22.0, 8.0])
+    taken = [(90.0, 110.0, 140.0, 124.0)]  # the part's name label above
+    offsets = np.array(_label_offsets(anchors, sizes, taken))
+    boxes = np.hstack([anchors + offsets - sizes / 2, anchors + offsets + sizes / 2])
+    for i in range(len(boxes)):
+        for j in range(i):
+            a, b = boxes[i], boxes[j]
+            assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (i, j)
+        c = taken[0]
+        assert boxes[i][2] <= c[0] or c[2] <= boxes[i][0] or boxes[i][3] <= c[1] or c[3] <= boxes[i][1]
+
+
+def test_attached_traces_are_burnt_into_later_views():
+    from matplotlib.figure import Figure
+
+    view = render(SPHERE, np.array([0, 0, 1.0]), 100)
+    pages = _TracePages(Figure, [view], 1)
+    arc = np.stack([40 * np.sin(np.linspace(0.2, 1.2, 30)), np.zeros(30), 40 * np.cos(np.linspace(0.2, 1.2, 30))], 1)
+    hidden = arc * [1, 1, -1]  # the same arc on the far side
+    pages.attach(hidden, [view], 0.4)
+    assert np.array_equal(pages.attached[0], view.shade)  # nothing visible: nothing drawn
+    pages.attach(arc, [view], 0.4)
+    changed = np.any(pages.attached[0] != view.shade, axis=2)
+    px, _ = view.project(arc)
+    assert changed.sum() > 20 and changed[int(px[15, 1]), int(px[15, 0])] | changed[int(px[15, 1]) + 1, int(px[15, 0])]
