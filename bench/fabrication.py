@@ -1,6 +1,6 @@
-"""Fabrication benchmark: unfolding + outlining + nesting + writing the cut sheets for the bunny.
+"""Fabrication benchmark: unfolding + outlining + nesting + writing the cut sheets (and the guide).
 
-Layout (``--layout auto`` tries them in this order):
+Layouts (``--layout``, ``auto`` tries the first three in this order):
 
 * ``real``: the pipeline's (``layout.pick_best`` in ``pipelines/retrofit.yaml``, run through the
   engine with its cache), when the pipeline has it and it runs;
@@ -9,14 +9,20 @@ Layout (``--layout auto`` tries them in this order):
   ``curves.crossings``, pads greedily >= 15 mm apart;
 * ``synthetic``: 21 Tx x 12 Rx plane sections (Tx: meridians, Rx: horizontal sections opened into
   arcs) on the bunny loaded, scaled to a 170 mm diagonal, repaired and remeshed by the pipeline's
-  own mesh nodes.
+  own mesh nodes;
+* one or more output folders (``--out`` of ``retrotouch run``): each run's ``layout.pick_best``
+  layout and mesh, loaded from the cache it recorded in ``manifest.json`` (same pipeline and ``-S``
+  overrides, nothing recomputed when the run is cached); one row per folder.
 
 The written SVGs are parsed back and checked with shapely (overlaps, smallest gap, fit on the mat),
 independently of the nester's own verification. Prints a table, then as its LAST line one JSON
-object: seconds (unfold + outline + nest + write), sheets, material_use (parts area / area of the
-sheets used), min_gap_mm, overlaps, plus details.
+object: sheets, nest_seconds, material_use (parts area / area of the sheets used), joints,
+min_gap_mm, overlaps for the worst object (most sheets, slowest nest, lowest use, most joints,
+smallest gap), with per-object rows under ``objects`` and the medians. ``--profile`` prints the top
+cProfile entries of fab.nest and fab.assembly_guide.
 
-Usage: python bench/fabrication.py [--layout auto|real|traced|synthetic] [--seconds 10] [--mat 12x12] [--guide] [--out DIR]
+Usage: python bench/fabrication.py [--layout auto|real|traced|synthetic|DIR...] [--mat auto] [--guide] [--profile]
+       [--out DIR] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -38,7 +44,8 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from fab_layouts import greedy_pads, section_layout  # noqa: E402
 
-from retrotouch.nodes import mesh_io, mesh_repair  # noqa: E402
+from retrotouch.nodes.mesh import loading as mesh_io  # noqa: E402
+from retrotouch.nodes.mesh import repair as mesh_repair  # noqa: E402
 from retrotouch.nodes.fab.assembly_guide import Params as GuideParams  # noqa: E402
 from retrotouch.nodes.fab.assembly_guide import assembly_guide  # noqa: E402
 from retrotouch.nodes.fab.cut_sheets import Params as SheetParams  # noqa: E402
@@ -52,28 +59,43 @@ from retrotouch.nodes.fab.unfold import Params as UnfoldParams  # noqa: E402
 from retrotouch.nodes.fab.unfold import unfold  # noqa: E402
 
 
-def real_layout():
+def run_layout(pipeline: str, overrides: list[str], cache_dir: str | None, out_dir: str | None = None):
+    """(mesh, layout) of a pipeline's ``layout.pick_best`` and the mesh its consumers read: from the
+    cache when the run is there, else run (into ``out_dir``, a temporary folder when None)."""
+    from retrotouch.graph.app import configure
+    from retrotouch.graph.runner import make_plan, run_pipeline
+    from retrotouch.nodes.app import APP
+
+    configure(APP)
+    plan = make_plan(pipeline, overrides, cache_dir)
+    store = plan.store
+    pick = next(i for i in plan.instances if i.decl.spec.name == "layout.pick_best")
+    consumer = next(i for i in plan.instances if "mesh" in i.inputs and "layout" in i.inputs)
+    upstream, output = consumer.inputs["mesh"][0]
+    if store.lookup(pick.key) is None or store.lookup(upstream.key) is None:
+        with tempfile.TemporaryDirectory() as scratch:
+            run_pipeline(pipeline, overrides, out_dir=out_dir or scratch, scheduler="sync", cache_dir=cache_dir)
+
+    def value(instance, name):
+        loaded = store.load(store.lookup(instance.key))
+        return loaded[name] if len(instance.decl.spec.outputs) > 1 else loaded
+
+    return value(upstream, output), value(pick, "layout")
+
+
+def real_layout(cache_dir: str | None = None):
     """(mesh, layout) from the repo pipeline's layout.pick_best, or None when it has none."""
     pipeline = REPO / "pipelines" / "retrofit.yaml"
     if "layout.pick_best" not in pipeline.read_text():
         return None
-    from retrotouch.graph.app import configure
-    from retrotouch.graph.runner import run_pipeline
-    from retrotouch.nodes.app import APP
+    return run_layout(str(pipeline), [], cache_dir)
 
-    configure(APP)
-    with tempfile.TemporaryDirectory() as out:
-        result = run_pipeline(str(pipeline), out_dir=out, scheduler="sync")
-    store = result.plan.store
 
-    def value(instance, output):
-        loaded = store.load(store.lookup(instance.key))
-        return loaded[output] if len(instance.decl.spec.outputs) > 1 else loaded
-
-    pick = next(i for i in result.plan.instances if i.decl.spec.name == "layout.pick_best")
-    consumer = next(i for i in result.plan.instances if "mesh" in i.inputs and "layout" in i.inputs)
-    upstream, output = consumer.inputs["mesh"][0]
-    return value(upstream, output), value(pick, "layout")
+def folder_layout(folder: Path, cache_dir: str | None = None):
+    """(mesh, layout) of the run that wrote the output folder ``folder`` (from ``cache_dir`` instead
+    of the run's own cache when given)."""
+    manifest = json.loads((folder / "manifest.json").read_text())
+    return run_layout(manifest["pipeline"]["path"], manifest["overrides"], cache_dir or manifest["cache_dir"])
 
 
 def traced_layout():
@@ -146,34 +168,25 @@ def check_sheets(files: dict[str, bytes], sheet_count: int) -> dict:
     return {"overlaps": overlaps, "min_gap_mm": min_gap, "off_mat": off_mat, "material_use": area / sheet_area}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--layout", choices=["auto", "real", "traced", "synthetic"], default="auto")
-    parser.add_argument("--seconds", type=int, default=10, help="spyrrow budget per sheet (s)")
-    parser.add_argument("--mat", default="12x12", choices=["12x12", "12x24"])
-    parser.add_argument("--guide", action="store_true", help="also time the assembly guide PDF")
-    parser.add_argument("--out", type=Path, help="write the sheets (and guide) into this folder")
-    args = parser.parse_args()
+def profiled(function, *args, top: int = 12):
+    """(result, seconds, cProfile's top entries by internal time as text)."""
+    import cProfile
+    import io
+    import pstats
 
-    t0 = time.perf_counter()
-    source = None
-    builders = {"real": real_layout, "traced": traced_layout, "synthetic": synthetic_layout}
-    for name in (["real", "traced", "synthetic"] if args.layout == "auto" else [args.layout]):
-        try:
-            found = builders[name]()
-        except Exception as error:  # noqa: BLE001 - upstream stages may not run yet: say so, try the next
-            if args.layout != "auto":
-                raise
-            print(f"{name} layout unavailable ({type(error).__name__}: {error})", file=sys.stderr)
-            continue
-        if found is not None:
-            (mesh, layout), source = found, name
-            break
-        print(f"{name} layout unavailable (pipelines/retrofit.yaml has no layout.pick_best yet)", file=sys.stderr)
-    if source is None:
-        raise SystemExit(f"no {args.layout} layout available")
-    t_layout = time.perf_counter() - t0
+    profile = cProfile.Profile()
+    t = time.perf_counter()
+    result = profile.runcall(function, *args)
+    seconds = time.perf_counter() - t
+    text = io.StringIO()
+    pstats.Stats(profile, stream=text).sort_stats("tottime").print_stats(top)
+    lines = [line for line in text.getvalue().splitlines() if line.strip()]
+    start = next(k for k, line in enumerate(lines) if line.lstrip().startswith("ncalls"))
+    return result, seconds, "\n".join(lines[start:])
 
+
+def measure(name: str, mesh, layout, args) -> dict:
+    """One object: timings, sheets, checks (see the module docstring)."""
     timings = {}
     t = time.perf_counter()
     unfolded = unfold(UnfoldParams(), mesh, layout)
@@ -181,65 +194,90 @@ def main() -> None:
     t = time.perf_counter()
     outlines = outline(OutlineParams(), unfolded)
     timings["outline"] = time.perf_counter() - t
-    t = time.perf_counter()
-    nested = nest(NestParams(mat=args.mat, seconds=args.seconds, workers=2), outlines)
-    timings["nest (spyrrow)"] = time.perf_counter() - t
+    nested, timings["nest"], nest_profile = profiled(nest, NestParams(mat=args.mat), outlines)
     t = time.perf_counter()
     files = cut_sheets(SheetParams(), outlines, nested).contents
     timings["write SVG/PDF/DXF/PNG"] = time.perf_counter() - t
-    seconds = sum(timings.values())
-    t = time.perf_counter()
-    shelf = nest(NestParams(mat=args.mat, nester="shelf"), outlines)
-    shelf_seconds = time.perf_counter() - t
-    if args.guide:
-        t = time.perf_counter()
-        guide = assembly_guide(GuideParams(), mesh, layout, outlines).contents["assembly_guide.pdf"]
-        timings["assembly guide (not in seconds)"] = time.perf_counter() - t
+    row = {"object": name, "faces": len(mesh.faces), "traces": unfolded.count, "parts": outlines.count,
+           "joints": outlines.joints, "mat": nested.mat, "sheets": nested.sheet_count,
+           "nest_seconds": round(timings["nest"], 3), "rotations": nested.rotations,
+           "used_length_mm": round(nested.used_length_mm, 1), "nester": nested.nester,
+           "longest_trace_mm": round(float(unfolded.arc[unfolded.offsets[1:] - 1].max()), 1)}
     checked = check_sheets(files, nested.sheet_count)
+    row.update(material_use=round(checked["material_use"], 5), min_gap_mm=round(checked["min_gap_mm"], 4),
+               overlaps=checked["overlaps"], off_mat=checked["off_mat"])
+    if args.guide:
+        guide, timings["guide"], guide_profile = profiled(assembly_guide, GuideParams(), mesh, layout, outlines)
+        files = {**files, **guide.contents}
+        row["guide_seconds"] = round(timings["guide"], 3)
+    row["seconds"] = round(sum(timings.values()), 3)
+    if args.profile:
+        print(f"--- {name}: fab.nest profile ({timings['nest']:.1f} s)\n{nest_profile}")
+        if args.guide:
+            print(f"--- {name}: fab.assembly_guide profile ({timings['guide']:.1f} s)\n{guide_profile}")
     if args.out:
-        for name, content in {**files, **({"assembly_guide.pdf": guide} if args.guide else {})}.items():
-            (args.out / name).parent.mkdir(parents=True, exist_ok=True)
-            (args.out / name).write_bytes(content)
+        for file, content in files.items():
+            target = args.out / (name if len(args.layout) > 1 else "") / file
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(content)
+    return row
 
-    lengths = unfolded.arc[unfolded.offsets[1:] - 1]
-    rel_error = np.abs(lengths - unfolded.length_3d) / unfolded.length_3d
-    print(f"layout: {source} on {mesh.source} ({len(mesh.faces)} faces), {layout.tx.count} Tx x {layout.rx.count} Rx, "
-          f"{len(layout.cells.curve_a)} crossings, {int(layout.pad.sum())} pads  [{t_layout:.1f} s to build]")
-    print(f"traces: {unfolded.count}, parts: {outlines.count}, split: {list(outlines.split_traces) or 'none'}, "
-          f"length {lengths.min():.0f}-{lengths.max():.0f} mm (total {lengths.sum():.0f} mm), "
-          f"max |2D-3D|/3D length {rel_error.max():.1e}")
-    print(f"{'step':<34}{'seconds':>9}")
-    for name, value in timings.items():
-        print(f"{name:<34}{value:>9.2f}")
-    print(f"{'total (unfold..write)':<34}{seconds:>9.2f}")
-    print(f"nesting on {args.mat}: spyrrow {nested.sheet_count} sheet(s), last sheet used length "
-          f"{nested.used_length_mm:.0f} mm, material use {nested.material_use:.3f}"
-          f"{' (fallback: ' + nested.fallback_reason + ')' if nested.fallback_reason else ''}; "
-          f"shelf fallback {shelf.sheet_count} sheet(s), used length {shelf.used_length_mm:.0f} mm [{shelf_seconds:.2f} s]")
-    print(f"written sheets re-read: overlaps {checked['overlaps']}, min gap {checked['min_gap_mm']:.3f} mm, "
-          f"parts off the mat {checked['off_mat']}")
+
+def layouts(choice: list[str], cache_dir: str | None):
+    """(name, mesh, layout) for each requested layout (module docstring)."""
+    builders = {"real": lambda: real_layout(cache_dir), "traced": traced_layout, "synthetic": synthetic_layout}
+    if choice == ["auto"]:
+        for name in ("real", "traced", "synthetic"):
+            try:
+                found = builders[name]()
+            except Exception as error:  # noqa: BLE001 - upstream stages may not run yet: say so, try the next
+                print(f"{name} layout unavailable ({type(error).__name__}: {error})", file=sys.stderr)
+                continue
+            if found is not None:
+                yield name, *found
+                return
+        raise SystemExit("no layout available")
+    for item in choice:
+        if item in builders:
+            yield item, *builders[item]()
+        else:
+            yield Path(item).name, *folder_layout(Path(item), cache_dir)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--layout", nargs="+", default=["auto"], help="auto, real, traced, synthetic or output folders")
+    parser.add_argument("--mat", default="auto", choices=["auto", "12x12", "12x24"])
+    parser.add_argument("--guide", action="store_true", help="also time the assembly guide PDF")
+    parser.add_argument("--profile", action="store_true", help="print the top profile entries of nest (and guide)")
+    parser.add_argument("--out", type=Path, help="write the sheets (and guide) into this folder")
+    parser.add_argument("--cache-dir", help="engine cache for real / folder layouts (default: the run's own)")
+    args = parser.parse_args()
+
+    rows = [measure(name, mesh, layout, args) for name, mesh, layout in layouts(args.layout, args.cache_dir)]
+    columns = ["object", "faces", "parts", "joints", "mat", "sheets", "nest_seconds", "rotations", "used_length_mm",
+               "material_use", "min_gap_mm", "overlaps", "off_mat", "longest_trace_mm"] + (
+        ["guide_seconds"] if args.guide else [])
+    print("  ".join(f"{c:>14}" for c in columns))
+    for row in rows:
+        print("  ".join(f"{row[c]:>14}" for c in columns))
+
+    def median(key):
+        return float(np.median([row[key] for row in rows]))
+
     summary = {
-        "seconds": round(seconds, 3),
-        "sheets": nested.sheet_count,
-        "material_use": round(checked["material_use"], 5),
-        "material_use_used_length": round(nested.parts_area_mm2 / (
-            (nested.sheet_count - 1) * nested.sheet_width_mm * nested.sheet_height_mm
-            + nested.used_length_mm * min(nested.sheet_width_mm, nested.sheet_height_mm)), 5),
-        "used_length_mm": round(nested.used_length_mm, 2),
-        "min_gap_mm": round(checked["min_gap_mm"], 4),
-        "overlaps": checked["overlaps"],
-        "off_mat": checked["off_mat"],
-        "nester": nested.nester,
-        "shelf_used_length_mm": round(shelf.used_length_mm, 2),
-        "parts": outlines.count,
-        "split_traces": len(outlines.split_traces),
-        "trace_length_total_mm": round(float(lengths.sum()), 1),
-        "max_length_rel_error": float(rel_error.max()),
-        "layout": source,
-        "timings": {k: round(v, 3) for k, v in timings.items()},
+        "sheets": max(row["sheets"] for row in rows),
+        "nest_seconds": max(row["nest_seconds"] for row in rows),
+        "material_use": min(row["material_use"] for row in rows),
+        "joints": max(row["joints"] for row in rows),
+        "min_gap_mm": min(row["min_gap_mm"] for row in rows),
+        "overlaps": sum(row["overlaps"] for row in rows),
+        "off_mat": sum(row["off_mat"] for row in rows),
+        "median": {k: median(k) for k in ("sheets", "nest_seconds", "material_use", "joints")},
+        "objects": rows,
     }
     if args.guide:
-        summary["guide_pdf_bytes"] = len(guide)
+        summary["guide_seconds"] = max(row["guide_seconds"] for row in rows)
     print(json.dumps(summary))
 
 

@@ -12,13 +12,13 @@ import ezdxf
 import numpy as np
 import pytest
 import shapely
-from shapely.geometry import Polygon
+from shapely.geometry import LineString, Polygon
 from test_fab_nesting import traces
 
 from retrotouch.graph.node import Files
 from retrotouch.nodes.fab.cut_sheets import Params, cut_sheets
 from retrotouch.nodes.fab.nesting import Params as NestParams
-from retrotouch.nodes.fab.nesting import nest, placed_polygons
+from retrotouch.nodes.fab.nesting import nest, place, placed_polygons
 
 SVG = "{http://www.w3.org/2000/svg}"
 MM_PER_PT = 25.4 / 72
@@ -112,3 +112,61 @@ def test_preview_and_report(written):
     assert report["sheet"] == {"width": width, "height": height, "count": nested.sheet_count}
     assert [p["name"] for p in report["parts"]] == list(outlines.names)
     assert report["overlaps"] == 0 and report["min_gap_mm"] >= nested.spacing_mm - 1e-6
+
+
+def test_svg_tells_how_to_import_it(written):
+    _, _, nested, contents = written
+    root = ET.fromstring(contents["sheets/sheet_1.svg"].decode())
+    desc = root.find(f"{SVG}desc").text
+    assert "Design Space" in desc and "Pen" in desc and "Attach" in desc and "Silhouette" in desc
+
+
+def test_labels_read_upright_on_the_sheet(written):
+    _, outlines, nested, _ = written
+    for i in range(outlines.count):
+        glyphs = outlines.label_polylines(i, float(nested.rotation_deg[i]))
+        placed = [place(LineString(g), float(nested.rotation_deg[i]), nested.translation[i]) for g in glyphs]
+        first, last = (np.asarray(p.centroid.coords)[0] for p in (placed[0], placed[-1]))  # first / last glyph
+        reading = np.degrees(np.arctan2(*(last - first)[::-1]))
+        assert -90.0 < reading <= 90.0 + 1e-6, (outlines.names[i], reading)
+
+
+@pytest.mark.parametrize("version", ["R2010", "R12"])
+def test_dxf_header_extents_limits_and_audit(written, version):
+    (width, height), outlines, nested, _ = written
+    contents = cut_sheets(Params(dxf_version=version), outlines, nested).contents
+    for k in range(1, nested.sheet_count + 1):
+        doc = ezdxf.read(io.StringIO(contents[f"sheets/sheet_{k}.dxf"].decode()))
+        assert doc.dxfversion == {"R2010": "AC1024", "R12": "AC1009"}[version]
+        auditor = doc.audit()
+        assert not auditor.has_errors and not auditor.has_fixes
+        entities = list(doc.modelspace())
+        assert {e.dxftype() for e in entities} == {"LWPOLYLINE" if version == "R2010" else "POLYLINE"}
+        points = np.array([(p[0], p[1]) for e in entities for p in (e.get_points() if version == "R2010" else
+                                                                     [v.dxf.location for v in e.vertices])])
+        np.testing.assert_allclose(doc.header["$EXTMIN"][:2], points.min(axis=0), atol=1e-9)
+        np.testing.assert_allclose(doc.header["$EXTMAX"][:2], points.max(axis=0), atol=1e-9)
+        assert tuple(doc.header["$LIMMIN"][:2]) == (0, 0) and tuple(doc.header["$LIMMAX"][:2]) == (width, height)
+        assert 0 <= points.min() and points[:, 0].max() <= width and points[:, 1].max() <= height
+
+
+def test_pdf_page_size_by_pdfinfo_and_svg_renders(written, tmp_path):
+    import shutil
+    import subprocess
+
+    (width, height), _, nested, contents = written
+    if shutil.which("pdfinfo") is None and shutil.which("rsvg-convert") is None:
+        pytest.skip("neither pdfinfo (poppler-utils) nor rsvg-convert (librsvg2-bin) installed")
+    for name in ("sheet_1.pdf", "sheet_1.svg"):
+        (tmp_path / name).write_bytes(contents[f"sheets/{name}"])
+    if shutil.which("pdfinfo"):
+        info = subprocess.run(["pdfinfo", str(tmp_path / "sheet_1.pdf")], capture_output=True, text=True, check=True)
+        w_pt, h_pt = (float(v) for v in re.search(r"Page size:\s+([\d.]+) x ([\d.]+) pts", info.stdout).groups())
+        assert w_pt * MM_PER_PT == pytest.approx(width, abs=0.05) and h_pt * MM_PER_PT == pytest.approx(height, abs=0.05)
+    if shutil.which("rsvg-convert"):
+        png = tmp_path / "sheet_1.png"
+        subprocess.run(["rsvg-convert", "--dpi-x", "25.4", "--dpi-y", "25.4", "-o", str(png),
+                        str(tmp_path / "sheet_1.svg")], check=True)
+        image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        assert abs(image.shape[1] - width) <= 1 and abs(image.shape[0] - height) <= 1  # 1 px per mm
+        assert image[..., 3].any()  # something drawn

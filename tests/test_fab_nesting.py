@@ -15,15 +15,15 @@ from retrotouch.nodes.fab.outline import Params as OutlineParams
 from retrotouch.nodes.fab.outline import outline
 
 
-def traces(lengths, bend: float = 0.0):
-    """Straight (or bent) traces with a few pads each."""
+def traces(lengths, bend: float = 0.0, fit_mat: str = "12x12"):
+    """Straight (or bent) traces with a few pads each (split to fit ``fit_mat``)."""
     polylines = []
     for k, length in enumerate(lengths):
         line = straight(length, 80)
         line[:, 1] += bend * np.sin(np.linspace(0, np.pi * (1 + k % 3), 80))
         polylines.append(line - line[-1])
     marks = [(c, s, True) for c, length in enumerate(lengths) for s in np.arange(10.0, length - 5, 25.0)]
-    return outline(OutlineParams(), unfolded_from_polylines(polylines, marks))
+    return outline(OutlineParams(fit_mat=fit_mat), unfolded_from_polylines(polylines, marks))
 
 
 def check_layout(outlines, nested, params):
@@ -91,7 +91,7 @@ def test_more_sheets_when_needed(nester):
 
 
 def test_auto_mat_takes_12x24_for_a_trace_too_long_for_12x12():
-    outlines = traces([400, 150])
+    outlines = traces([400, 150], fit_mat="12x24")
     with pytest.raises(UserError, match=r"Tx00 is 4\d\d x \d+ mm flat and does not fit .* at any rotation; .*12x24"):
         nest(Params(mat="12x12", nester="shelf"), outlines)
     params = Params(nester="shelf")
@@ -115,3 +115,26 @@ def test_part_fitting_only_diagonally_gets_its_own_sheet():
     for nester in ("raster", "shelf"):
         params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester=nester)
         check_layout(outlines, nest(params, outlines), params)
+
+
+def test_a_trace_longer_than_any_mat_never_fails_late():
+    """Issue 12: a 664 x 118 mm unfolded trace (a cup's Rx) is split to fit the 12 x 12 mat and nested."""
+    import json
+
+    from test_fab_outline import long_arc, unfolded_from_polylines
+
+    from retrotouch.nodes.fab.cut_sheets import Params as SheetParams
+    from retrotouch.nodes.fab.cut_sheets import cut_sheets
+
+    polylines = [long_arc(), straight(120.0) + [0.0, 0.0]]
+    outlines = outline(OutlineParams(), unfolded_from_polylines(polylines, [(0, 30.0, True), (1, 50.0, True)]))
+    params = Params()
+    nested = nest(params, outlines)
+    assert nested.mat == "12x12" and nested.sheet_count == 1
+    check_layout(outlines, nested, params)
+    report = json.loads(cut_sheets(SheetParams(), outlines, nested).contents["sheets/report.json"])
+    assert report["mat"] == "12x12" and report["joints"] == outlines.count - 2 >= 1
+    assert report["split_traces"] == [{"trace": "Tx00", "reason": "longer than the 12x12 mat"}]
+    whole = outline(OutlineParams(fit_mat="none"), unfolded_from_polylines(polylines))
+    with pytest.raises(UserError, match="Tx00 is 6\\d\\d x \\d+ mm flat and does not fit the 292.1 x 596.9 mm sheet"):
+        nest(params, whole)  # without splitting even the 12 x 24 mat is too short: said before any nesting

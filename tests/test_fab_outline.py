@@ -153,3 +153,38 @@ def test_spiral_is_split_into_pieces_that_do_not_overlap():
         polygon = outlines.polygon(i)
         assert polygon.is_valid and polygon.geom_type == "Polygon"
         assert len(outlines.label_polylines(i)) >= 6  # "Tx00.1": five glyphs, "0" has two outlines
+
+
+def long_arc(width: float = 664.0, height: float = 118.0, n: int = 400) -> np.ndarray:
+    """A parabolic arc ``width`` x ``height`` mm (centreline bounds), base end at the origin."""
+    x = np.linspace(-width, 0.0, n)
+    return np.stack([x, height * (1 - ((x + width / 2) / (width / 2)) ** 2)], axis=1)
+
+
+@pytest.mark.parametrize("fit_mat", ["12x12", "12x24"])
+def test_trace_longer_than_the_mat_is_split_into_pieces_that_fit(fit_mat):
+    from retrotouch.nodes.fab.mats import MARGIN_MM, MATS_MM, fit_angles, usable_sides
+
+    line = long_arc()
+    marks = [(0, s, True) for s in np.arange(20.0, 700.0, 40.0)]
+    outlines = outline(Params(fit_mat=fit_mat), unfolded_from_polylines([line], marks))
+    long_side, short_side = usable_sides(*MATS_MM[fit_mat], MARGIN_MM)
+    assert outlines.count >= 2 and outlines.joints == outlines.count - 1
+    assert outlines.split_traces == ("Tx00",) and outlines.split_reasons == (f"longer than the {fit_mat} mat",)
+    for i in range(outlines.count):
+        assert len(fit_angles(outlines.polygon(i), long_side, short_side)) > 0
+    # the pieces cover the trace end to end; each next piece starts where the previous ends
+    ranges = outlines.arc_range[np.argsort(outlines.arc_range[:, 0])]
+    np.testing.assert_allclose(ranges[0, 0], 0.0, atol=1e-9)
+    np.testing.assert_allclose(ranges[-1, 1], np.linalg.norm(np.diff(line, axis=0), axis=1).sum(), rtol=1e-9)
+    np.testing.assert_allclose(ranges[1:, 0], ranges[:-1, 1], atol=1e-9)
+    # the 12x12 pieces are as long as the mat allows: two neighbours together would not fit
+    if fit_mat == "12x12":
+        assert outlines.count <= 4
+    # pads are all kept, each in exactly one piece
+    assert len(outlines.pad_xy) == len(marks)
+
+
+def test_fit_mat_none_keeps_the_trace_whole():
+    outlines = outline(Params(fit_mat="none"), unfolded_from_polylines([long_arc()]))
+    assert outlines.count == 1 and outlines.joints == 0

@@ -1,20 +1,22 @@
-"""Assembly guide PDF: where each cut trace goes on the object (paper section 7.3, printed companion
-to the projection).
+"""Assembly guide: from the cut foil to a wired sensor (paper section 7.3, printed companion to the
+projection), as ``assembly_guide.pdf`` and ``wiring.csv``.
 
-One overview page, then one page per trace in attachment order (Tx channels first, then Rx): the
-trace drawn on the shaded object from the ``views_per_trace`` candidate views that show most of it
-(with the traces attached before it drawn thin), its base end (solder tab) marked, and its flat cut
-outline(s) with the channel name. Rendering is a CPU painter's algorithm (OpenCV polygon fill of
-back-face-culled faces sorted by depth, orthographic); a curve point is drawn where it is not
-behind the rendered surface.
+Page 1: the object with all traces, how to import the cut sheets (:data:`IMPORT_STEPS`), the
+material and layer order (:data:`BENCH_STEPS`). Then one page per trace in attachment order (Tx
+channels first: the bottom layer; then Rx), titled with its Muca pin: the trace on the shaded object
+from the ``views_per_trace`` named views (:mod:`.guide_views`) that show most of it, the traces
+attached before it drawn thin, its solder tab (●), its crossings (○) and, for a split trace, the
+joints (✕) where a piece's tab overlaps the previous piece; below, its flat cut piece(s) side by
+side with the joint overlap drawn dashed and the crossing labels placed so they do not overlap.
+Last page: the wiring table (solder tab -> Muca pin), also written as ``wiring.csv``.
 
-View conventions: the 14 candidate view directions are the 6 axis directions and the 8 cube
-diagonals of the mesh frame (a view direction points from the object towards the viewer); image
-"up" is +z, or +y when looking along z.
+Speed: every candidate view is rendered once; the trace pages share one figure whose axes and
+images are reused (only the image data and the drawn lines change from page to page), and each
+attached trace is burnt into the views' images once instead of being drawn again on every later page.
 """
 from __future__ import annotations
 
-import dataclasses
+import csv
 import io
 
 import numpy as np
@@ -22,7 +24,8 @@ from pydantic import Field
 
 from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
-from ..geometry import triangles
+from .cut_sheets import IMPORT_STEPS
+from .guide_views import ObjectFrame, View, candidate_directions, render
 from .outline import TraceOutlines
 from .timestamps import source_date
 
@@ -30,75 +33,6 @@ from .timestamps import source_date
 class Params(NodeParams):
     image_px: int = Field(420, ge=100, le=2000, description="size of each rendered view (pixels)")
     views_per_trace: int = Field(3, ge=1, le=6, description="views shown per trace")
-
-
-@dataclasses.dataclass(frozen=True)
-class View:
-    direction: np.ndarray  # (3,) unit, towards the viewer
-    right: np.ndarray
-    up: np.ndarray
-    scale: float  # pixels per mm
-    centre: np.ndarray  # (2,) view-plane coordinates of the image centre (mm)
-    size: int
-    shade: np.ndarray  # (size, size, 3) uint8 RGB
-    depth: np.ndarray  # (size, size) float32, towards the viewer (mm); -inf = background
-
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coordinates (x right, y down) and depth of 3D points."""
-        uv = np.stack([points @ self.right, points @ self.up], axis=1) - self.centre
-        px = np.stack([self.size / 2 + uv[:, 0] * self.scale, self.size / 2 - uv[:, 1] * self.scale], axis=1)
-        return px, points @ self.direction
-
-    def visible(self, points: np.ndarray, tolerance_mm: float) -> np.ndarray:
-        px, depth = self.project(points)
-        ij = np.clip(np.round(px).astype(int), 0, self.size - 1)
-        return depth >= self.depth[ij[:, 1], ij[:, 0]] - tolerance_mm
-
-
-def candidate_directions() -> np.ndarray:
-    axes = np.vstack([np.eye(3), -np.eye(3)])
-    diagonals = np.array([[x, y, z] for x in (1, -1) for y in (1, -1) for z in (1, -1)]) / np.sqrt(3)
-    return np.vstack([axes, diagonals])
-
-
-def render(mesh: Mesh, direction: np.ndarray, size: int) -> View:
-    """Shaded orthographic render of the mesh seen from ``direction`` (painter's algorithm)."""
-    import cv2  # heavy: imported when used
-
-    up_hint = np.array([0.0, 1.0, 0.0]) if abs(direction[2]) > 0.99 else np.array([0.0, 0.0, 1.0])
-    right = np.cross(up_hint, direction)
-    right /= np.linalg.norm(right)
-    up = np.cross(direction, right)
-    V, F = mesh.vertices, mesh.faces
-    uv = np.stack([V @ right, V @ up], axis=1)
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    scale = 0.92 * size / max(hi - lo)
-    view = View(direction, right, up, scale, (lo + hi) / 2, size,
-                np.full((size, size, 3), 255, np.uint8), np.full((size, size), -np.inf, np.float32))
-    px, depth = view.project(V)
-    normals, _ = triangles.normals(triangles.corners(V, F))
-    facing = normals @ direction
-    front = np.nonzero(facing > 0)[0]
-    order = front[np.argsort(depth[F[front]].mean(axis=1))]
-    corners = np.round(px[F[order]] * 16).astype(np.int32)  # 4 fractional bits
-    face_id = np.full((size, size), -1, np.int32)
-    for k, f in enumerate(order.tolist()):
-        cv2.fillConvexPoly(face_id, corners[k], f, lineType=cv2.LINE_8, shift=4)
-    covered = face_id >= 0
-    ids = face_id[covered]
-    grey = (70 + 170 * facing[ids]).astype(np.uint8)
-    view.shade[covered] = grey[:, None]
-    # depth of each covered pixel on its face's plane, clamped to the face's depth range
-    yy, xx = np.nonzero(covered)
-    n = normals[ids]
-    nu, nv, nw = n @ right, n @ up, n @ direction
-    p0 = V[F[ids, 0]]
-    du = (xx - size / 2) / scale + view.centre[0] - p0 @ right
-    dv = (size / 2 - yy) / scale + view.centre[1] - p0 @ up
-    plane = p0 @ direction - (nu * du + nv * dv) / np.maximum(nw, 1e-6)
-    face_depths = depth[F[ids]]
-    view.depth[covered] = np.clip(plane, face_depths.min(axis=1), face_depths.max(axis=1))
-    return view
 
 
 def _curve_points(layout: Layout, trace: int) -> tuple[np.ndarray, str, bool]:
@@ -109,81 +43,265 @@ def _curve_points(layout: Layout, trace: int) -> tuple[np.ndarray, str, bool]:
     return layout.rx.points[layout.rx.curve(c)], f"Rx{c:02d}", False
 
 
+BENCH_STEPS = (
+    "Material: Kapton-copper-Kapton laminate (or copper tape covered with Kapton tape), so traces are insulated",
+    "  where the two layers cross. Bare copper tape: cover every Tx trace with Kapton tape before any Rx trace.",
+    "Side down: the face that lay on the cutting mat goes onto the object. Never flip a piece: mirrored, it no",
+    "  longer follows its curve.",
+    "Layer order: 1. the Tx traces (blue, bottom layer), following the projection; 2. the Rx traces (red, top",
+    "  layer), aligning each small landmark bulge with the crossing trace it names.",
+    "Split traces (Tx03.1, Tx03.2, ...): piece .2's solder tab overlaps the end of piece .1 (the joint, ✕);",
+    "  solder the overlap so the trace conducts end to end.",
+    "Wiring: scrape the Kapton off each solder tab, solder a wire to it and connect it to the Muca pin named",
+    "  on its page (table on the last page and in wiring.csv).",
+)
+"""Bench steps (page 1)."""
+
+
+def muca_pin(layer: str, channel: int) -> str:
+    """The Muca breakout pin of a channel: TX<channel> / RX<channel>, the firmware's channel order
+    (frame index ``tx * num_rx + rx``)."""
+    return f"{layer.upper()}{channel}"
+
+
+def wiring_rows(layout: Layout, outlines: TraceOutlines) -> list[dict]:
+    """One row per solder tab (part), in attachment order."""
+    rows = []
+    for i in range(outlines.count):
+        trace = int(outlines.trace[i])
+        layer, channel = ("tx", trace) if trace < layout.tx.count else ("rx", trace - layout.tx.count)
+        pieces = np.nonzero(outlines.trace == trace)[0]
+        number = int(np.nonzero(pieces == i)[0][0])
+        rows.append({
+            "tab": outlines.names[i], "trace": outlines.trace_names[trace], "layer": layer,
+            "layer_order": 1 if layer == "tx" else 2, "muca_pin": muca_pin(layer, channel),
+            "wire": "to the Muca pin" if number == 0 else f"soldered onto {outlines.names[pieces[number - 1]]}'s end",
+            "length_mm": round(float(np.ptp(outlines.arc_range[i])), 1),
+        })
+    return rows
+
+
+def wiring_csv(rows: list[dict]) -> bytes:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return text.getvalue().encode("utf-8")
+
+
 def _draw_curve(ax, view: View, points: np.ndarray, tolerance: float, **style) -> None:
     px, _ = view.project(points)
     shown = np.where(view.visible(points, tolerance)[:, None], px, np.nan)
     ax.plot(shown[:, 0], shown[:, 1], **style)
 
 
+PAGE_INCHES = (11.69, 8.27)
+"""A4 landscape."""
+
+TABLE_ROWS = 38
+"""Wiring table rows per page."""
+
+
+def _arc_points(points: np.ndarray, arcs: np.ndarray) -> np.ndarray:
+    """3D points at arc lengths ``arcs`` (mm from the curve's start) of a polyline."""
+    cumulative = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    return np.stack([np.interp(arcs, cumulative, points[:, k]) for k in range(3)], axis=1).reshape(-1, 3)
+
+
+def _joint_arcs(outlines: TraceOutlines, trace: int, base_at_end: bool) -> np.ndarray:
+    """Arc lengths (from the curve's start) where the pieces of a split trace join (empty if whole)."""
+    ranges = outlines.arc_range[outlines.trace == trace]
+    return ranges[1:, 1] if base_at_end else ranges[1:, 0]
+
+
+def object_frame(mesh: Mesh, layout: Layout) -> ObjectFrame:
+    """The object's frame with ``up`` pointing from the Tx traces' base ends (Tx curves end on the
+    base boundary) through the mesh's centroid; z up when that is undefined."""
+    down = layout.tx.points[layout.tx.offsets[1:] - 1].mean(axis=0) - mesh.vertices.mean(axis=0)
+    norm = float(np.linalg.norm(down))
+    return ObjectFrame.from_up(-down / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0]))
+
+
+def _overview_page(figure_type, views, frame: ObjectFrame, traces, tolerance: float, source: str, layout: Layout):
+    fig = figure_type(figsize=PAGE_INCHES)
+    grid = fig.add_gridspec(2, 3, height_ratios=[3, 2], top=0.9, bottom=0.02)
+    fig.suptitle(f"retrotouch assembly guide: {source}\n{layout.tx.count} Tx (blue, bottom layer) then "
+                 f"{layout.rx.count} Rx (red, top layer); attach the traces in page order")
+    everything = np.vstack([points for points, _, _ in traces])
+    overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
+    for col, v in enumerate(overview[::-1][:3]):
+        ax = fig.add_subplot(grid[0, col])
+        ax.imshow(views[v].shade, interpolation="none")
+        for points, name, _ in traces:
+            _draw_curve(ax, views[v], points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
+        ax.set_title(frame.name(views[v].direction), fontsize=8, y=1.0)
+        ax.set_axis_off()
+    fig.text(0.03, 0.36, "\n".join(IMPORT_STEPS + ("",) + BENCH_STEPS), fontsize=7.5, va="top", family="DejaVu Sans")
+    return fig
+
+
+def _label_offsets(anchors_pt: np.ndarray, sizes_pt: np.ndarray, taken: list) -> list[tuple[float, float]]:
+    """Greedy offsets (points) for labels centred at ``anchors_pt + offset`` so that no two label
+    boxes (``sizes_pt`` (w, h)) overlap each other or the boxes in ``taken`` (x0, y0, x1, y1)."""
+    directions = [(0, -1), (0, 1), (1, 0), (-1, 0), (1, -1), (-1, 1), (1, 1), (-1, -1)]
+    offsets = []
+    for (x, y), (w, h) in zip(anchors_pt, sizes_pt):
+        for radius, (dx, dy) in ((r, d) for r in (9, 16, 24, 34, 46) for d in directions):
+            box = (x + dx * radius - w / 2, y + dy * radius - h / 2, x + dx * radius + w / 2, y + dy * radius + h / 2)
+            if all(box[2] <= t[0] or box[0] >= t[2] or box[3] <= t[1] or box[1] >= t[3] for t in taken):
+                break
+        taken.append(box)
+        offsets.append((dx * radius, dy * radius))
+    return offsets
+
+
+def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
+    """The pieces of one trace side by side (unfolded frame, shifted along x), each next piece's
+    tab dashed where it overlaps the previous piece, crossing labels that do not overlap."""
+    gap = 12.0
+    shifts, x = [], 0.0
+    for i in parts:
+        ring = outlines.ring[outlines.ring_offsets[i] : outlines.ring_offsets[i + 1]]
+        shifts.append(np.array([x - ring[:, 0].min(), 0.0]))
+        x += np.ptp(ring[:, 0]) + gap
+    rings = [outlines.ring[outlines.ring_offsets[i] : outlines.ring_offsets[i + 1]] + d for i, d in zip(parts, shifts)]
+    everything = np.vstack(rings)
+    lo, hi = everything.min(axis=0) - 8, everything.max(axis=0) + 8
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    box = ax.get_position()
+    width_pt, height_pt = box.width * PAGE_INCHES[0] * 72, box.height * PAGE_INCHES[1] * 72
+    pt_per_mm = min(width_pt / (hi[0] - lo[0]), height_pt / (hi[1] - lo[1]))
+    taken = []
+    for k, (i, shift, ring) in enumerate(zip(parts, shifts, rings)):
+        ax.fill(ring[:, 0], ring[:, 1], color="#c87533", alpha=0.8, lw=0.5, ec="black")
+        for glyph in outlines.label_polylines(int(i)):
+            ax.plot(glyph[:, 0] + shift[0], glyph[:, 1] + shift[1], color="blue", lw=0.5)
+        tab = outlines.tab[i] + shift
+        name_at = tab.mean(axis=0)
+        ax.annotate(outlines.names[i], name_at, xytext=(0, 16), textcoords="offset points", ha="center",
+                    va="center", fontsize=10, arrowprops={"arrowstyle": "-"})
+        centre_pt = (name_at - lo) * pt_per_mm + [0, 16]
+        taken.append((centre_pt[0] - 25, centre_pt[1] - 7, centre_pt[0] + 25, centre_pt[1] + 7))
+        if k + 1 < len(parts):  # the next piece's tab lies over this piece's end
+            joint = np.vstack([outlines.tab[parts[k + 1]], outlines.tab[parts[k + 1]][:1]]) + shift
+            ax.plot(joint[:, 0], joint[:, 1], "--", color="black", lw=0.9)
+            ax.annotate(f"✕ joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0),
+                        xytext=(0, -22), textcoords="offset points", ha="center", fontsize=7,
+                        arrowprops={"arrowstyle": "-", "lw": 0.5})
+        mine = outlines.landmark_part == i
+        xy = outlines.landmark_xy[mine] + shift
+        names = [outlines.trace_names[o] for o in outlines.landmark_other[mine]]
+        sizes = np.array([[0.62 * 6 * len(n) + 2, 8.0] for n in names]).reshape(-1, 2)
+        for point, name, offset in zip(xy, names, _label_offsets((xy - lo) * pt_per_mm, sizes, taken)):
+            ax.annotate(name, point, xytext=offset, textcoords="offset points", ha="center", va="center",
+                        fontsize=6, color="0.3", arrowprops={"arrowstyle": "-", "lw": 0.3, "color": "0.5"})
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_title("flat cut piece(s), mm, seen from outside; small bulges = landmarks where the named trace of the "
+                 "other layer crosses (○ in the views)", fontsize=9, y=1.0)
+
+
+class _TracePages:
+    """One figure for every trace page: its view axes and images are made once and reused."""
+
+    def __init__(self, figure_type, views: list[View], views_per_trace: int):
+        self.fig = figure_type(figsize=PAGE_INCHES)
+        grid = self.fig.add_gridspec(2, views_per_trace, height_ratios=[3, 2], top=0.9, bottom=0.05)
+        self.view_axes = [self.fig.add_subplot(grid[0, col]) for col in range(views_per_trace)]
+        self.images = [ax.imshow(views[0].shade, interpolation="none") for ax in self.view_axes]
+        for ax in self.view_axes:
+            ax.set_axis_off()
+        self.flat = self.fig.add_subplot(grid[1, :])
+        self.attached = [view.shade.copy() for view in views]  # per view, with the attached traces burnt in
+
+    def clear(self) -> None:
+        for ax in self.view_axes + [self.flat]:
+            for artist in list(ax.lines) + list(ax.texts) + list(ax.patches) + list(ax.collections):
+                artist.remove()
+
+    def draw(self, step: int, traces, views, frame: ObjectFrame, tolerance: float, layout: Layout,
+             outlines: TraceOutlines, views_per_trace: int):
+        self.clear()
+        points, name, base_at_end = traces[step]
+        layer, channel = ("tx", step) if base_at_end else ("rx", step - layout.tx.count)
+        length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+        self.fig.suptitle(
+            f"Step {step + 1}/{len(traces)}: {name} -> Muca pin {muca_pin(layer, channel)}   (layer "
+            f"{'1, Tx, bottom' if layer == 'tx' else '2, Rx, on top of the Tx layer'}; {length:.1f} mm; solder tab ● at "
+            f"the {'end' if base_at_end else 'start'} of the curve)", fontsize=12)
+        scores = [np.count_nonzero(v.visible(points, tolerance)) for v in views]
+        best = np.argsort(scores, kind="stable")[::-1][:views_per_trace]
+        base = points[-1] if base_at_end else points[0]
+        cells = layout.cells
+        mine = (cells.curve_a == step) if base_at_end else (cells.curve_b == step - layout.tx.count)
+        crossings = cells.points[mine].reshape(-1, 3)
+        joints = _arc_points(points, _joint_arcs(outlines, step, base_at_end))
+        for ax, image, v in zip(self.view_axes, self.images, best):
+            view = views[v]
+            image.set_data(self.attached[v])
+            _draw_curve(ax, view, points, tolerance, lw=2.5, color="tab:red" if layer == "rx" else "tab:blue")
+            cx, _ = view.project(crossings[view.visible(crossings, tolerance)])
+            ax.plot(cx[:, 0], cx[:, 1], "o", mfc="white", mec="black", ms=4, mew=0.8)
+            jx, _ = view.project(joints[view.visible(joints, tolerance)])
+            ax.plot(jx[:, 0], jx[:, 1], "x", color="black", ms=8, mew=2)
+            if view.visible(base[None], tolerance)[0]:
+                bx, _ = view.project(base[None])
+                ax.plot(bx[0, 0], bx[0, 1], "o", color="black", ms=7)
+            ax.set_title(frame.name(view.direction), fontsize=9, y=1.0)
+        _draw_pieces(self.fig, self.flat, outlines, np.nonzero(outlines.trace == step)[0])
+        return self.fig
+
+    def attach(self, points: np.ndarray, views, tolerance: float) -> None:
+        """Burn an attached trace into every view's image (thin, dark grey, where visible), so later
+        pages show it without drawing it again."""
+        import cv2  # heavy: imported when used
+
+        for image, view in zip(self.attached, views):
+            px, _ = view.project(points)
+            seen = view.visible(points, tolerance)
+            runs = np.split(np.round(px * 16).astype(np.int32), np.nonzero(np.diff(seen.astype(int)))[0] + 1)
+            starts_seen = seen[0]
+            shown = [run for k, run in enumerate(runs) if (k % 2 == 0) == starts_seen and len(run) > 1]
+            cv2.polylines(image, shown, False, (64, 64, 64), 1, lineType=cv2.LINE_AA, shift=4)
+
+
+def _wiring_pages(figure_type, rows: list[dict]):
+    """The wiring table, ``TABLE_ROWS`` rows a page."""
+    columns = list(rows[0])
+    for start in range(0, len(rows), TABLE_ROWS):
+        fig = figure_type(figsize=PAGE_INCHES)
+        ax = fig.add_axes([0.03, 0.03, 0.94, 0.88])
+        ax.set_axis_off()
+        fig.suptitle("Wiring: solder each tab's wire to its Muca pin (also in wiring.csv)", fontsize=12)
+        chunk = rows[start : start + TABLE_ROWS]
+        table = ax.table(cellText=[[str(r[c]) for c in columns] for r in chunk], colLabels=columns, loc="upper center",
+                         cellLoc="left")
+        table.auto_set_font_size(False)
+        table.set_fontsize(7)
+        table.scale(1.0, 1.15)
+        yield fig
+
+
 @node("fab.assembly_guide", params=Params, inputs=("mesh", "layout", "outlines"), outputs=("files",), sink=True)
 def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOutlines) -> Files:
-    """Write ``assembly_guide.pdf``: per trace in attachment order (Tx then Rx), the trace on the
-    object from the views that show it best, and its flat outline with the channel name."""
+    """Write ``assembly_guide.pdf`` (module docstring) and ``wiring.csv`` (solder tab -> Muca pin)."""
     from matplotlib.backends.backend_pdf import PdfPages  # heavy: imported when used
     from matplotlib.figure import Figure  # no pyplot: no global state, safe in worker threads
 
-    views = [render(mesh, d, params.image_px) for d in candidate_directions()]
+    frame = object_frame(mesh, layout)
+    views = [render(mesh, d, params.image_px, frame) for d in candidate_directions()]
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
+    rows = wiring_rows(layout, outlines)
     buffer = io.BytesIO()
     metadata = {"Title": "retrotouch assembly guide", "Creator": "retrotouch", "CreationDate": source_date()}
+    source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]
     with PdfPages(buffer, metadata=metadata) as pdf:
-        fig = Figure(figsize=(11.69, 8.27))
-        axes = fig.subplots(1, 3)
-        source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]
-        fig.suptitle(f"retrotouch assembly guide: {source}\n{layout.tx.count} Tx (blue) then {layout.rx.count} Rx "
-                     "(red); attach the traces in page order")
-        everything = np.vstack([points for points, _, _ in traces])
-        overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
-        for ax, v in zip(axes, overview[::-1][:3]):
-            view = views[v]
-            ax.imshow(view.shade)
-            for points, name, _ in traces:
-                _draw_curve(ax, view, points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
-            ax.set_axis_off()
-        pdf.savefig(fig)
-        for step, (points, name, base_at_end) in enumerate(traces):
-            scores = [np.count_nonzero(v.visible(points, tolerance)) for v in views]
-            best = np.argsort(scores, kind="stable")[::-1][: params.views_per_trace]
-            fig = Figure(figsize=(11.69, 8.27))
-            length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
-            fig.suptitle(f"Step {step + 1}/{len(traces)}: {name}   ({length:.1f} mm; solder tab at the "
-                         f"{'end' if base_at_end else 'start'} of the curve, marked ●)", fontsize=13)
-            grid = fig.add_gridspec(2, params.views_per_trace, height_ratios=[3, 2])
-            base = points[-1] if base_at_end else points[0]
-            cells = layout.cells
-            mine = (cells.curve_a == step) if base_at_end else (cells.curve_b == step - layout.tx.count)
-            crossings = cells.points[mine].reshape(-1, 3)
-            for col, v in enumerate(best):
-                ax = fig.add_subplot(grid[0, col])
-                view = views[v]
-                ax.imshow(view.shade)
-                for earlier, _, _ in traces[:step]:
-                    _draw_curve(ax, view, earlier, tolerance, lw=0.8, color="0.25")
-                _draw_curve(ax, view, points, tolerance, lw=2.5, color="tab:red" if name.startswith("Rx") else "tab:blue")
-                seen = view.visible(crossings, tolerance)
-                cx, _ = view.project(crossings[seen])
-                ax.plot(cx[:, 0], cx[:, 1], "o", mfc="white", mec="black", ms=4, mew=0.8)
-                if view.visible(base[None], tolerance)[0]:
-                    bx, _ = view.project(base[None])
-                    ax.plot(bx[0, 0], bx[0, 1], "o", color="black", ms=7)
-                ax.set_title(f"view {np.round(view.direction, 2).tolist()}", fontsize=8)
-                ax.set_axis_off()
-            ax = fig.add_subplot(grid[1, :])
-            for i in np.nonzero(outlines.trace == step)[0]:
-                ring = outlines.ring[outlines.ring_offsets[i] : outlines.ring_offsets[i + 1]]
-                ax.fill(ring[:, 0], ring[:, 1], color="#c87533", alpha=0.8, lw=0.5, ec="black")
-                for glyph in outlines.label_polylines(int(i)):
-                    ax.plot(glyph[:, 0], glyph[:, 1], color="blue", lw=0.5)
-                for xy, other in zip(outlines.landmark_xy[outlines.landmark_part == i],
-                                     outlines.landmark_other[outlines.landmark_part == i]):
-                    ax.annotate(outlines.trace_names[other], xy, xytext=(0, -10), textcoords="offset points",
-                                ha="center", fontsize=6, color="0.3")
-                tab = outlines.tab[i]
-                ax.annotate(outlines.names[i], tab.mean(axis=0), xytext=(0, 14), textcoords="offset points",
-                            ha="center", fontsize=10, arrowprops={"arrowstyle": "-"})
-            ax.set_aspect("equal")
-            ax.set_title("flat cut outline (mm, seen from outside); small bulges = landmarks where the named trace "
-                         "of the other layer crosses (○ in the views)", fontsize=9)
+        pdf.savefig(_overview_page(Figure, views, frame, traces, tolerance, source, layout))
+        pages = _TracePages(Figure, views, params.views_per_trace)
+        for step in range(len(traces)):
+            pdf.savefig(pages.draw(step, traces, views, frame, tolerance, layout, outlines, params.views_per_trace))
+            pages.attach(traces[step][0], views, tolerance)
+        for fig in _wiring_pages(Figure, rows):
             pdf.savefig(fig)
-    return Files(contents={"assembly_guide.pdf": buffer.getvalue()})
+    return Files(contents={"assembly_guide.pdf": buffer.getvalue(), "wiring.csv": wiring_csv(rows)})

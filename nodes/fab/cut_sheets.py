@@ -3,24 +3,32 @@
 Per sheet ``n`` (1-based) the sink writes
 
 * ``sheets/sheet_<n>.svg``: root ``width``/``height`` in mm and a ``viewBox`` in mm, so one user unit is
-  1 mm; no ``transform`` anywhere. Group ``id="cut"`` holds ONE compound ``<path>`` with every part as
-  a closed subpath (Cricut Design Space keeps the nesting of a single path; separate paths would be
-  rearranged). Group ``id="labels"`` holds ONE stroke-only ``<path>`` with the channel names as glyph
-  outlines (Design Space ignores ``<text>``): in Design Space set that layer's operation to *Pen* (or
-  hide it) and *Attach* both layers before "Make it" so the pen draws the names on the solder tabs.
+  1 mm; no ``transform`` anywhere; the import steps (:data:`IMPORT_STEPS`) in its ``<desc>``. Group
+  ``id="cut"`` holds ONE compound ``<path>`` with every part as a closed subpath (Cricut Design Space
+  keeps the nesting of a single path; separate paths would be rearranged). Group ``id="labels"``
+  holds ONE stroke-only ``<path>`` with the channel names as glyph outlines, upright on the sheet
+  (Design Space ignores ``<text>`` and imports every path as a cut, whatever its stroke or fill: the
+  user sets this layer to *Pen*, or hides it, and *Attaches* both layers).
 * ``sheets/sheet_<n>.pdf``: the same drawing through cairosvg, page exactly the sheet size.
-* ``sheets/sheet_<n>.dxf``: R2010 DXF in mm (``$INSUNITS`` = 4) with closed LWPOLYLINEs on layer
-  ``CUT`` and the label glyphs on layer ``LABELS`` (for Silhouette Studio Basic and other cutters).
+* ``sheets/sheet_<n>.dxf``: DXF in mm, R2010 (``$INSUNITS`` = 4, LWPOLYLINE) or, with
+  ``dxf_version: R12``, R12 (POLYLINE; no units header) for Silhouette Studio Basic and older
+  readers; closed polylines on layer ``CUT`` (red) and the label glyphs on layer ``LABELS`` (blue),
+  so Silhouette's "action by line color" tells them apart; ``$EXTMIN/$EXTMAX`` = the drawing's
+  bounds, ``$LIMMIN/$LIMMAX`` = the sheet.
 * ``sheets/preview.png``: all sheets side by side on white, mat border in grey.
-* ``sheets/report.json``: sheet size, nester, material use, gaps and where every part went.
+* ``sheets/report.json``: mat (and why), sheet size, nester, material use, gaps, split traces (and
+  why), joints, and where every part went.
 
-SVG y grows downwards; the sheet frame of :mod:`retrotouch.nodes.fab.nesting` has y up, so the writer
-maps ``(x, y) -> (x, H - y)`` (the drawing stays "seen from outside"; no mirroring).
+PDF and DXF creation times come from :mod:`.timestamps` (SOURCE_DATE_EPOCH, else fixed), so two runs
+write the same bytes. SVG y grows downwards; the sheet frame of :mod:`retrotouch.nodes.fab.nesting`
+has y up, so the writer maps ``(x, y) -> (x, H - y)`` (the drawing stays "seen from outside"; no
+mirroring).
 """
 from __future__ import annotations
 
 import io
 import json
+from xml.sax.saxutils import escape
 import re
 from typing import Literal
 
@@ -33,6 +41,16 @@ from .outline import TraceOutlines
 from .timestamps import source_date, with_pdf_creation_date
 from shapely.geometry import LineString
 
+
+IMPORT_STEPS = (
+    "Cut sheets (sheets/sheet_<n>.svg, .dxf, .pdf; every file is the mat at its real size, labels upright):",
+    "  Cricut Design Space: Upload > sheet_<n>.svg > Add to canvas. It arrives as two layers: 'cut' (the traces) and",
+    "  'labels' (the names). Set the labels layer's Operation to Pen (Draw), select both and Attach, then Make it.",
+    "  Without a pen: hide the labels layer. Do not resize: the sheet is at 100 %.",
+    "  Silhouette Studio (Basic reads DXF): Open sheet_<n>.dxf (R12 with dxf_version: R12). Send > Action by Line",
+    "  Color: red (layer CUT) = Cut, blue (layer LABELS) = Sketch with a pen, or off.",
+)
+"""How to import the sheets (each SVG's ``<desc>``, the assembly guide's page 1)."""
 
 class Params(NodeParams):
     preview_px_per_mm: float = Field(2.0, gt=0, le=20, description="preview.png resolution (pixels per mm)")
@@ -51,7 +69,7 @@ def _sheet_geometry(outlines: TraceOutlines, nested: NestedSheets):
         for i in np.nonzero(nested.part_sheet == sheet)[0]:
             rings.append(np.asarray(placed[i].exterior.coords)[:-1])
             names.append(outlines.names[i])
-            for glyph in outlines.label_polylines(int(i)):
+            for glyph in outlines.label_polylines(int(i), float(nested.rotation_deg[i])):
                 line = place(LineString(glyph), float(nested.rotation_deg[i]), nested.translation[i])
                 labels.append(np.asarray(line.coords))
         sheets.append((rings, labels, names))
@@ -74,6 +92,7 @@ def sheet_svg(rings, labels, names, width: float, height: float, number: int, de
         f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width:g}mm" height="{height:g}mm" '
         f'viewBox="0 0 {width:g} {height:g}">\n'
         f"  <title>retrotouch cut sheet {number}: {', '.join(names)}</title>\n"
+        f"  <desc>{escape(chr(10).join(IMPORT_STEPS))}</desc>\n"
         '  <g id="cut">\n'
         f'    <path id="cut-sheet-{number}" fill="#c87533" fill-rule="evenodd" stroke="#000000" stroke-width="0.1" '
         f'd="{_path_data(rings, height, decimals)}"/>\n'
@@ -96,7 +115,7 @@ def sheet_dxf(rings, labels, width: float, height: float, decimals: int, version
     fixed = ezdxf.options.write_fixed_meta_data_for_testing
     ezdxf.options.write_fixed_meta_data_for_testing = True  # fixed GUIDs, marker and times (replaced below)
     try:
-        doc = ezdxf.new(version, setup=False, units=ezdxf.units.MM if version != "R12" else 0)
+        doc = ezdxf.new(version, setup=False, units=ezdxf.units.MM)  # R12 keeps no units (ezdxf warns): mm by convention
         text = _dxf_text(doc, rings, labels, width, height, decimals)
     finally:
         ezdxf.options.write_fixed_meta_data_for_testing = fixed
@@ -120,10 +139,8 @@ def _dxf_text(doc, rings, labels, width: float, height: float, decimals: int) ->
             else:
                 msp.add_lwpolyline(points, close=True, dxfattribs={"layer": layer})
     everything = np.round(np.concatenate(list(rings) + list(labels)), decimals) if len(rings) else np.zeros((1, 2))
-    doc.header["$EXTMIN"] = (*everything.min(axis=0).tolist(), 0.0)
-    doc.header["$EXTMAX"] = (*everything.max(axis=0).tolist(), 0.0)
-    doc.header["$LIMMIN"] = (0.0, 0.0)
-    doc.header["$LIMMAX"] = (float(width), float(height))
+    msp.reset_extents((*everything.min(axis=0).tolist(), 0.0), (*everything.max(axis=0).tolist(), 0.0))
+    msp.reset_limits((0.0, 0.0), (float(width), float(height)))  # the write copies both into the header
     stream = io.StringIO()
     doc.write(stream)
     return stream.getvalue()
@@ -178,7 +195,7 @@ def cut_sheets(params: Params, outlines: TraceOutlines, nesting: NestedSheets) -
         "parts_area_mm2": round(nesting.parts_area_mm2, 3),
         "material_use": round(nesting.material_use, 5),
         "used_length_mm_last_sheet": round(nesting.used_length_mm, 3),
-        "split_traces": list(outlines.split_traces),
+        "split_traces": [{"trace": t, "reason": r} for t, r in zip(outlines.split_traces, outlines.split_reasons)],
         "joints": outlines.joints,
         "parts": [
             {

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 from shapely.geometry import Polygon
 
-MATS_MM = {"12x12": (292.0, 292.0), "12x24": (290.0, 600.0)}
-"""Cut areas of the Cricut mats (width, height) in mm, measured in Design Space; in the order a
-mat is chosen (smallest first)."""
+MATS_MM = {"12x12": (292.1, 292.1), "12x24": (292.1, 596.9)}
+"""Cut areas (width, height) in mm, smallest first (the order ``mat: auto`` tries them): Cricut's
+published maximum cut size on a mat is 11.5 x 11.5 in on the 12 x 12 in mat and 11.5 x 23.5 in on
+the 12 x 24 in mat (Explore / Maker); Silhouette's Cameo mats of the same nominal sizes cut at least
+that much, so these sheets fit both."""
 
 MARGIN_MM = 1.0
 """Default empty border inside the cut area (mm)."""

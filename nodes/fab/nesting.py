@@ -8,7 +8,7 @@ origin, counter-clockwise, then translating by ``translation``; no mirroring, so
 Parts go into the usable rectangle (sheet minus ``margin_mm`` on each side) at least ``spacing_mm``
 apart. ``mat: auto`` takes the smallest mat that holds every part at some rotation (12 x 12 in,
 then 12 x 24 in). The primary nester is :mod:`.raster_nest` (deterministic bottom-left fill on a
-``pixel_mm`` grid, along a strip that runs along the sheet's longer side): it runs with 48, 72, ...
+``pixel_mm`` grid, along a strip that runs along the sheet's longer side): it runs with 72, 96, ...
 up to ``max_rotations`` trial angles per part and stops as soon as a pass no longer saves a sheet
 or shortens the last sheet's strip by ``min_gain``, so its work grows with the parts and with how
 much more angles still help. The fallback (``nester: shelf``, or when the raster result fails the
@@ -33,7 +33,7 @@ from .outline import TraceOutlines
 from .raster_nest import raster_nest
 
 ROTATION_STEP = 24
-"""Trial angles added per raster pass (the first pass has two steps' worth)."""
+"""Trial angles added per raster pass (the first pass has three steps' worth)."""
 
 
 class Params(NodeParams):
@@ -45,7 +45,7 @@ class Params(NodeParams):
     spacing_mm: float = Field(1.0, ge=0, description="smallest gap between two parts (mm)")
     nester: Literal["raster", "shelf"] = Field("raster", description="nesting engine; shelf = simple fallback")
     pixel_mm: float = Field(0.5, gt=0, le=5, description="raster nester cell size (mm)")
-    max_rotations: int = Field(120, ge=2 * ROTATION_STEP, description="most trial angles per part (raster nester)")
+    max_rotations: int = Field(120, ge=3 * ROTATION_STEP, description="most trial angles per part (raster nester)")
     finalists: int = Field(4, ge=1, description="angles per part placed exactly after a coarse ranking")
     min_gain: float = Field(0.01, ge=0, description="relative strip shortening a raster pass must bring to go on")
 
@@ -140,7 +140,7 @@ def _raster(polygons: list[Polygon], params: Params, long_side: float, short_sid
     """Raster passes with more angles until a pass no longer helps; (strip placement, angles)."""
     order = sorted(range(len(polygons)), key=lambda i: (-polygons[i].minimum_rotated_rectangle.area, i))
     best, best_score, best_rotations = None, None, 0
-    for rotations in range(2 * ROTATION_STEP, params.max_rotations + 1, ROTATION_STEP):
+    for rotations in range(3 * ROTATION_STEP, params.max_rotations + 1, ROTATION_STEP):
         strip = raster_nest(polygons, long_side, short_side, params.spacing_mm, params.pixel_mm, rotations,
                             params.finalists, order)
         score = _strip_score(strip, polygons)

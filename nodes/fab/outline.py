@@ -17,6 +17,11 @@ numbered from the base end (``Tx03.1``, ``Tx03.2``...; every piece gets its own 
 base-side end, which overlaps the neighbouring piece on the object and is soldered to it), or, with
 ``on_self_overlap: error``, reported as a UserError. "Far apart along it" means an arc distance
 above pi/2 times the contact distance, which no bend gentler than a half turn reaches.
+
+Mat size: a piece that would not fit the usable area of ``fit_mat`` (inside the default nesting
+margin) at any rotation ends at the last sample where it still does, and the next piece starts
+there, the same way: its tab overlaps the previous piece's end (the joint, soldered on the object),
+so no trace is too long for the cutter. ``TraceOutlines.joints`` counts the joints.
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ from shapely.geometry import LineString, Point, Polygon
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
+from .mats import MARGIN_MM, MATS_MM, points_fit_angles, usable_sides
 from .unfold import UnfoldedTraces, point_at_arc
 
 
@@ -43,6 +49,8 @@ class Params(NodeParams):
     label_margin_mm: float = Field(0.5, ge=0, description="clearance between the label and the tab edge (mm)")
     self_clearance_mm: float = Field(0.5, ge=0, description="smallest gap between two stretches of one trace (mm)")
     on_self_overlap: Literal["split", "error"] = Field("split", description="split self-overlapping traces or fail")
+    fit_mat: Literal["12x12", "12x24", "none"] = Field(
+        "12x12", description="split traces into pieces that fit this mat (inside the default margin); none = never")
     arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
 
 
@@ -68,7 +76,8 @@ class TraceOutlines:
     label_offsets: np.ndarray  # (G + 1,) int64 closed glyph polylines
     label_part: np.ndarray  # (G,) int64
     area_mm2: np.ndarray  # (N,) float64
-    split_traces: tuple[str, ...]  # traces that were split to avoid self-overlap
+    split_traces: tuple[str, ...]  # traces that were split (to avoid self-overlap, or to fit the mat)
+    split_reasons: tuple[str, ...]  # per split trace: "overlaps itself", "longer than the 12x12 mat" or both
     width_mm: float
     pad_radius_mm: float
     landmark_radius_mm: float
@@ -85,10 +94,17 @@ class TraceOutlines:
     def polygon(self, i: int) -> Polygon:
         return Polygon(self.ring[self.ring_offsets[i] : self.ring_offsets[i + 1]])
 
-    def label_polylines(self, i: int) -> list[np.ndarray]:
-        return [
-            self.label[self.label_offsets[g] : self.label_offsets[g + 1]] for g in np.nonzero(self.label_part == i)[0]
-        ]
+    def label_polylines(self, i: int, rotation_deg: float = 0.0) -> list[np.ndarray]:
+        """Glyph outlines of part ``i`` in its frame; turned a half turn about the tab centre when,
+        once the part is rotated CCW by ``rotation_deg``, they would read right to left (or
+        downwards), so that placed they read left to right (or upwards)."""
+        glyphs = [self.label[self.label_offsets[g] : self.label_offsets[g + 1]] for g in np.nonzero(self.label_part == i)[0]]
+        along = self.tab[i, 3] - self.tab[i, 0]  # the reading direction: along the tab, away from the trace
+        reading = (np.degrees(np.arctan2(along[1], along[0])) + rotation_deg) % 360.0
+        if reading <= 90.0 + 1e-6 or reading > 270.0 + 1e-6:
+            return glyphs
+        centre = self.tab[i].mean(axis=0)
+        return [2 * centre - g for g in glyphs]
 
 
 def label_glyphs(text: str, origin: np.ndarray, direction: np.ndarray, box_length: float, box_height: float,
@@ -154,9 +170,10 @@ def _trace_discs(params: Params, unfolded: UnfoldedTraces, c: int):
 
 
 def _split_pieces(params: Params, name: str, points: np.ndarray, arc: np.ndarray, at_end: bool,
-                  discs: tuple) -> list[tuple[float, float]]:
-    """Pieces [u0, u1) of one trace (u = distance from its base end, mm), grown from the base: each
-    piece, with its own solder tab at u0, ends just before its first self-conflict."""
+                  discs: tuple) -> list[tuple[float, float, str]]:
+    """Pieces [u0, u1) of one trace (u = distance from its base end, mm) with the reason each ends
+    ("" for the last), grown from the base: each piece, with its own solder tab at u0, ends just
+    before its first self-conflict, or where it would no longer fit ``fit_mat``."""
     _, _, disc_xy, disc_r, disc_u = discs
     w2, tab_len, tab_w2 = params.width_mm / 2, params.solder_tab_length_mm, params.solder_tab_width_mm / 2
     length = float(arc[-1])
@@ -165,7 +182,7 @@ def _split_pieces(params: Params, name: str, points: np.ndarray, arc: np.ndarray
     arc_of_u = length - u if at_end else u
     centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
     t = np.append(np.arange(0.0, tab_len, step), tab_len)
-    pieces: list[tuple[float, float]] = []
+    pieces: list[tuple[float, float, str]] = []
     u0 = 0.0
     while True:
         tab_xy, tangent = point_at_arc(points, arc, length - u0 if at_end else u0)
@@ -175,20 +192,52 @@ def _split_pieces(params: Params, name: str, points: np.ndarray, arc: np.ndarray
         radius = np.concatenate([np.full(keep_c.sum(), w2), disc_r[keep_d], np.full(len(t), tab_w2)])
         sample_u = np.concatenate([u[keep_c], disc_u[keep_d], u0 - t])
         conflict = _first_conflict(samples, radius, sample_u, params.self_clearance_mm)
-        if conflict is None:
-            pieces.append((u0, np.inf))
+        u1, reason = np.inf, ""
+        if conflict is not None:
+            if params.on_self_overlap == "error":
+                raise UserError(
+                    f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
+                    f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
+                )
+            lo, hi = conflict
+            u1, reason = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step), "overlaps itself"
+            if u1 >= hi:
+                raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
+        fit = _fitting_end(params, samples, radius, sample_u, u0, min(u1, length))
+        if fit is not None:
+            u1, reason = fit, f"longer than the {params.fit_mat} mat"
+        pieces.append((u0, u1, reason))
+        if not np.isfinite(u1):
             return pieces
-        if params.on_self_overlap == "error":
-            raise UserError(
-                f"{name} overlaps itself once unfolded ({conflict[1]:.1f} mm from its base end, "
-                f"{length:.1f} mm long); set on_self_overlap: split, or choose a layout without this curve"
-            )
-        lo, hi = conflict
-        u1 = max(hi - min(0.25 * (hi - max(lo, u0)), 0.5), u0 + step)
-        if u1 >= hi:
-            raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
-        pieces.append((u0, u1))
         u0 = u1
+
+
+def _fitting_end(params: Params, samples: np.ndarray, radius: np.ndarray, sample_u: np.ndarray, u0: float,
+                 u1: float) -> float | None:
+    """None when the piece [u0, u1] (its samples' discs) fits ``fit_mat`` at some rotation, else an
+    end (on the ``width_mm / 2`` sample grid) that cuts [u0, u1] into as few pieces of equal length
+    as the longest fitting piece allows (shorter pieces pack better than one that just fits)."""
+    if params.fit_mat == "none":
+        return None
+    long_side, short_side = usable_sides(*MATS_MM[params.fit_mat], MARGIN_MM)
+    grow = 2 * float(radius.max())
+
+    def fits(end: float) -> bool:
+        inside = sample_u <= end
+        return len(points_fit_angles(samples[inside], long_side - grow, short_side - grow)) > 0
+
+    if fits(u1):
+        return None
+    ends = np.unique(sample_u[(sample_u > u0) & (sample_u < u1)])
+    lo, hi = 0, len(ends) - 1  # binary search for the last end that fits
+    if len(ends) == 0 or not fits(ends[0]):
+        raise UserError(f"a piece of {params.solder_tab_length_mm:g} mm tab and trace does not fit the {params.fit_mat} mat")
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        lo, hi = (mid, hi) if fits(ends[mid]) else (lo, mid - 1)
+    target = u0 + (u1 - u0) / np.ceil((u1 - u0) / (ends[lo] - u0))
+    k = int(np.searchsorted(ends, target, side="right")) - 1
+    return float(ends[min(max(k, 0), lo)])
 
 
 def _tab_corners(tab_xy: np.ndarray, direction: np.ndarray, length: float, half_width: float) -> np.ndarray:
@@ -249,7 +298,7 @@ def _flat(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _assemble(params: Params, unfolded: UnfoldedTraces, parts: list[tuple[str, int, dict]],
-              split: list[str]) -> TraceOutlines:
+              split: list[str], reasons: list[str]) -> TraceOutlines:
     """TraceOutlines from (part name, trace, piece dict) in part order."""
     ring, ring_offsets = _flat([p["ring"] for _, _, p in parts])
     centre, centre_offsets = _flat([p["centre"] for _, _, p in parts])
@@ -280,6 +329,7 @@ def _assemble(params: Params, unfolded: UnfoldedTraces, parts: list[tuple[str, i
         label_part=owner("glyphs"),
         area_mm2=np.asarray([p["area"] for _, _, p in parts], dtype=np.float64),
         split_traces=tuple(split),
+        split_reasons=tuple(reasons),
         width_mm=params.width_mm,
         pad_radius_mm=params.pad_radius_mm,
         landmark_radius_mm=params.landmark_radius_mm,
@@ -290,7 +340,7 @@ def _assemble(params: Params, unfolded: UnfoldedTraces, parts: list[tuple[str, i
 def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
     """Outline every unfolded trace as one closed polygon with landmarks, electrode pads and a named
     solder tab; split (or report) traces whose outline would overlap itself."""
-    parts, split = [], []
+    parts, split, reasons = [], [], []
     for c in range(unfolded.count):
         rows = unfolded.trace(c)
         discs = _trace_discs(params, unfolded, c)
@@ -298,7 +348,8 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
                                bool(unfolded.base_at_end[c]), discs)
         if len(pieces) > 1:
             split.append(unfolded.names[c])
-        for number, (u0, u1) in enumerate(pieces, start=1):
+            reasons.append(", ".join(sorted({r for _, _, r in pieces if r})))
+        for number, (u0, u1, _) in enumerate(pieces, start=1):
             part_name = unfolded.names[c] if len(pieces) == 1 else f"{unfolded.names[c]}.{number}"
             parts.append((part_name, c, _piece(params, unfolded, c, discs, u0, u1, part_name)))
-    return _assemble(params, unfolded, parts, split)
+    return _assemble(params, unfolded, parts, split, reasons)

@@ -1,0 +1,121 @@
+"""Shaded orthographic views of the object for the assembly guide (CPU painter's algorithm).
+
+View conventions: the 14 candidate view directions are the 6 axis directions and the 8 cube
+diagonals of the mesh frame (a view direction points from the object towards the viewer). The
+object's own frame (:class:`ObjectFrame`) names them and keeps them upright: ``up`` (the object
+standing on its base), ``front`` (the mesh axis most perpendicular to ``up``, taken negative, so a
+z-up mesh faces -y) and ``right`` = up x front, on the right of a viewer in front. Image "up" is the object's up projected into the view (``front`` when looking along up).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..data.types import Mesh
+from ..geometry import triangles
+
+SECTORS = ("front", "front right", "right", "back right", "back", "back left", "left", "front left")
+"""Horizontal view sectors, counter-clockwise seen from above, starting at the front."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectFrame:
+    """Unit vectors of the object's own frame in mesh coordinates (module conventions)."""
+
+    up: np.ndarray
+    front: np.ndarray
+    right: np.ndarray
+
+    @classmethod
+    def from_up(cls, up: np.ndarray) -> "ObjectFrame":
+        up = np.asarray(up, float) / np.linalg.norm(up)
+        axes = np.eye(3)[[1, 0, 2]]  # prefer y, then x, then z as the front axis
+        axis = axes[int(np.argmin(np.abs(axes @ up) - 1e-9 * np.arange(3)[::-1]))]
+        front = -(axis - (axis @ up) * up)
+        front /= np.linalg.norm(front)
+        return cls(up, front, np.cross(up, front))
+
+    def name(self, direction: np.ndarray) -> str:
+        """Readable name of a view direction: "front view", "top view", "front left view from above"..."""
+        direction = np.asarray(direction, float) / np.linalg.norm(direction)
+        elevation = float(direction @ self.up)
+        if abs(elevation) > 0.95:
+            return "top view" if elevation > 0 else "bottom view"
+        angle = np.degrees(np.arctan2(direction @ self.right, direction @ self.front)) % 360.0
+        sector = SECTORS[int(np.round(angle / 45.0)) % 8]
+        height = " from above" if elevation > 0.3 else " from below" if elevation < -0.3 else ""
+        return f"{sector} view{height}"
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    direction: np.ndarray  # (3,) unit, towards the viewer
+    right: np.ndarray
+    up: np.ndarray
+    scale: float  # pixels per mm
+    centre: np.ndarray  # (2,) view-plane coordinates of the image centre (mm)
+    size: int
+    shade: np.ndarray  # (size, size, 3) uint8 RGB
+    depth: np.ndarray  # (size, size) float32, towards the viewer (mm); -inf = background
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (x right, y down) and depth of 3D points."""
+        uv = np.stack([points @ self.right, points @ self.up], axis=1) - self.centre
+        px = np.stack([self.size / 2 + uv[:, 0] * self.scale, self.size / 2 - uv[:, 1] * self.scale], axis=1)
+        return px, points @ self.direction
+
+    def visible(self, points: np.ndarray, tolerance_mm: float) -> np.ndarray:
+        px, depth = self.project(points)
+        ij = np.clip(np.round(px).astype(int), 0, self.size - 1)
+        return depth >= self.depth[ij[:, 1], ij[:, 0]] - tolerance_mm
+
+
+def candidate_directions() -> np.ndarray:
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    diagonals = np.array([[x, y, z] for x in (1, -1) for y in (1, -1) for z in (1, -1)]) / np.sqrt(3)
+    return np.vstack([axes, diagonals])
+
+
+def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | None = None) -> View:
+    """Shaded orthographic render of the mesh seen from ``direction`` (painter's algorithm), upright
+    in ``frame`` (default: z up)."""
+    import cv2  # heavy: imported when used
+
+    frame = frame or ObjectFrame.from_up(np.array([0.0, 0.0, 1.0]))
+    up_hint = frame.front if abs(direction @ frame.up) > 0.99 else frame.up
+    right = np.cross(up_hint, direction)
+    right /= np.linalg.norm(right)
+    up = np.cross(direction, right)
+    V, F = mesh.vertices, mesh.faces
+    uv = np.stack([V @ right, V @ up], axis=1)
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    scale = 0.92 * size / max(hi - lo)
+    view = View(direction, right, up, scale, (lo + hi) / 2, size,
+                np.full((size, size, 3), 255, np.uint8), np.full((size, size), -np.inf, np.float32))
+    px, depth = view.project(V)
+    normals, _ = triangles.normals(triangles.corners(V, F))
+    facing = normals @ direction
+    front = np.nonzero(facing > 0)[0]
+    order = front[np.argsort(depth[F[front]].mean(axis=1))]
+    corners = np.round(px[F[order]] * 16).astype(np.int32)  # 4 fractional bits
+    face_id = np.full((size, size), -1, np.int32)
+    for k, f in enumerate(order.tolist()):
+        cv2.fillConvexPoly(face_id, corners[k], f, lineType=cv2.LINE_8, shift=4)
+    covered = face_id >= 0
+    ids = face_id[covered]
+    grey = (70 + 170 * facing[ids]).astype(np.uint8)
+    view.shade[covered] = grey[:, None]
+    # depth of each covered pixel on its face's plane, clamped to the face's depth range
+    yy, xx = np.nonzero(covered)
+    n = normals[ids]
+    nu, nv, nw = n @ right, n @ up, n @ direction
+    p0 = V[F[ids, 0]]
+    du = (xx - size / 2) / scale + view.centre[0] - p0 @ right
+    dv = (size / 2 - yy) / scale + view.centre[1] - p0 @ up
+    plane = p0 @ direction - (nu * du + nv * dv) / np.maximum(nw, 1e-6)
+    face_depths = depth[F[ids]]
+    view.depth[covered] = np.clip(plane, face_depths.min(axis=1), face_depths.max(axis=1))
+    return view
+
+
