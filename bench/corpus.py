@@ -129,20 +129,26 @@ def main() -> None:
         args.cache_dir = args.cache_dir or str(work / "cache")
         os.environ.setdefault("PYTHONHASHSEED", "0")
         rows, failures = [], []
-        header = f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'cells':>6s} {'pads':>5s} {'CV':>6s} {'cov mm':>7s} {'sheets':>6s} {'s':>7s}"
-        print(header, flush=True)
+        print(
+            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'cells':>6s} {'pads':>5s} "
+            f"{'CV':>6s} {'cov mm':>7s} {'sheets':>6s} {'s':>7s}",
+            flush=True,
+        )
         for stem, path, diagonal in corpus(args, work):
             out = work / "out" / re.sub(r"\W", "_", stem)
             out.parent.mkdir(parents=True, exist_ok=True)
             code, stderr, seconds = run_pipeline(path, diagonal, args, out)
-            row: dict[str, object] = {"mesh": stem, "ok": code == 0, "seconds": round(seconds, 1), "diagonal_mm": diagonal}
+            row: dict[str, object] = {
+                "mesh": stem, "ok": code == 0, "seconds": round(seconds, 1), "diagonal_mm": diagonal,
+            }
             if code == 0:
                 row.update(measured(stem, out))
             else:
                 failures.append(failure(stem, stderr))
             rows.append(row)
             print(
-                f"{stem:32s} {'yes' if row['ok'] else 'NO':3s} {row.get('pose', '-'):10s} {fmt(row.get('tipping_deg'), '5.0f')} "
+                f"{stem:32s} {'yes' if row['ok'] else 'NO':3s} {row.get('pose', '-'):10s} "
+                f"{fmt(row.get('tipping_deg'), '5.0f')} "
                 f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
                 f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('coverage_radius_mm'), '7.1f')} "
                 f"{fmt(row.get('sheets'), '6d')} {seconds:7.1f}",
