@@ -216,7 +216,7 @@ def test_remesh_to_vertex_count_lands_within_15_percent() -> None:
 def test_dense_input_is_decimated_before_remeshing() -> None:
     dense = as_mesh(trimesh.creation.icosphere(subdivisions=6, radius=40.0))  # 81,920 faces
     out = remesh(RemeshParams(target_vertices=1000), dense)
-    assert out.repairs[0].startswith("decimated a dense input from 81,920 to 8,000 faces")
+    assert out.repairs[0].startswith("decimated a dense input from 81,920 to 4,000 faces")
     assert abs(len(out.vertices) - 1000) / 1000 < 0.15
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
 
@@ -301,3 +301,12 @@ def test_shared_meshes_load_as_genus_zero(name: str) -> None:
     mesh = scale_mesh(ScaleParams(diagonal_mm=150.0), load_mesh(LoadParams(path=str(path))))
     report = check_topology(CheckTopologyParams(), mesh)["report"]
     assert report["genus"] == 0 and report["components"] == 1 and report["boundary_edges"] == 0
+
+
+def test_noisy_dense_scan_is_decimated_and_remeshed_to_its_target() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=40.0)  # 81,920 faces
+    noisy = sphere.vertices + np.random.default_rng(0).normal(scale=0.3, size=sphere.vertices.shape)
+    out = remesh(RemeshParams(target_vertices=1000), Mesh(np.asarray(noisy), np.asarray(sphere.faces, dtype=np.int64), "scan"))
+    assert abs(len(out.vertices) - 1000) / 1000 <= 0.10, len(out.vertices)
+    assert out.repairs[0].startswith("decimated a dense input from 81,920 to 4,000 faces")
+    assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0

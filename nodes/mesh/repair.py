@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 DECIMATE_ABOVE = 8
 """mesh.remesh decimates an input with more than this many times the target's faces ..."""
-DECIMATE_TO = 4
+DECIMATE_TO = 2
 """... to this many times the target's faces (quadric edge collapse), before remeshing."""
 TARGET_TOLERANCE = 0.10
 """mesh.remesh: a vertex count within this share of the target is on target."""
@@ -198,7 +198,9 @@ def isotropic_remesh(
     return from_meshset(meshset)
 
 
-def decimate_dense(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray, str | None]:
+def decimate_dense(
+    vertices: np.ndarray, faces: np.ndarray, target_faces: int
+) -> tuple[np.ndarray, np.ndarray, str | None]:
     """A mesh with more than ``DECIMATE_ABOVE x target_faces`` faces decimated (quadric edge
     collapse, topology kept) to ``DECIMATE_TO x target_faces``, and a line saying so."""
     if len(faces) <= DECIMATE_ABOVE * target_faces:
@@ -212,21 +214,37 @@ def decimate_dense(vertices: np.ndarray, faces: np.ndarray, target_faces: int) -
     return decimated_vertices, decimated_faces, note
 
 
-def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[np.ndarray, np.ndarray]:
+def remesh_to_count(
+    vertices: np.ndarray, faces: np.ndarray, params: RemeshParams
+) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Remesh to about ``params.target_vertices``: the equilateral edge estimate, corrected by
-    ``sqrt(V_got / V_target)`` until within ``TARGET_TOLERANCE`` (at most ``max_passes``)."""
+    ``sqrt(V_got / V_target)`` until within ``TARGET_TOLERANCE`` (at most ``max_passes``).
+
+    A noisy scan is full of dihedral angles above ``feature_angle_deg`` that the remesher keeps as
+    creases and will not collapse, so it stays far above the target: after a pass that lands above
+    it by more than the tolerance, the remaining passes keep no creases (the returned line says so).
+    """
     target = params.target_vertices
     edge = edge_length_for_vertices(float(areas(corners(vertices, faces)).sum()), target)
-    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    feature_angle, first_count = params.feature_angle_deg, None
+    best: tuple[float, np.ndarray, np.ndarray, float] | None = None
     for _ in range(params.max_passes):
-        got_vertices, got_faces = isotropic_remesh(vertices, faces, edge, params.iterations, params.feature_angle_deg)
+        got_vertices, got_faces = isotropic_remesh(vertices, faces, edge, params.iterations, feature_angle)
         error = abs(len(got_vertices) - target) / target
         if best is None or error < best[0]:
-            best = (error, got_vertices, got_faces)
+            best = (error, got_vertices, got_faces, feature_angle)
         if error <= TARGET_TOLERANCE:
             break
-        edge *= math.sqrt(len(got_vertices) / target)
-    return best[1], best[2]
+        if len(got_vertices) > target and feature_angle < 180.0:
+            feature_angle, first_count = 180.0, len(got_vertices)
+        else:
+            edge *= math.sqrt(len(got_vertices) / target)
+    _, got_vertices, got_faces, used_angle = best
+    note = None
+    if used_angle != params.feature_angle_deg:
+        note = (f"kept no creases: with creases over {params.feature_angle_deg:g} deg kept, remeshing gave "
+                f"{first_count:,} vertices for {target:,} (a noisy surface)")
+    return got_vertices, got_faces, note
 
 
 @node("mesh.remesh", params=RemeshParams, inputs=("mesh",), outputs=("mesh",))
@@ -241,9 +259,12 @@ def remesh(params: RemeshParams, mesh: Mesh) -> Mesh:
     vertices, faces, note = decimate_dense(mesh.vertices, mesh.faces, target_faces)
     done = [note] if note else []
     if params.target_edge_mm is not None:
-        vertices, faces = isotropic_remesh(vertices, faces, params.target_edge_mm, params.iterations, params.feature_angle_deg)
+        vertices, faces = isotropic_remesh(
+            vertices, faces, params.target_edge_mm, params.iterations, params.feature_angle_deg
+        )
     else:
-        vertices, faces = remesh_to_count(vertices, faces, params)
+        vertices, faces, creases = remesh_to_count(vertices, faces, params)
+        done += [creases] if creases else []
         miss = abs(len(vertices) - params.target_vertices) / params.target_vertices
         if miss > TARGET_TOLERANCE:
             line = (f"remeshing missed its target: {len(vertices):,} vertices for {params.target_vertices:,} "

@@ -1,0 +1,179 @@
+"""Corpus benchmark: the default pipeline, with no overrides, on every object a user may bring.
+
+Runs ``retrotouch run pipelines/retrofit.yaml -S mesh=PATH -S diagonal_mm=D -S vertices=N`` (one
+fresh process per mesh, a shared cache folder) on every mesh in ``--meshes`` (default
+``../shared/meshes``) and on one generated shape per class of ``tests/shapes.py`` (a plate, a bowl
+with a foot ring, a four-legged figurine, a lying spoon-like object, a bust with a cut base, a box,
+a point-cloud scan with holes and fragments; written at their natural size). ``--sizes FILE.json``
+maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the generated shapes
+keep their own size). The pose and base kind are read back by running ``regions.detect`` on the
+run's ``mesh.ply``.
+
+Prints one row per mesh (mesh, ok, pose and base kind, base area %, cells, pads, Voronoi CV,
+coverage radius mm, sheets, seconds) and, as the LAST line, one JSON object with ``meshes``,
+``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
+``median_cells``, the worst cases and per-row details. Usage::
+
+    python bench/corpus.py [--meshes DIR] [--sizes FILE.json] [--vertices N] [--angles -20,0,20]
+                           [--only STEM ...] [--no-shapes] [--cache-dir DIR] [--timeout S]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))  # the generated shapes are test fixtures, shared with the e2e tests
+
+import shapes  # noqa: E402
+
+from retrotouch.nodes.data.types import Mesh  # noqa: E402
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions  # noqa: E402
+
+DEFAULT_DIAGONAL_MM = 170.0
+ERROR_LINE = re.compile(r"error: node (?P<node>[\w.\-]+)(?:\[[^\]]*\])?: (?P<message>.*)")
+
+
+def run_pipeline(mesh_path: Path, diagonal_mm: float, args: argparse.Namespace, out: Path) -> tuple[int, str, float]:
+    """``(exit code, stderr, seconds)`` of one default-pipeline run into ``out``."""
+    command = [
+        sys.executable, "-m", "retrotouch.nodes", "run", str(REPO / "pipelines" / "retrofit.yaml"),
+        "--out", str(out), "--cache-dir", str(args.cache_dir),
+        "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={diagonal_mm}", "-S", f"vertices={args.vertices}",
+    ]
+    if args.angles:
+        command += ["-S", f"rx_angles_deg=[{args.angles}]"]
+    start = time.perf_counter()
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=args.timeout, cwd=out.parent)
+        code, stderr = done.returncode, done.stderr
+    except subprocess.TimeoutExpired:
+        code, stderr = -1, f"error: node timeout: no result within {args.timeout} s"
+    return code, stderr, time.perf_counter() - start
+
+
+def failure(stem: str, stderr: str) -> dict[str, str]:
+    """``{mesh, node, message}`` from a failed run's stderr (its last error line)."""
+    for line in reversed(stderr.strip().splitlines()):
+        match = ERROR_LINE.search(line)
+        if match:
+            return {"mesh": stem, "node": match["node"], "message": match["message"][:300]}
+    tail = stderr.strip().splitlines()[-1] if stderr.strip() else "no output"
+    return {"mesh": stem, "node": "?", "message": tail[:300]}
+
+
+def measured(stem: str, out: Path) -> dict[str, object]:
+    """The row of a successful run: layout metrics, sheet count, pose and base."""
+    metrics = json.loads((out / "metrics.json").read_text())
+    report = json.loads((out / "sheets" / "report.json").read_text())
+    sheet_count = report.get("sheet", {}).get("count")
+    checked = trimesh.load(str(out / "mesh.ply"), process=False)
+    mesh = Mesh(np.asarray(checked.vertices, dtype=np.float64), np.asarray(checked.faces, dtype=np.int64), stem)
+    regions = detect_regions(RegionParams(), mesh)
+    return {
+        "pose": regions.pose_kind,
+        "tipping_deg": round(regions.tipping_angle_deg, 1),
+        "base_percent": round(100 * regions.base_area_fraction, 2),
+        "cells": metrics.get("cells"),
+        "pads": metrics.get("pads"),
+        "voronoi_cv": metrics.get("voronoi_cv"),
+        "coverage_radius_mm": metrics.get("coverage_radius_mm"),
+        "sheets": sheet_count,
+    }
+
+
+def corpus(args: argparse.Namespace, work: Path) -> list[tuple[str, Path, float]]:
+    """``(stem, path, diagonal mm)`` of every mesh to run."""
+    sizes = json.loads(Path(args.sizes).read_text()) if args.sizes else {}
+    items = []
+    folder = Path(args.meshes)
+    if folder.is_dir():
+        for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".obj", ".stl", ".off", ".glb")):
+            items.append((path.stem, path, float(sizes.get(path.stem, DEFAULT_DIAGONAL_MM))))
+    if not args.no_shapes:
+        for name in shapes.CLASSES:
+            path = shapes.write_shape(name, work)
+            items.append((f"shape:{name}", path, float(sizes.get(name, shapes.diagonal_mm(name)))))
+    if args.only:
+        items = [item for item in items if item[0] in args.only or item[0].removeprefix("shape:") in args.only]
+    return items
+
+
+def fmt(value: object, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--meshes", default=str(REPO.parent / "shared" / "meshes"))
+    parser.add_argument("--sizes", default=None, help="JSON file: mesh stem -> bounding-box diagonal (mm)")
+    parser.add_argument("--vertices", type=int, default=20000)
+    parser.add_argument("--angles", default="", help="Rx angles (deg, comma-separated); default: the pipeline's")
+    parser.add_argument("--only", nargs="*", default=None, help="run only these stems / shape classes")
+    parser.add_argument("--no-shapes", action="store_true", help="skip the generated shapes")
+    parser.add_argument("--cache-dir", default=None, help="cache folder (default: a fresh temporary one)")
+    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds per mesh")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="retrotouch-corpus-") as tmp:
+        work = Path(tmp)
+        args.cache_dir = args.cache_dir or str(work / "cache")
+        os.environ.setdefault("PYTHONHASHSEED", "0")
+        rows, failures = [], []
+        print(
+            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'cells':>6s} {'pads':>5s} "
+            f"{'CV':>6s} {'cov mm':>7s} {'sheets':>6s} {'s':>7s}",
+            flush=True,
+        )
+        for stem, path, diagonal in corpus(args, work):
+            out = work / "out" / re.sub(r"\W", "_", stem)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            code, stderr, seconds = run_pipeline(path, diagonal, args, out)
+            row: dict[str, object] = {
+                "mesh": stem, "ok": code == 0, "seconds": round(seconds, 1), "diagonal_mm": diagonal,
+            }
+            if code == 0:
+                row.update(measured(stem, out))
+            else:
+                failures.append(failure(stem, stderr))
+            rows.append(row)
+            print(
+                f"{stem:32s} {'yes' if row['ok'] else 'NO':3s} {row.get('pose', '-'):10s} "
+                f"{fmt(row.get('tipping_deg'), '5.0f')} "
+                f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
+                f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('coverage_radius_mm'), '7.1f')} "
+                f"{fmt(row.get('sheets'), '6d')} {seconds:7.1f}",
+                flush=True,
+            )
+            if code != 0:
+                print(f"    {failures[-1]['node']}: {failures[-1]['message']}", flush=True)
+    good = [r for r in rows if r["ok"]]
+    cvs = [r["voronoi_cv"] for r in good if r.get("voronoi_cv") is not None]
+    cells = [r["cells"] for r in good if r.get("cells") is not None]
+    summary = {
+        "meshes": len(rows),
+        "succeeded": len(good),
+        "failures": failures,
+        "median_voronoi_cv": float(np.median(cvs)) if cvs else None,
+        "worst_voronoi_cv": max(cvs) if cvs else None,
+        "median_cells": float(np.median(cells)) if cells else None,
+        "fewest_cells": min(cells) if cells else None,
+        "median_seconds": float(np.median([r["seconds"] for r in rows])) if rows else None,
+        "slowest_seconds": max((r["seconds"] for r in rows), default=None),
+        "vertices": args.vertices,
+        "rows": rows,
+    }
+    print(json.dumps(summary, separators=(",", ":")))
+
+
+if __name__ == "__main__":
+    main()
