@@ -8,7 +8,8 @@ diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``c
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
 fields, shared by all branches) + ``layout.optimize`` for the 11 angles on ``--jobs`` processes
 (joblib/loky; each process factorises the heat operators once) + ``layout.pick_best``. The sweep is
-run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``).
+run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``; skipped with
+``--no-ablation``).
 ``voronoi_cv_fps_all_candidates`` is a reference for what the curve families allow: as many pads
 as chosen, spread by farthest-point sampling over all candidate crossings of the chosen angle.
 
@@ -29,7 +30,8 @@ from retrotouch.nodes.curves.connection import ConnectionParams, connection
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.problem import candidate_crossings
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
-from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.layout.pick import PickParams, pick_best
+from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -94,6 +96,7 @@ def main() -> None:
     parser.add_argument("--vertices", type=int, default=20000, help="remesh target vertex count")
     parser.add_argument("--jobs", type=int, default=2, help="processes for the angle branches")
     parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
+    parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
     args = parser.parse_args()
 
     start = time.perf_counter()
@@ -101,14 +104,17 @@ def main() -> None:
     curves_s = time.perf_counter() - start
 
     with_secondary, sweep_s, samples_s = sweep(OptimizeParams(), mesh, regions, tx, branches, args.jobs)
-    without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
-    m, m_off = with_secondary["metrics"], without["metrics"]
+    m = with_secondary["metrics"]
+    m_off, sweep_off_s = {"voronoi_cv": None, "chosen_angle_deg": None, "mean_distance_mm": None}, 0.0
+    if not args.no_ablation:
+        without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
+        m_off = without["metrics"]
     chosen_branch = branches[ANGLES.index(round(m["chosen_angle_deg"]))]
     reference_cv = candidate_cv_reference(mesh, regions.sensing_faces, tx, chosen_branch[1], m["pads"])
     print(f"curves (prep) {curves_s:.1f} s; samples {samples_s:.1f} s; sweep {sweep_s:.1f} s; "
           f"sweep without secondary {sweep_off_s:.1f} s")
     print(f"chosen angle {m['chosen_angle_deg']:+.0f} deg: Voronoi CV {m['voronoi_cv']:.3f} "
-          f"(without secondary {m_off['voronoi_cv']:.3f}, angle {m_off['chosen_angle_deg']:+.0f}), "
+          f"(without secondary {m_off['voronoi_cv']}, angle {m_off['chosen_angle_deg']}), "
           f"{m['pads']} pads of {m['cells']} cells, radius {m['coverage_radius_mm']:.1f} mm, "
           f"mean {m['mean_distance_mm']:.2f} mm, min pad spacing {m['min_pad_spacing_mm']:.1f} mm")
     print(f"reference: {m['pads']} pads by farthest-point sampling over all candidate crossings of that "
@@ -122,6 +128,14 @@ def main() -> None:
         "jobs": args.jobs,
         "chosen_angle_deg": m["chosen_angle_deg"],
         "voronoi_cv": m["voronoi_cv"],
+        "voronoi_cv_pads": m["voronoi_cv_pads"],
+        "voronoi_cv_all_crossings": m["voronoi_cv_all_crossings"],
+        "channel_pairs": m["channel_pairs"],
+        "min_same_layer_clearance_mm": m["min_same_layer_clearance_mm"],
+        "share_closer_than_bound": {layer: c["share_closer_than_bound"] for layer, c in m["same_layer_clearance"].items()},
+        "phase1_gap": m["phase1_gap"],
+        "phase1_gap_worst_branch": max((r["gap"] for r in m["angles"] if r["gap"] is not None), default=None),
+        "branch_notes": {f"{r['angle_deg']:+.0f}": r["note"] for r in m["angles"] if r["note"]},
         "voronoi_cv_without_secondary": m_off["voronoi_cv"],
         "pads": m["pads"],
         "cells": m["cells"],

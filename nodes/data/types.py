@@ -86,14 +86,22 @@ class Crossings:
     bary: np.ndarray  # (K, 3) float64
 
 
+PAD_RADIUS_MM = 2.0  # electrode pad radius before any relaxation
+TRACE_WIDTH_MM = 1.0  # conductive trace width
+CLEARANCE_MM = 1.0  # edge-to-edge gap between two traces of one layer
+
+
 @dataclasses.dataclass(frozen=True)
 class Layout:
-    """The optimised sensor layout on one mesh.
+    """The optimised sensor layout on one mesh, with the design values it was made for.
 
     ``tx``/``rx`` hold only the selected curves, in channel order (Tx00 is ``tx`` curve 0).
     ``cells`` are their Tx x Rx crossings with ``curve_a`` = Tx channel and ``curve_b`` = Rx channel,
     at most one row per channel pair; ``pad[k]`` says whether an electrode pad is placed at row k.
     ``tx_source``/``rx_source`` map channels back to curve ids in the candidate families.
+    ``pad_radius_mm`` and ``d_min_mm`` are the pad radius and geodesic pad spacing actually used
+    (after any relaxation); two traces of one layer keep ``trace_width_mm + clearance_mm`` between
+    their centre lines. Outlines, textures, projection and the sensing map read them from here.
     """
 
     tx: CurveSet
@@ -102,6 +110,10 @@ class Layout:
     pad: np.ndarray  # (K,) bool
     tx_source: np.ndarray  # (Ntx,) int64
     rx_source: np.ndarray  # (Nrx,) int64
+    pad_radius_mm: float = PAD_RADIUS_MM
+    d_min_mm: float = 4.0 * PAD_RADIUS_MM
+    trace_width_mm: float = TRACE_WIDTH_MM
+    clearance_mm: float = CLEARANCE_MM
 
 
 SENSING_MAP_FORMAT = "retrotouch.sensing_map/1"
@@ -110,6 +122,7 @@ SENSING_MAP_FORMAT = "retrotouch.sensing_map/1"
     {"format": "retrotouch.sensing_map/1",
      "units": "mm",
      "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
+     "design": {"pad_radius_mm": 2.0, "d_min_mm": 8.0, "trace_width_mm": 1.0, "clearance_mm": 1.0},  # as laid out
      "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
      "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
                   "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},

@@ -3,9 +3,9 @@
 Each unfolded trace (:class:`retrotouch.nodes.fab.unfold.UnfoldedTraces`, same 2D frame: mm, seen from
 outside, base end at the origin) becomes one closed polygon without holes, the union of
 
-* the centreline buffered to ``width_mm`` (round caps and joins),
+* the centreline buffered to the layout's ``trace_width_mm`` (round caps and joins),
 * a landmark disc of ``landmark_radius_mm`` at every crossing with the other layer (0 disables),
-* an electrode pad disc of ``pad_radius_mm`` centred at every pad position of the unfolding,
+* an electrode pad disc of the layout's ``pad_radius_mm`` centred at every pad position of the unfolding,
 * a rectangular solder tab ``solder_tab_length_mm`` x ``solder_tab_width_mm`` continuing the trace
   beyond its base end along the end tangent; the channel name (``Tx03``) is written inside the tab
   as glyph outlines (the label layer, drawn with a pen, never cut). The tab is where the wire is
@@ -34,9 +34,7 @@ from .unfold import UnfoldedTraces, point_at_arc
 
 
 class Params(NodeParams):
-    width_mm: float = Field(1.0, gt=0, description="trace width (mm)")
     landmark_radius_mm: float = Field(1.0, ge=0, description="landmark disc radius at every crossing (mm); 0 = none")
-    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad radius (mm)")
     solder_tab_length_mm: float = Field(9.0, gt=0, description="solder tab length beyond the base end (mm)")
     solder_tab_width_mm: float = Field(4.0, gt=0, description="solder tab width (mm)")
     label_height_mm: float = Field(2.4, gt=0, description="largest label glyph height (mm); shrunk to fit the tab")
@@ -138,7 +136,7 @@ def _sub_polyline(points: np.ndarray, arc: np.ndarray, a0: float, a1: float) -> 
 def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
     """Outline every unfolded trace as one closed polygon with landmarks, electrode pads and a named
     solder tab; split (or report) traces whose outline would overlap itself."""
-    w2 = params.width_mm / 2
+    w2 = unfolded.trace_width_mm / 2
     tab_len, tab_w2 = params.solder_tab_length_mm, params.solder_tab_width_mm / 2
     parts: dict[str, list] = {k: [] for k in ("name", "trace", "arc", "ring", "centre", "tab", "area")}
     pads, landmarks, labels = [], [], []
@@ -155,13 +153,13 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
         # u = distance from the base end along the trace; pieces [u0, u1) are grown from the base:
         # each piece, with its own solder tab at u0, ends just before its first self-conflict
         u_of = (lambda a: length - a) if at_end else (lambda a: a)
-        step = params.width_mm / 2
+        step = unfolded.trace_width_mm / 2
         u = np.append(np.arange(0.0, length, step), length)
         arc_of_u = length - u if at_end else u
         centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
         disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
         disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, w2)),
-                                 np.full(len(pad_marks), params.pad_radius_mm)])
+                                 np.full(len(pad_marks), unfolded.pad_radius_mm)])
         disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
         t = np.append(np.arange(0.0, tab_len, step), tab_len)
         pieces: list[tuple[float, float]] = []
@@ -213,7 +211,7 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
                     shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
                     landmarks.append((part, unfolded.mark_xy[m], int(unfolded.mark_other[m])))
             for m in pad_marks[(pad_u >= u0) & (pad_u < u1)]:
-                shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
+                shapes.append(Point(unfolded.pad_xy[m]).buffer(unfolded.pad_radius_mm, quad_segs=params.arc_segments))
                 pads.append((part, unfolded.pad_xy[m]))
             shape = shapely.unary_union(shapes)
             if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
@@ -261,7 +259,7 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
         label_part=np.asarray([i for i, _ in labels], dtype=np.int64),
         area_mm2=np.asarray(parts["area"], dtype=np.float64),
         split_traces=tuple(split),
-        width_mm=params.width_mm,
-        pad_radius_mm=params.pad_radius_mm,
+        width_mm=unfolded.trace_width_mm,
+        pad_radius_mm=unfolded.pad_radius_mm,
         landmark_radius_mm=params.landmark_radius_mm,
     )

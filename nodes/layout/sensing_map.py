@@ -48,6 +48,8 @@ def sensing_map(layout: Layout, mesh: Mesh, mesh_bytes: bytes) -> dict:
         "units": "mm",
         "mesh": {"file": "mesh.ply", "sha256": hashlib.sha256(mesh_bytes).hexdigest(),
                  "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))},
+        "design": {"pad_radius_mm": float(layout.pad_radius_mm), "d_min_mm": float(layout.d_min_mm),
+                   "trace_width_mm": float(layout.trace_width_mm), "clearance_mm": float(layout.clearance_mm)},
         "tx_channels": int(layout.tx.count),
         "rx_channels": int(layout.rx.count),
         "channels": {"tx": channels(layout.tx, layout.tx_source, "Tx"),

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from ...graph.errors import UserError
-from ..data.types import CurveSet, Layout, Mesh
+from ..data.types import PAD_RADIUS_MM, CurveSet, Layout, Mesh
 from .calibration import DeviceIntrinsics
 
 SCENE_FORMAT = "retrotouch.projection_scene/1"
@@ -197,6 +197,7 @@ class ProjectionScene:
     crossing_points: np.ndarray  # (K, 3)
     crossing_normals: np.ndarray  # (K, 3)
     pad: np.ndarray  # (K,) bool
+    pad_radius_mm: float = PAD_RADIUS_MM  # the layout's pad radius
     atlas_vertex_map: np.ndarray | None = None  # (n',) int64
     atlas_faces: np.ndarray | None = None  # (m, 3) int64
     atlas_uv: np.ndarray | None = None  # (n', 2) float64
@@ -223,6 +224,7 @@ def build_scene(mesh: Mesh, layout: Layout) -> ProjectionScene:
         crossing_points=np.asarray(layout.cells.points, np.float64),
         crossing_normals=interpolated_normals(mesh, layout.cells.faces, layout.cells.bary),
         pad=np.asarray(layout.pad, bool),
+        pad_radius_mm=float(layout.pad_radius_mm),
     )
 
 
@@ -236,6 +238,7 @@ def save_scene(scene: ProjectionScene) -> bytes:
         "crossing_points": scene.crossing_points,
         "crossing_normals": scene.crossing_normals,
         "pad": scene.pad,
+        "pad_radius_mm": np.array(scene.pad_radius_mm),
     }
     if scene.atlas_uv is not None:
         arrays["atlas_vertex_map"] = scene.atlas_vertex_map
@@ -276,6 +279,7 @@ def load_scene(path: Path) -> ProjectionScene:
             crossing_points=data["crossing_points"],
             crossing_normals=data["crossing_normals"],
             pad=data["pad"],
+            pad_radius_mm=float(data["pad_radius_mm"]) if "pad_radius_mm" in data else PAD_RADIUS_MM,
             atlas_vertex_map=data["atlas_vertex_map"] if textured else None,
             atlas_faces=data["atlas_faces"] if textured else None,
             atlas_uv=data["atlas_uv"] if textured else None,
@@ -295,7 +299,6 @@ class RenderStyle:
     crossing_bgr: tuple[int, int, int] = (0, 255, 255)
     pad_bgr: tuple[int, int, int] = (0, 160, 255)
     crossing_radius_mm: float = 1.0
-    pad_radius_mm: float = 2.0
     depth_tolerance_mm: float = 2.0
     max_incidence_deg: float = 80.0
     landmark_max_incidence_deg: float = 60.0  # crossings/pads: steeper spots smear and shift with pose error
@@ -404,7 +407,7 @@ def render_layers(
         for (u, v), z, has_pad in zip(cross_uv, cross_dev[:, 2], scene.pad[cross_vis]):
             centre = (int(round(u * scale)), int(round(v * scale)))
             if has_pad:
-                r = int(round(style.pad_radius_mm * f_px / z * scale))
+                r = int(round(scene.pad_radius_mm * f_px / z * scale))
                 cv2.circle(img, centre, r, style.pad_bgr, -1, cv2.LINE_AA, shift)
             r = int(round(style.crossing_radius_mm * f_px / z * scale))
             cv2.circle(img, centre, r, style.crossing_bgr, max(1, style.line_px // 2), cv2.LINE_AA, shift)
