@@ -76,7 +76,15 @@ def test_curves_from_a_common_start_are_trimmed_where_they_have_room():
     first = start_trims(curves, EVERYWHERE, 2.0, free_start_mm=20.0)
     trimmed, cut = trim_starts(curves, first)
     np.testing.assert_allclose(cut, first * 0.5)  # rows every 0.5 mm
-    assert np.all((cut >= 5.76) & (cut <= 5.76 + 0.25 + 0.5 + 1e-9))  # conservative by one step, then one row
+    assert cut[0] == 0.0  # the first curve in spread order reaches the pole
+    assert 5.76 <= cut[1] <= 5.76 + 0.25 + 0.5 + 1e-9  # conservative by one step, then one row
     np.testing.assert_allclose(trimmed.lengths_mm, 40.0 - cut)
     assert clearance_profile(trimmed, EVERYWHERE, 2.0)["min_centre_distance_mm"] >= 2.0
     assert trimmed.offsets[-1] == len(trimmed.points) == 2 * 81 - first.sum()
+
+
+def test_spread_order_covers_the_range_evenly():
+    from retrotouch.nodes.layout.clearance import spread_order
+
+    assert spread_order(8).tolist() == [0, 4, 2, 6, 1, 5, 3, 7]
+    assert sorted(spread_order(21).tolist()) == list(range(21))

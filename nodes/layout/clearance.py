@@ -97,26 +97,36 @@ def clearance_profile(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, 
     }
 
 
+def spread_order(n: int) -> np.ndarray:
+    """0..n-1 in van der Corput order (0, n/2, n/4, 3n/4, ...): every prefix is spread over the range."""
+    bits = max(1, int(np.ceil(np.log2(max(n, 2)))))
+    reversed_bits = np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in range(2**bits)])
+    return reversed_bits[reversed_bits < n]
+
+
 def start_trims(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_start_mm: float,
                 step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:
-    """Per curve, the row from which it keeps ``bound_mm`` from every other curve of the family
-    inside ``face_mask``: the first row after the last point of its first ``free_start_mm`` that
-    comes closer (conservatively, below ``bound_mm + step_mm``). 0 when it has room from the start."""
+    """Per curve, the row from which it keeps ``bound_mm`` from the curves kept before it inside
+    ``face_mask``: curves are taken in :func:`spread_order` of their index (their angular order at the
+    pole), and each is cut after the last point of its first ``free_start_mm`` that comes closer
+    (conservatively, below ``bound_mm + step_mm``) to an earlier one, as trimmed. So one curve of each
+    converging bundle reaches the pole and the others stop where they have room; 0 = untouched."""
     from scipy.spatial import cKDTree
 
     points, curve, length, arc = resample(curves, face_mask, step_mm)
     arcs = row_arcs(curves)
     first = np.zeros(curves.count, dtype=np.int64)
-    for c in range(curves.count):
-        own = (curve == c) & (arc < free_start_mm)
-        others = curve != c
-        if not own.any() or not others.any():
-            continue
-        near = cKDTree(points[others]).query(points[own], distance_upper_bound=bound_mm + step_mm)[0] < np.inf
-        if near.any():
-            cut = float((arc[own][near] + 0.5 * length[own][near]).max())
-            lo, hi = int(curves.offsets[c]), int(curves.offsets[c + 1])
-            first[c] = min(int(np.searchsorted(arcs[lo:hi], cut)), hi - lo - 2)
+    kept = np.zeros(len(points), dtype=bool)
+    for c in spread_order(curves.count):
+        own = curve == c
+        if kept.any():
+            zone = own & (arc < free_start_mm)
+            near = cKDTree(points[kept]).query(points[zone], distance_upper_bound=bound_mm + step_mm)[0] < np.inf
+            if near.any():
+                cut = float((arc[zone][near] + 0.5 * length[zone][near]).max())
+                lo, hi = int(curves.offsets[c]), int(curves.offsets[c + 1])
+                first[c] = min(int(np.searchsorted(arcs[lo:hi], cut)), hi - lo - 2)
+        kept |= own & (arc >= arcs[int(curves.offsets[c]) + first[c]])
     return first
 
 

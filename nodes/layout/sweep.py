@@ -73,7 +73,7 @@ class OptimizeParams(NodeParams):
         True, description="phase 1 never selects two curves of one layer closer than trace width + clearance"
     )
     tx_free_start_mm: float = Field(
-        30.0, ge=0, description="Tx curves may come closer within this arc length of their free start (near the "
+        60.0, ge=0, description="Tx curves may come closer within this arc length of their free start (near the "
         "pole); the selected ones are trimmed there until they have room (mm)"
     )
     relax_pad_radii_mm: tuple[float, ...] = Field(
