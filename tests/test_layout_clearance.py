@@ -88,3 +88,14 @@ def test_spread_order_covers_the_range_evenly():
 
     assert spread_order(8).tolist() == [0, 4, 2, 6, 1, 5, 3, 7]
     assert sorted(spread_order(21).tolist()) == list(range(21))
+
+
+def test_a_free_start_next_to_the_middle_of_another_curve_still_conflicts():
+    x = np.linspace(0.0, 50.0, 101)
+    a = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)  # its first 10 mm run beside b's last 10 mm
+    b = np.stack([x - 40.0, np.ones_like(x), np.zeros_like(x)], axis=1)
+    curves = CurveSet(layer="tx", points=np.vstack([a, b]), faces=np.zeros(202, dtype=np.int64),
+                      bary=np.full((202, 3), 1 / 3), offsets=np.array([0, 101, 202]), lengths_mm=np.full(2, 50.0),
+                      end_reason=np.zeros(2, dtype=np.int8), angle=0.0)
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=20.0).tolist() == [[0, 1]]
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=60.0).tolist() == []  # both in their free starts

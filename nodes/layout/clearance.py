@@ -58,18 +58,20 @@ def close_pairs(
     curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_start_mm: float = 0.0, step_mm: float = CONFLICT_STEP_MM
 ) -> np.ndarray:
     """Distinct ``(P, 2)`` curve pairs (ascending) whose centre lines come closer than ``bound_mm``
-    inside ``face_mask`` (conservatively: sampled distance below ``bound_mm + step_mm``), not counting
-    the first ``free_start_mm`` of each curve (a free end that :func:`start_trims` may shorten)."""
+    inside ``face_mask`` (conservatively: sampled distance below ``bound_mm + step_mm``), except where
+    both points lie in the first ``free_start_mm`` of their curves (free ends, which
+    :func:`start_trims` shortens until they have room)."""
     from scipy.spatial import cKDTree  # heavy: imported when used, not on node discovery
 
     points, curve, _, arc = resample(curves, face_mask, step_mm)
-    points, curve = points[arc >= free_start_mm], curve[arc >= free_start_mm]
     if len(points) < 2:
         return np.empty((0, 2), dtype=np.int64)
     pairs = cKDTree(points).query_pairs(bound_mm + step_mm, output_type="ndarray")
-    pairs = np.sort(curve[pairs], axis=1)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    return np.unique(pairs, axis=0) if len(pairs) else np.empty((0, 2), dtype=np.int64)
+    a, b = curve[pairs[:, 0]], curve[pairs[:, 1]]
+    free = (arc < free_start_mm)[pairs]
+    counted = (a != b) & ~(free[:, 0] & free[:, 1])
+    key = np.unique(np.minimum(a, b)[counted] * curves.count + np.maximum(a, b)[counted])
+    return np.stack([key // curves.count, key % curves.count], axis=1).astype(np.int64)
 
 
 def clearance_profile(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, step_mm: float = MEASURE_STEP_MM) -> dict:

@@ -5,7 +5,9 @@
 pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, and the metrics
 (:mod:`retrotouch.nodes.layout.metrics`, :mod:`retrotouch.nodes.layout.clearance`). With
 ``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
-``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross.
+``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross;
+Tx curves may come closer within the first ``tx_free_start_mm`` of their free start near the pole,
+where the selected ones are then trimmed until they have room.
 
 Relaxation ladder, applied only when phase 2 is infeasible (some selected curve cannot carry
 ``min_pads_per_curve`` pads at spacing ``d_min``): (1) smaller pads, each radius of
