@@ -13,8 +13,14 @@ run a second time with ``secondary=false`` for the ablation (``voronoi_cv_withou
 ``voronoi_cv_fps_all_candidates`` is a reference for what the curve families allow: as many pads
 as chosen, spread by farthest-point sampling over all candidate crossings of the chosen angle.
 
+Reported for the chosen branch: ``cells`` of ``channel_pairs`` (n_drive x n_sense), Voronoi CV over
+all crossings and over the pads, coverage radius, ``min_same_layer_clearance_mm`` (centre lines of
+the selected traces in the sensing region) and the share of each layer's length closer than trace
+width + clearance, ``phase1_gap`` (its worst stage; ``phase1_gap_worst_branch`` over all branches)
+and the notes of failed or far worse branches.
+
 Prints the per-angle table; the LAST line is one JSON object. Usage:
-``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z]``.
+``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z] [--no-ablation]``.
 """
 from __future__ import annotations
 

@@ -85,3 +85,17 @@ def test_bunny_sensing_map(bunny_run):
     doc = json.loads(files.contents["sensing_map.json"])
     validate_sensing_map(doc)
     assert doc["tx_channels"] == picked["layout"].tx.count
+
+
+def test_relaxed_pad_radius_travels_with_the_layout(bunny_run):
+    from retrotouch.nodes.fab.unfold import Params as UnfoldParams, unfold
+
+    mesh, tx, rx, cross, params, _ = bunny_run
+    samples = surface_samples(SamplesParams(count=150), mesh, bunny()[1])
+    relaxed = params.model_copy(update={"pad_radius_mm": 20.0, "relax_pad_radii_mm": (2.0,)})  # 80 mm spacing cannot work
+    candidate = optimize(relaxed, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    assert candidate.feasible and candidate.message == "relaxed"
+    layout = candidate.layout
+    assert (layout.pad_radius_mm, layout.d_min_mm) == (2.0, 8.0)
+    assert candidate.metrics["relaxations"][0]["failed"].startswith("pad radius 20 mm")
+    assert unfold(UnfoldParams(), mesh, layout).pad_radius_mm == 2.0  # what fab.outline cuts
