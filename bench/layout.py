@@ -3,7 +3,8 @@
 Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
 diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
 (both layers) -> ``curves.trace_tx`` -> per angle -50..50 step 10 ``curves.trace_rx`` +
-``curves.crossings``, all called as plain functions.
+``curves.crossings`` (``--family rings``: ``curves.trace_rings`` per corridor position 0, 0.25, 0.5,
+0.75 instead of the angles), all called as plain functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
 fields, shared by all branches) + ``layout.optimize`` for the 11 angles on ``--jobs`` processes
@@ -42,12 +43,14 @@ from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, sc
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
 ANGLES = tuple(range(-50, 51, 10))
+CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)
 
 
-def prepare(mesh_path: str, vertices: int, up_axis: str | None):
+def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "dipole"):
     mesh = load_mesh(LoadParams(path=mesh_path))
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
@@ -63,8 +66,11 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None):
     rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
     branches = []
-    for angle in ANGLES:
-        rx = trace_rx(TraceRxParams(angle_deg=angle), mesh, regions, rx_field)["curves"]
+    for value in ANGLES if family == "dipole" else CORRIDOR_TURNS:
+        if family == "dipole":
+            rx = trace_rx(TraceRxParams(angle_deg=value), mesh, regions, rx_field)["curves"]
+        else:
+            rx = trace_rings(TraceRingsParams(corridor_turn=value), mesh, regions, tx_field, tx)["curves"]
         cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
         branches.append((rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"]))
     return mesh, regions, tx, branches
@@ -103,10 +109,12 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="processes for the angle branches")
     parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
     parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
+    parser.add_argument("--family", choices=("dipole", "rings"), default="dipole",
+                        help="Rx candidates: dipole loops per angle (the paper) or rings around the Tx pole per corridor")
     args = parser.parse_args()
 
     start = time.perf_counter()
-    mesh, regions, tx, branches = prepare(args.mesh, args.vertices, args.up_axis)
+    mesh, regions, tx, branches = prepare(args.mesh, args.vertices, args.up_axis, args.family)
     curves_s = time.perf_counter() - start
 
     with_secondary, sweep_s, samples_s = sweep(OptimizeParams(), mesh, regions, tx, branches, args.jobs)
@@ -115,7 +123,7 @@ def main() -> None:
     if not args.no_ablation:
         without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
         m_off = without["metrics"]
-    chosen_branch = branches[ANGLES.index(round(m["chosen_angle_deg"]))]
+    chosen_branch = branches[[round(float(np.rad2deg(b[0].angle))) for b in branches].index(round(m["chosen_angle_deg"]))]
     reference_cv = candidate_cv_reference(mesh, regions.sensing_faces, tx, chosen_branch[1], m["pads"])
     print(f"curves (prep) {curves_s:.1f} s; samples {samples_s:.1f} s; sweep {sweep_s:.1f} s; "
           f"sweep without secondary {sweep_off_s:.1f} s")
@@ -127,6 +135,7 @@ def main() -> None:
           f"angle give Voronoi CV {reference_cv:.3f}")
     print(json.dumps({
         "mesh": args.mesh,
+        "family": args.family,
         "vertices": int(len(mesh.vertices)),
         "sweep_seconds": round(sweep_s, 2),
         "samples_seconds": round(samples_s, 2),
