@@ -2,6 +2,8 @@
 self-overlapping traces split into pieces that do not overlap."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -9,6 +11,7 @@ from fab_layouts import mesh_from_trimesh, section_layout
 from shapely.geometry import LineString, Point, Polygon
 
 from retrotouch.graph.errors import UserError
+from retrotouch.nodes.data.types import TRACE_WIDTH_MM
 from retrotouch.nodes.fab.outline import Params, outline
 from retrotouch.nodes.fab.unfold import Params as UnfoldParams
 from retrotouch.nodes.fab.unfold import UnfoldedTraces, unfold
@@ -58,7 +61,7 @@ def straight(length: float, n: int = 50) -> np.ndarray:
 
 @pytest.mark.parametrize("width", [1.0, 0.6])
 def test_trace_width(width):
-    outlines = outline(Params(width_mm=width, landmark_radius_mm=0), unfolded_from_polylines([straight(120.0)]))
+    outlines = outline(Params(landmark_radius_mm=0), dataclasses.replace(unfolded_from_polylines([straight(120.0)]), trace_width_mm=width))
     assert outlines.count == 1
     body = outlines.polygon(0).difference(Polygon(outlines.tab[0]).buffer(0.01))
     # rectangle width x length plus the far round cap (a half disc)
@@ -81,8 +84,8 @@ def test_pads_landmarks_and_tab_positions():
     for pad, mark in zip(outlines.pad_xy, [0, 2]):
         along = [np.interp(unfolded.mark_arc[mark] + 3.0, arc, curve[:, i]) for i in range(2)]
         np.testing.assert_allclose(pad, along, atol=1e-9)
-        assert polygon.contains(Point(pad).buffer(params.pad_radius_mm - 0.05, quad_segs=8))
-        assert not polygon.contains(Point(pad).buffer(params.pad_radius_mm + 0.05))
+        assert polygon.contains(Point(pad).buffer(unfolded.pad_radius_mm - 0.05, quad_segs=8))
+        assert not polygon.contains(Point(pad).buffer(unfolded.pad_radius_mm + 0.05))
     # a landmark at every crossing
     np.testing.assert_allclose(outlines.landmark_xy, unfolded.mark_xy, atol=1e-12)
     for xy in outlines.landmark_xy:
@@ -135,7 +138,7 @@ def test_spiral_is_split_into_pieces_that_do_not_overlap():
     spiral = np.stack([10 * np.cos(t), 10 * np.sin(t) + 0.3 * t], axis=1)
     spiral -= spiral[-1]
     params = Params()
-    contact = params.width_mm + params.self_clearance_mm
+    contact = TRACE_WIDTH_MM + params.self_clearance_mm
     assert _self_overlapping_pairs(spiral, contact) > 0
     unfolded = unfolded_from_polylines([spiral], [(0, 30.0, True)])
     with pytest.raises(UserError, match="Tx00 overlaps itself"):

@@ -10,7 +10,8 @@ from curves_fixture import bunny
 from test_layout_sensing_map import validate_sensing_map
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.layout.pick import PickParams, pick_best
+from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
 from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -41,13 +42,40 @@ def test_bunny_layout_respects_constraints_and_spacing(bunny_run):
     assert all(multiplicity[p] == 1 for p in multiplicity if p[0] in tx_sel and p[1] in rx_sel)  # C2
     cells = layout.cells
     assert len(cells.curve_a) == sum(1 for p in pairs if p[0] in tx_sel and p[1] in rx_sel)
-    assert np.array_equal(layout.tx.lengths_mm, tx.lengths_mm[layout.tx_source])
+    assert np.array_equal(layout.rx.lengths_mm, rx.lengths_mm[layout.rx_source])
+    for c, source in enumerate(layout.tx_source):  # Tx: at most the free start near the pole is trimmed
+        full = tx.points[tx.offsets[source] : tx.offsets[source + 1]]
+        part = layout.tx.points[layout.tx.offsets[c] : layout.tx.offsets[c + 1]]
+        assert np.array_equal(full[len(full) - len(part) :], part)
+        cut = tx.lengths_mm[source] - layout.tx.lengths_mm[c]
+        assert cut == pytest.approx(np.linalg.norm(np.diff(full[: len(full) - len(part) + 1], axis=0), axis=1).sum())
+        assert cut <= params.tx_free_start_mm + 5.0  # plus at most one segment
+    for k in range(len(cells.curve_a)):  # cells still sit on their curves' segments after trimming
+        curve = layout.tx.points[layout.tx.offsets[cells.curve_a[k]] : layout.tx.offsets[cells.curve_a[k] + 1]]
+        p, q = curve[cells.seg_a[k]], curve[cells.seg_a[k] + 1]
+        t = np.dot(cells.points[k] - p, q - p) / np.dot(q - p, q - p)
+        assert -1e-6 <= t <= 1 + 1e-6 and np.linalg.norm(p + t * (q - p) - cells.points[k]) < 1e-6
     pads = np.flatnonzero(layout.pad)
     D = geodesics_for(mesh).pairwise(cells.faces[pads], cells.bary[pads])
     assert D[np.triu_indices(len(pads), 1)].min() >= m["d_min_mm"] - 0.05  # heat asymmetry tolerance
     assert m["d_min_mm"] == 4 * m["pad_radius_mm"]
     assert 0 < m["voronoi_cv"] < 2 and m["pads"] == len(pads)
     assert set(np.unique(cells.curve_a[pads])) == set(range(layout.tx.count))  # a pad on every Tx channel
+    # design values travel with the layout
+    assert (layout.pad_radius_mm, layout.d_min_mm) == (m["pad_radius_mm"], m["d_min_mm"])
+    assert (layout.trace_width_mm, layout.clearance_mm) == (params.trace_width_mm, params.clearance_mm)
+
+
+def test_bunny_layout_keeps_same_layer_clearance(bunny_run):
+    mesh, tx, rx, cross, params, candidate = bunny_run
+    m = candidate.metrics
+    bound = params.trace_width_mm + params.clearance_mm
+    assert m["min_same_layer_clearance_mm"] >= bound
+    for layer in ("tx", "rx"):
+        assert m["same_layer_clearance"][layer]["length_closer_than_bound_mm"] == 0.0
+    assert m["candidates"]["tx_clearance_conflicts"] > 0 and m["candidates"]["rx_clearance_conflicts"] > 0
+    assert m["cells"] <= m["channel_pairs"] == params.n_drive * params.n_sense
+    assert m["voronoi_cv_all_crossings"] is not None and m["voronoi_cv_pads"] == m["voronoi_cv"]
 
 
 def test_bunny_sensing_map(bunny_run):
@@ -57,3 +85,17 @@ def test_bunny_sensing_map(bunny_run):
     doc = json.loads(files.contents["sensing_map.json"])
     validate_sensing_map(doc)
     assert doc["tx_channels"] == picked["layout"].tx.count
+
+
+def test_relaxed_pad_radius_travels_with_the_layout(bunny_run):
+    from retrotouch.nodes.fab.unfold import Params as UnfoldParams, unfold
+
+    mesh, tx, rx, cross, params, _ = bunny_run
+    samples = surface_samples(SamplesParams(count=150), mesh, bunny()[1])
+    relaxed = params.model_copy(update={"pad_radius_mm": 20.0, "relax_pad_radii_mm": (2.0,)})  # 80 mm spacing cannot work
+    candidate = optimize(relaxed, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    assert candidate.feasible and candidate.message == "relaxed"
+    layout = candidate.layout
+    assert (layout.pad_radius_mm, layout.d_min_mm) == (2.0, 8.0)
+    assert candidate.metrics["relaxations"][0]["failed"].startswith("pad radius 20 mm")
+    assert unfold(UnfoldParams(), mesh, layout).pad_radius_mm == 2.0  # what fab.outline cuts

@@ -13,7 +13,8 @@ from test_layout_fixtures import synthetic_instance
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.sensing_map import SENSING_MAP_FORMAT
-from retrotouch.nodes.layout.sweep import OptimizeParams, PickParams, optimize, pick_best
+from retrotouch.nodes.layout.pick import PickParams, pick_best
+from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
 from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
 from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
 
@@ -33,7 +34,9 @@ def run():
 
 def validate_sensing_map(doc: dict, n_tx_max: int = 21, n_rx_max: int = 12) -> None:
     """Structure and types exactly as the format in retrotouch.nodes.data.sensing_map."""
-    assert set(doc) == {"format", "units", "up", "mesh", "tx_channels", "rx_channels", "channels", "cells"}
+    assert set(doc) == {"format", "units", "up", "mesh", "design", "tx_channels", "rx_channels", "channels", "cells"}
+    assert set(doc["design"]) == {"pad_radius_mm", "d_min_mm", "trace_width_mm", "clearance_mm"}
+    assert all(doc["design"][k] > 0 for k in ("pad_radius_mm", "d_min_mm", "trace_width_mm"))
     assert doc["format"] == SENSING_MAP_FORMAT and doc["units"] == "mm"
     assert len(doc["up"]) == 3 and np.linalg.norm(doc["up"]) == pytest.approx(1.0)
     assert set(doc["mesh"]) == {"file", "sha256", "vertices", "faces"}

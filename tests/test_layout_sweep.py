@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from retrotouch.nodes.layout.sweep import AngleLayout, PickParams, angle_table, best_branch, pick_best
+from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, pick_best
+from retrotouch.nodes.layout.sweep import AngleLayout
 
 
 def branch(angle, radius, mean, cv, secondary=True, feasible=True):
@@ -35,3 +36,12 @@ def test_gap_is_unknown_when_a_stage_has_no_incumbent():
     c.metrics["phase1"]["stages"].append({"status": "UNKNOWN", "gap": None})
     assert angle_table([c])[0]["gap"] is None
     assert angle_table([branch(0, 30.0, 8.0, 0.5)])[0]["gap"] == pytest.approx(0.0)
+
+
+def test_failed_and_far_worse_branches_carry_their_reason():
+    candidates = [branch(-10, 10.0, 1.0, 0.1, feasible=False), branch(0, 14.0, 8.0, 0.5), branch(10, 15.0, 8.0, 0.5),
+                  branch(20, 45.0, 9.0, 0.5)]
+    notes = [r["note"] for r in angle_table(candidates, outlier_factor=1.5)]
+    assert notes[0] == "failed: no pads"
+    assert notes[1] == notes[2] == ""
+    assert notes[3].startswith("far worse: coverage radius 45.0 mm > 1.5 x median 15.0 mm")

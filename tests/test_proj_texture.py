@@ -153,7 +153,7 @@ def test_only_faces_within_paint_reach_get_charts_the_rest_show_background(baked
         assert atlas.charted[curves.faces].all()  # every face a curve segment runs through
     centroids = mesh.vertices[mesh.faces].mean(axis=1)
     for point, has_pad in zip(layout.cells.points, layout.pad):
-        reach = params.pad_radius_mm if has_pad else params.crossing_radius_mm
+        reach = layout.pad_radius_mm if has_pad else params.crossing_radius_mm
         assert atlas.charted[np.linalg.norm(centroids - point, axis=1) < reach].all()
     rest_uv = atlas.uv[atlas.faces[~atlas.charted]].reshape(-1, 2)
     assert np.ptp(rest_uv, axis=0).max() == 0.0  # one texel for all of them

@@ -28,7 +28,7 @@ from ...graph.errors import UserError
 from ..geometry.triangles import vertex_normals
 from .types import CurveSet, Layout, Mesh
 
-SCENE_FORMAT = "retrotouch.projection_scene/1"
+SCENE_FORMAT = "retrotouch.projection_scene/2"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +44,7 @@ class ProjectionScene:
     crossing_points: np.ndarray  # (K, 3)
     crossing_normals: np.ndarray  # (K, 3)
     pad: np.ndarray  # (K,) bool
+    pad_radius_mm: float  # the layout's electrode pad radius
     atlas_vertex_map: np.ndarray | None = None  # (n',) int64
     atlas_faces: np.ndarray | None = None  # (m, 3) int64
     atlas_uv: np.ndarray | None = None  # (n', 2) float64
@@ -70,6 +71,7 @@ def build_scene(mesh: Mesh, layout: Layout) -> ProjectionScene:
         crossing_points=np.asarray(layout.cells.points, np.float64),
         crossing_normals=interpolated_normals(mesh, layout.cells.faces, layout.cells.bary),
         pad=np.asarray(layout.pad, bool),
+        pad_radius_mm=float(layout.pad_radius_mm),
     )
 
 
@@ -83,6 +85,7 @@ def save_scene(scene: ProjectionScene) -> bytes:
         "crossing_points": scene.crossing_points,
         "crossing_normals": scene.crossing_normals,
         "pad": scene.pad,
+        "pad_radius_mm": np.array(scene.pad_radius_mm),
     }
     if scene.atlas_uv is not None:
         arrays["atlas_vertex_map"] = scene.atlas_vertex_map
@@ -123,6 +126,7 @@ def load_scene(path: Path) -> ProjectionScene:
             crossing_points=data["crossing_points"],
             crossing_normals=data["crossing_normals"],
             pad=data["pad"],
+            pad_radius_mm=float(data["pad_radius_mm"]),
             atlas_vertex_map=data["atlas_vertex_map"] if textured else None,
             atlas_faces=data["atlas_faces"] if textured else None,
             atlas_uv=data["atlas_uv"] if textured else None,

@@ -6,6 +6,7 @@ Written next to ``mesh.ply`` (the object's mesh, :func:`..data.ply.ply_bytes`) i
      "units": "mm",
      "up": [ux, uy, uz],                            # unit, opposite to the side the object rests on
      "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
+     "design": {"pad_radius_mm": 2.0, "d_min_mm": 8.0, "trace_width_mm": 1.0, "clearance_mm": 1.0},  # as laid out
      "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
      "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
                   "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},
@@ -92,10 +93,12 @@ def sensing_map_files(
     cell_bary: np.ndarray,
     cell_pad: np.ndarray,
     channels: dict[str, list[tuple[int, float]]],
+    design: dict[str, float] | None = None,
 ) -> dict[str, bytes]:
     """The bytes of ``sensing_map.json`` and ``mesh.ply`` for a layout: mesh (mm), ``up`` (3,),
-    per cell its channels, crossing point (mm), face, barycentrics and pad flag, and per layer
-    (``"tx"``, ``"rx"``) one ``(curve id, length_mm)`` per channel in channel order."""
+    per cell its channels, crossing point (mm), face, barycentrics and pad flag, per layer
+    (``"tx"``, ``"rx"``) one ``(curve id, length_mm)`` per channel in channel order, and the design
+    values the layout was made with (mm; written when given)."""
     mesh_bytes = ply_bytes(vertices, faces)
     up = np.asarray(up, dtype=np.float64)
     normals = cell_normals(vertices, faces, cell_faces, cell_bary)
@@ -110,6 +113,7 @@ def sensing_map_files(
         "up": [float(v) for v in up / np.linalg.norm(up)],
         "mesh": {"file": MESH_FILE, "sha256": hashlib.sha256(mesh_bytes).hexdigest(),
                  "vertices": int(len(vertices)), "faces": int(len(faces))},
+        **({"design": {name: float(value) for name, value in design.items()}} if design is not None else {}),
         "tx_channels": len(channels["tx"]),
         "rx_channels": len(channels["rx"]),
         "channels": {"tx": layer("tx", "Tx"), "rx": layer("rx", "Rx")},

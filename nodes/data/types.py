@@ -87,14 +87,22 @@ class Crossings:
     bary: np.ndarray  # (K, 3) float64
 
 
+PAD_RADIUS_MM = 2.0  # electrode pad radius before any relaxation
+TRACE_WIDTH_MM = 1.0  # conductive trace width
+CLEARANCE_MM = 1.0  # edge-to-edge gap between two traces of one layer
+
+
 @dataclasses.dataclass(frozen=True)
 class Layout:
-    """The optimised sensor layout on one mesh.
+    """The optimised sensor layout on one mesh, with the design values it was made for.
 
     ``tx``/``rx`` hold only the selected curves, in channel order (Tx00 is ``tx`` curve 0).
     ``cells`` are their Tx x Rx crossings with ``curve_a`` = Tx channel and ``curve_b`` = Rx channel,
     at most one row per channel pair; ``pad[k]`` says whether an electrode pad is placed at row k.
     ``tx_source``/``rx_source`` map channels back to curve ids in the candidate families.
+    ``pad_radius_mm`` and ``d_min_mm`` are the pad radius and geodesic pad spacing actually used
+    (after any relaxation); two traces of one layer keep ``trace_width_mm + clearance_mm`` between
+    their centre lines. Outlines, textures, projection and the sensing map read them from here.
     """
 
     tx: CurveSet
@@ -103,6 +111,15 @@ class Layout:
     pad: np.ndarray  # (K,) bool
     tx_source: np.ndarray  # (Ntx,) int64
     rx_source: np.ndarray  # (Nrx,) int64
+    pad_radius_mm: float = PAD_RADIUS_MM
+    d_min_mm: float = 4.0 * PAD_RADIUS_MM
+    trace_width_mm: float = TRACE_WIDTH_MM
+    clearance_mm: float = CLEARANCE_MM
+
+    def design_values(self) -> dict[str, float]:
+        """The design values above by name (mm), as output files record them."""
+        return {"pad_radius_mm": self.pad_radius_mm, "d_min_mm": self.d_min_mm,
+                "trace_width_mm": self.trace_width_mm, "clearance_mm": self.clearance_mm}
 
 
 @dataclasses.dataclass(frozen=True)

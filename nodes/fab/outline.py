@@ -3,9 +3,9 @@
 Each unfolded trace (:class:`retrotouch.nodes.fab.unfold.UnfoldedTraces`, same 2D frame: mm, seen from
 outside, base end at the origin) becomes one closed polygon without holes, the union of
 
-* the centreline buffered to ``width_mm`` (round caps and joins),
+* the centreline buffered to the layout's ``trace_width_mm`` (round caps and joins),
 * a landmark disc of ``landmark_radius_mm`` at every crossing with the other layer (0 disables),
-* an electrode pad disc of ``pad_radius_mm`` centred at every pad position of the unfolding,
+* an electrode pad disc of the layout's ``pad_radius_mm`` centred at every pad position of the unfolding,
 * a rectangular solder tab ``solder_tab_length_mm`` x ``solder_tab_width_mm`` continuing the trace
   beyond its base end along the end tangent; the channel name (``Tx03``) is written inside the tab
   as glyph outlines (the label layer, drawn with a pen, never cut). The tab is where the wire is
@@ -40,9 +40,7 @@ from .unfold import UnfoldedTraces, point_at_arc
 
 
 class Params(NodeParams):
-    width_mm: float = Field(1.0, gt=0, description="trace width (mm)")
     landmark_radius_mm: float = Field(1.0, ge=0, description="landmark disc radius at every crossing (mm); 0 = none")
-    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad radius (mm)")
     solder_tab_length_mm: float = Field(9.0, gt=0, description="solder tab length beyond the base end (mm)")
     solder_tab_width_mm: float = Field(4.0, gt=0, description="solder tab width (mm)")
     label_height_mm: float = Field(2.4, gt=0, description="largest label glyph height (mm); shrunk to fit the tab")
@@ -163,21 +161,21 @@ def _trace_discs(params: Params, unfolded: UnfoldedTraces, c: int):
     marks = np.nonzero(unfolded.mark_trace == c)[0]
     pad_marks = marks[unfolded.mark_pad[marks]]
     disc_xy = np.vstack([unfolded.mark_xy[marks], unfolded.pad_xy[pad_marks]])
-    disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, params.width_mm / 2)),
-                             np.full(len(pad_marks), params.pad_radius_mm)])
+    disc_r = np.concatenate([np.full(len(marks), max(params.landmark_radius_mm, unfolded.trace_width_mm / 2)),
+                             np.full(len(pad_marks), unfolded.pad_radius_mm)])
     disc_u = np.concatenate([u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])])
     return marks, pad_marks, disc_xy, disc_r, disc_u
 
 
-def _split_pieces(params: Params, name: str, points: np.ndarray, arc: np.ndarray, at_end: bool,
+def _split_pieces(params: Params, width_mm: float, name: str, points: np.ndarray, arc: np.ndarray, at_end: bool,
                   discs: tuple) -> list[tuple[float, float, str]]:
     """Pieces [u0, u1) of one trace (u = distance from its base end, mm) with the reason each ends
     ("" for the last), grown from the base: each piece, with its own solder tab at u0, ends just
     before its first self-conflict, or where it would no longer fit ``fit_mat``."""
     _, _, disc_xy, disc_r, disc_u = discs
-    w2, tab_len, tab_w2 = params.width_mm / 2, params.solder_tab_length_mm, params.solder_tab_width_mm / 2
+    w2, tab_len, tab_w2 = width_mm / 2, params.solder_tab_length_mm, params.solder_tab_width_mm / 2
     length = float(arc[-1])
-    step = params.width_mm / 2
+    step = width_mm / 2
     u = np.append(np.arange(0.0, length, step), length)
     arc_of_u = length - u if at_end else u
     centre_samples = np.stack([np.interp(arc_of_u, arc, points[:, 0]), np.interp(arc_of_u, arc, points[:, 1])], axis=1)
@@ -268,14 +266,14 @@ def _piece(params: Params, unfolded: UnfoldedTraces, c: int, discs: tuple, u0: f
     tab = _tab_corners(tab_xy, direction, tab_len, tab_w2)
     shapes = [Polygon(tab)]
     line = LineString(centre) if np.ptp(centre, axis=0).max() > 0 else Point(centre[0])
-    shapes.append(line.buffer(params.width_mm / 2, quad_segs=params.arc_segments))
+    shapes.append(line.buffer(unfolded.trace_width_mm / 2, quad_segs=params.arc_segments))
     mark_u, pad_u = u_of(unfolded.mark_arc[marks]), u_of(unfolded.pad_arc[pad_marks])
     landmarks = marks[(mark_u >= u0) & (mark_u < u1)] if params.landmark_radius_mm > 0 else marks[:0]
     pads = pad_marks[(pad_u >= u0) & (pad_u < u1)]
     for m in landmarks:
         shapes.append(Point(unfolded.mark_xy[m]).buffer(params.landmark_radius_mm, quad_segs=params.arc_segments))
     for m in pads:
-        shapes.append(Point(unfolded.pad_xy[m]).buffer(params.pad_radius_mm, quad_segs=params.arc_segments))
+        shapes.append(Point(unfolded.pad_xy[m]).buffer(unfolded.pad_radius_mm, quad_segs=params.arc_segments))
     shape = shapely.unary_union(shapes)
     if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
         shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
@@ -330,8 +328,8 @@ def _assemble(params: Params, unfolded: UnfoldedTraces, parts: list[tuple[str, i
         area_mm2=np.asarray([p["area"] for _, _, p in parts], dtype=np.float64),
         split_traces=tuple(split),
         split_reasons=tuple(reasons),
-        width_mm=params.width_mm,
-        pad_radius_mm=params.pad_radius_mm,
+        width_mm=unfolded.trace_width_mm,
+        pad_radius_mm=unfolded.pad_radius_mm,
         landmark_radius_mm=params.landmark_radius_mm,
     )
 
@@ -344,7 +342,7 @@ def outline(params: Params, unfolded: UnfoldedTraces) -> TraceOutlines:
     for c in range(unfolded.count):
         rows = unfolded.trace(c)
         discs = _trace_discs(params, unfolded, c)
-        pieces = _split_pieces(params, unfolded.names[c], unfolded.points[rows], unfolded.arc[rows],
+        pieces = _split_pieces(params, unfolded.trace_width_mm, unfolded.names[c], unfolded.points[rows], unfolded.arc[rows],
                                bool(unfolded.base_at_end[c]), discs)
         if len(pieces) > 1:
             split.append(unfolded.names[c])

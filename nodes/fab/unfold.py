@@ -32,7 +32,7 @@ from pydantic import Field
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
-from ..data.types import CurveSet, Layout, Mesh
+from ..data.types import PAD_RADIUS_MM, TRACE_WIDTH_MM, CurveSet, Layout, Mesh
 
 
 class Params(NodeParams):
@@ -65,6 +65,8 @@ class UnfoldedTraces:
     mark_pad: np.ndarray  # (K2,) bool electrode pad placed at this crossing
     pad_arc: np.ndarray  # (K2,) float64 arc length of the pad centre (mm)
     pad_xy: np.ndarray  # (K2, 2) float64 pad centre (mm), defined for every mark
+    pad_radius_mm: float = PAD_RADIUS_MM  # the layout's pad radius
+    trace_width_mm: float = TRACE_WIDTH_MM  # the layout's trace width
 
     @property
     def count(self) -> int:
@@ -292,4 +294,6 @@ def unfold(params: Params, mesh: Mesh, layout: Layout) -> UnfoldedTraces:
         mark_pad=arr("pad", bool, (-1,)),
         pad_arc=arr("pad_arc", np.float64, (-1,)),
         pad_xy=arr("pad_xy", np.float64, (-1, 2)),
+        pad_radius_mm=float(layout.pad_radius_mm),
+        trace_width_mm=float(layout.trace_width_mm),
     )

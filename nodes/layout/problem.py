@@ -16,7 +16,12 @@ PHASE1_POWER = 6  # secondary objective: power mean of the sample distances
 
 @dataclasses.dataclass(frozen=True)
 class SelectionProblem:
-    """Phase-1 input: candidate curves, their valid crossings and the C1/C2 conflicts."""
+    """Phase-1 input: candidate curves, their valid crossings and the C1/C2 conflicts.
+
+    ``tx_conflicts``/``rx_conflicts`` are the pairs of one layer that cannot both be selected: those
+    that cross (C1) and, when clearance is enforced, those whose centre lines come closer than
+    ``trace_width + clearance`` in the sensing region (``clearance_pairs`` counts the latter per layer).
+    """
 
     tx_usable: np.ndarray  # (Ntx,) bool, candidate may be selected (e.g. connected to the base)
     rx_usable: np.ndarray  # (Nrx,) bool
@@ -27,6 +32,13 @@ class SelectionProblem:
     multi_pairs: np.ndarray  # (P, 2) int64, Tx/Rx pairs crossing more than once (C2)
     tx_conflicts: np.ndarray  # (Q, 2) int64, crossing Tx pairs (C1)
     rx_conflicts: np.ndarray  # (R, 2) int64, crossing Rx pairs (C1)
+    clearance_pairs: tuple[int, int] = (0, 0)  # (Tx, Rx) pairs in the conflicts for clearance alone
+
+
+def merge_pairs(*pairs: np.ndarray) -> np.ndarray:
+    """Distinct ``(P, 2)`` int64 rows of several pair lists, each row ascending."""
+    rows = np.concatenate([np.sort(np.asarray(p, dtype=np.int64).reshape(-1, 2), axis=1) for p in pairs])
+    return np.unique(rows, axis=0) if len(rows) else np.empty((0, 2), dtype=np.int64)
 
 
 def candidate_crossings(tx_rx: Crossings, tx_count: int, rx_count: int) -> tuple[np.ndarray, np.ndarray]:

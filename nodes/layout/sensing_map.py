@@ -29,7 +29,7 @@ def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegi
     channels = {"tx": list(zip(layout.tx_source.tolist(), layout.tx.lengths_mm.tolist())),
                 "rx": list(zip(layout.rx_source.tolist(), layout.rx.lengths_mm.tolist()))}
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
-                              cells.faces, cells.bary, layout.pad, channels)
+                              cells.faces, cells.bary, layout.pad, channels, design=layout.design_values())
     return Files({**files, "metrics.json": json.dumps(metrics, indent=1, default=_json_default).encode()})
 
 

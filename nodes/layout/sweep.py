@@ -1,18 +1,20 @@
-"""The layout optimisation per Rx angle (``layout.optimize``, mapped) and the pick (``layout.pick_best``).
+"""The layout optimisation per Rx angle (``layout.optimize``, mapped; the pick is :mod:`retrotouch.nodes.layout.pick`).
 
 ``layout.optimize`` runs, for one Rx candidate family (one initial angle): phase 1 curve selection
 (:mod:`retrotouch.nodes.layout.selection`), geodesic distances among the active crossings, phase 2
 pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, and the metrics
-(:mod:`retrotouch.nodes.layout.metrics`). ``layout.pick_best`` takes the branches in order and
-keeps the best by (coverage radius within ``radius_tolerance_mm`` of the best, then mean distance
-when the secondary objective is on, then Voronoi CV), and returns the per-angle table.
+(:mod:`retrotouch.nodes.layout.metrics`, :mod:`retrotouch.nodes.layout.clearance`). With
+``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
+``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross;
+Tx curves may come closer within the first ``tx_free_start_mm`` of their free start near the pole,
+where the selected ones are then trimmed until they have room.
 
 Relaxation ladder, applied only when phase 2 is infeasible (some selected curve cannot carry
 ``min_pads_per_curve`` pads at spacing ``d_min``): (1) smaller pads, each radius of
 ``relax_pad_radii_mm`` in turn (``d_min`` scales with the pad diameter); (2) fewer curves: drop
 the curves that get no pad in an unconstrained maximum pad set. Every step is logged as a warning
 and recorded in ``metrics["relaxations"]``; a branch where nothing works is reported infeasible
-with the reason, and :func:`pick_best` raises a UserError naming what to change if no branch is
+with the reason, and ``layout.pick_best`` raises a UserError naming what to change if no branch is
 feasible. Units: mm, degrees in Params and in the reports.
 """
 from __future__ import annotations
@@ -33,11 +35,12 @@ from .problem import (
     PHASE1_TIME_LIMIT_S,
     SelectionProblem,
     candidate_crossings,
-    evaluate_selection,
+    merge_pairs,
     same_layer_conflicts,
 )
+from .clearance import clearance_profile, close_pairs, start_trims, trim_starts
 from .selection import select_curves
-from ..data.types import Crossings, CurveEnd, CurveSet, Layout, Mesh
+from ..data.types import CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh
 from .metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
 from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
 from .samples import HeatGeodesics, SurfaceSamples, geodesics_for
@@ -61,11 +64,20 @@ class OptimizeParams(NodeParams):
     workers: int = Field(1, ge=1, le=16, description="CP-SAT workers per solve (1 = reproducible)")
     seed: int = Field(0, description="CP-SAT random seed")
     require_base_end: bool = Field(True, description="only curves that reach the base can be wired")
-    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad radius (mm)")
+    pad_radius_mm: float = Field(PAD_RADIUS_MM, gt=0, description="electrode pad radius (mm)")
     d_min_mm: float | None = Field(
         None, gt=0, description="minimum geodesic pad spacing (mm); default twice the pad diameter"
     )
     min_pads_per_curve: int = Field(1, ge=0, description="pads every selected curve must carry")
+    trace_width_mm: float = Field(TRACE_WIDTH_MM, gt=0, description="conductive trace width (mm)")
+    clearance_mm: float = Field(CLEARANCE_MM, ge=0, description="edge-to-edge gap between two traces of one layer (mm)")
+    enforce_clearance: bool = Field(
+        True, description="phase 1 never selects two curves of one layer closer than trace width + clearance"
+    )
+    tx_free_start_mm: float = Field(
+        60.0, ge=0, description="Tx curves may come closer within this arc length of their free start (near the "
+        "pole); the selected ones are trimmed there until they have room (mm)"
+    )
     relax_pad_radii_mm: tuple[float, ...] = Field(
         (1.5, 1.0), description="smaller pad radii tried in order when phase 2 is infeasible"
     )
@@ -122,9 +134,21 @@ def selection_problem(
     tx_tx: Crossings,
     rx_rx: Crossings,
     require_base_end: bool,
+    clearance_bound_mm: float | None = None,
+    tx_free_start_mm: float = 0.0,
 ) -> SelectionProblem:
-    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts, sample distances."""
+    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts, sample distances;
+    with ``clearance_bound_mm``, same-layer pairs closer than it in the sensing region conflict too
+    (Tx: not counting the first ``tx_free_start_mm`` of each curve, which the selected ones may lose)."""
     rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
+    tx_conflicts, rx_conflicts = same_layer_conflicts(tx_tx), same_layer_conflicts(rx_rx)
+    clearance_pairs = (0, 0)
+    if clearance_bound_mm is not None:
+        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm)
+        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm)
+        merged_tx, merged_rx = merge_pairs(tx_conflicts, tx_close), merge_pairs(rx_conflicts, rx_close)
+        clearance_pairs = (len(merged_tx) - len(tx_conflicts), len(merged_rx) - len(rx_conflicts))
+        tx_conflicts, rx_conflicts = merged_tx, merged_rx
     return SelectionProblem(
         tx_usable=_usable(tx, require_base_end),
         rx_usable=_usable(rx, require_base_end),
@@ -133,8 +157,9 @@ def selection_problem(
         cross_rows=rows,
         distance=geo.evaluate(samples.distances, tx_rx.faces[rows], tx_rx.bary[rows]),
         multi_pairs=multi,
-        tx_conflicts=same_layer_conflicts(tx_tx),
-        rx_conflicts=same_layer_conflicts(rx_rx),
+        tx_conflicts=tx_conflicts,
+        rx_conflicts=rx_conflicts,
+        clearance_pairs=clearance_pairs,
     )
 
 
@@ -180,51 +205,88 @@ def _branch_report(params: OptimizeParams, angle_deg: float, tx: CurveSet, rx: C
         "candidates": {"tx": tx.count, "rx": rx.count, "tx_usable": int(problem.tx_usable.sum()),
                        "rx_usable": int(problem.rx_usable.sum()), "single_crossings": len(problem.cross_rows),
                        "multi_crossing_pairs": len(problem.multi_pairs), "tx_conflicts": len(problem.tx_conflicts),
-                       "rx_conflicts": len(problem.rx_conflicts)},
+                       "rx_conflicts": len(problem.rx_conflicts), "tx_clearance_conflicts": problem.clearance_pairs[0],
+                       "rx_clearance_conflicts": problem.clearance_pairs[1]},
     }
 
 
-def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndarray, pad: np.ndarray) -> tuple[Layout, np.ndarray]:
+def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndarray, pad: np.ndarray,
+               design: dict, tx_first: np.ndarray) -> tuple[Layout, np.ndarray]:
     """The layout of the kept crossings ``cells_rows`` (rows of ``tx_rx``) and their pad flags: channels
-    are the curves with at least one kept crossing, cells sorted by (Tx channel, Rx channel). Returns
-    the layout and the order applied to ``cells_rows``."""
+    are the curves with at least one kept crossing, Tx curves without their first ``tx_first`` rows,
+    cells sorted by (Tx channel, Rx channel); ``design`` holds the Layout's design values (mm).
+    Returns the layout and the order applied to ``cells_rows``."""
     tx_sel, rx_sel = np.unique(tx_rx.curve_a[cells_rows]), np.unique(tx_rx.curve_b[cells_rows])
+    tx_curves, tx_cut = trim_starts(subset_curves(tx, tx_sel), tx_first[tx_sel])
     order = np.lexsort((np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]),
                         np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows])))
     cells_rows = cells_rows[order]
+    channel_a = np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows]).astype(np.int64)
     cells = Crossings(
         layer_a="tx", layer_b="rx",
-        curve_a=np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows]).astype(np.int64),
+        curve_a=channel_a,
         curve_b=np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]).astype(np.int64),
-        seg_a=tx_rx.seg_a[cells_rows], seg_b=tx_rx.seg_b[cells_rows],
-        arc_a=tx_rx.arc_a[cells_rows], arc_b=tx_rx.arc_b[cells_rows],
+        seg_a=tx_rx.seg_a[cells_rows] - tx_first[tx_rx.curve_a[cells_rows]], seg_b=tx_rx.seg_b[cells_rows],
+        arc_a=tx_rx.arc_a[cells_rows] - tx_cut[channel_a], arc_b=tx_rx.arc_b[cells_rows],
         points=tx_rx.points[cells_rows], faces=tx_rx.faces[cells_rows], bary=tx_rx.bary[cells_rows],
     )
-    layout = Layout(tx=subset_curves(tx, tx_sel), rx=subset_curves(rx, rx_sel), cells=cells, pad=pad[order],
-                    tx_source=tx_sel, rx_source=rx_sel)
+    layout = Layout(tx=tx_curves, rx=subset_curves(rx, rx_sel), cells=cells, pad=pad[order],
+                    tx_source=tx_sel, rx_source=rx_sel, **design)
     return layout, order
 
 
-def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fields, pad_distance, pad_radius) -> dict:
-    """Quality figures of a branch's layout (coverage, Voronoi CV of the pads, counts, lengths)."""
+def _tx_start_trims(params: OptimizeParams, samples: SurfaceSamples, tx: CurveSet, selection, bound_mm: float) -> np.ndarray:
+    """Rows to trim from the start of each Tx candidate: the selected ones where, within their first
+    ``tx_free_start_mm``, they come closer than ``bound_mm`` to another selected one; 0 elsewhere."""
+    first = np.zeros(tx.count, dtype=np.int64)
+    first[selection.tx] = start_trims(subset_curves(tx, selection.tx), samples.sensing_faces, bound_mm, params.tx_free_start_mm)
+    return first
+
+
+def _phase1_summary(report: dict) -> dict:
+    """Phase 1's worst stage gap and every stage's objective and bound (mm)."""
+    stages = report.get("stages", [])
+    gaps = [st["gap"] for st in stages]
+    return {"gap": None if not stages or any(g is None for g in gaps) else max(gaps),
+            "stages": [{"stage": st["stage"], "status": st["status"], "objective": st["objective"], "bound": st["bound"],
+                        "gap": st["gap"]} for st in stages]}
+
+
+def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fields, pad_distance, cells) -> dict:
+    """Quality figures of a branch's layout: coverage, Voronoi CV over all crossings and over the
+    pads, cells out of the channel pairs available, same-layer clearance on the traces' centre lines."""
     tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
-    _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
+    nearest = problem.distance[:, cells].min(axis=1)  # cells: the candidate crossings that became cells
     cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
+    all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.sensing_faces)
     tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
+    bound = layout.trace_width_mm + layout.clearance_mm
+    clearance = {layer: clearance_profile(curves, samples.sensing_faces, bound) for layer, curves in (("tx", layout.tx), ("rx", layout.rx))}
+    closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
     return {
         "coverage_radius_mm": float(nearest.max()),
         "mean_distance_mm": float(nearest.mean()),
         "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
+        "voronoi_cv_pads": coefficient_of_variation(cell_area) if pad.sum() else None,
+        "voronoi_cv_all_crossings": coefficient_of_variation(all_area) if len(pad) else None,
         "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
                                   "max": float(cell_area.max())} if pad.sum() else None,
+        "empty_crossing_cells": int(np.count_nonzero(all_area == 0.0)),
         "pads": int(pad.sum()),
         "cells": int(len(pad)),
+        "channel_pairs": int(params.n_drive * params.n_sense),
         "tx_channels": int(len(tx_sel)),
         "rx_channels": int(len(rx_sel)),
-        "pad_radius_mm": float(pad_radius),
-        "d_min_mm": float(d_min_for(params, pad_radius)),
+        "pad_radius_mm": layout.pad_radius_mm,
+        "d_min_mm": layout.d_min_mm,
+        "trace_width_mm": layout.trace_width_mm,
+        "clearance_mm": layout.clearance_mm,
         "min_pad_spacing_mm": min_pairwise(pad_distance) if pad.sum() > 1 else None,
+        "min_same_layer_clearance_mm": min(closest) if closest else None,
+        "same_layer_clearance": clearance,
+        "phase1_gap": _phase1_summary(selection.report)["gap"],
+        "phase1_summary": _phase1_summary(selection.report),
         "curve_lengths_mm": {"tx": [float(v) for v in tx_lengths], "rx": [float(v) for v in rx_lengths],
                              "total": float(tx_lengths.sum() + rx_lengths.sum())},
         "unwired_selected_curves": {"tx": [int(a) for a in np.setdiff1d(selection.tx, tx_sel)],
@@ -252,7 +314,9 @@ def optimize(
     t0 = time.perf_counter()
     angle_deg = float(np.rad2deg(rx.angle))
     geo = geodesics_for(mesh)
-    problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end)
+    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
+    problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
+                                params.tx_free_start_mm)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
@@ -262,7 +326,12 @@ def optimize(
         return AngleLayout(angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
     t1 = time.perf_counter()
 
-    active_rows = problem.cross_rows[selection.active]
+    active = selection.active
+    tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
+    if bound is not None and params.tx_free_start_mm > 0:
+        tx_first = _tx_start_trims(params, samples, tx, selection, bound)
+        active = active[tx_rx.seg_a[problem.cross_rows[active]] >= tx_first[problem.cross_tx[active]]]
+    active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = 0.5 * (distance + distance.T)
@@ -276,10 +345,13 @@ def optimize(
                             "phase1": selection.report, "phase2": pads.report})
     t3 = time.perf_counter()
 
-    layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad)
+    design = {"pad_radius_mm": float(pad_radius), "d_min_mm": float(d_min_for(params, pad_radius)),
+              "trace_width_mm": params.trace_width_mm, "clearance_mm": params.clearance_mm}
+    layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad, design, tx_first)
     kept = np.flatnonzero(keep)[order]
     pad_distance = distance[np.ix_(kept[layout.pad], kept[layout.pad])]
-    quality = _layout_metrics(params, mesh, samples, problem, selection, layout, fields[:, kept], pad_distance, pad_radius)
+    quality = _layout_metrics(params, mesh, samples, problem, selection, layout, fields[:, kept], pad_distance,
+                              active[kept])
     t4 = time.perf_counter()
     idle = quality.pop("unwired_selected_curves")
     metrics = {**base, "feasible": True, **quality, "phase1": selection.report, "phase2": pads.report,
@@ -287,81 +359,3 @@ def optimize(
                "seconds": {"phase1": t1 - t0, "crossing_geodesics": t2 - t1, "phase2": t3 - t2, "metrics": t4 - t3,
                            "total": t4 - t0}}
     return AngleLayout(angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
-
-
-class PickParams(NodeParams):
-    print_table: bool = Field(True, description="print the per-angle table to the console")
-    radius_tolerance_mm: float = Field(
-        1.0, ge=0, description="coverage radii within this of the best count as equal (then mean, then CV)"
-    )
-
-
-def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float) -> int:
-    """Index of the best feasible branch: smallest coverage radius (ties within the tolerance, since
-    the K samples resolve no finer), then the secondary objective when it is on (power mean of the
-    sample distances), then the Voronoi CV."""
-    feasible = [i for i, c in enumerate(candidates) if c.feasible]
-    best_radius = min(candidates[i].metrics["coverage_radius_mm"] for i in feasible)
-    tied = [i for i in feasible if candidates[i].metrics["coverage_radius_mm"] <= best_radius + radius_tolerance_mm]
-
-    def key(i: int) -> tuple:
-        m = candidates[i].metrics
-        mean = m["power_mean_distance_mm"] if m["secondary"] else 0.0
-        cv = m["voronoi_cv"] if m["voronoi_cv"] is not None else float("inf")
-        return (mean, cv, m["coverage_radius_mm"])
-
-    return min(tied, key=key)
-
-
-def angle_table(candidates: list[AngleLayout]) -> list[dict]:
-    """One row per branch: angle, objective, CV, pads, seconds, status."""
-    rows = []
-    for c in candidates:
-        m = c.metrics
-        stages = m.get("phase1", {}).get("stages", [])
-        rows.append({
-            "angle_deg": c.angle_deg,
-            "feasible": c.feasible,
-            "coverage_radius_mm": m.get("coverage_radius_mm"),
-            "mean_distance_mm": m.get("mean_distance_mm"),
-            "voronoi_cv": m.get("voronoi_cv"),
-            "pads": m.get("pads"),
-            "channels": f"{m.get('tx_channels', 0)}x{m.get('rx_channels', 0)}",
-            "seconds": m.get("seconds", {}).get("total"),
-            "status": "/".join(s["status"] for s in stages) or c.message,
-            "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
-            "relaxations": len(m.get("relaxations", [])),
-        })
-    return rows
-
-
-def print_angle_table(rows: list[dict], best: int) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title="layout per Rx angle (* = chosen)")
-    for name in ("angle", "radius mm", "mean mm", "Voronoi CV", "pads", "channels", "s", "status", "gap", "relax"):
-        table.add_column(name, justify="right")
-    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
-    for i, r in enumerate(rows):
-        table.add_row(("*" if i == best else "") + fmt(r["angle_deg"], "+.0f"), fmt(r["coverage_radius_mm"], ".2f"),
-                      fmt(r["mean_distance_mm"], ".2f"), fmt(r["voronoi_cv"], ".3f"), fmt(r["pads"], "d"),
-                      r["channels"], fmt(r["seconds"], ".1f"), r["status"], fmt(r["gap"], ".3f"),
-                      str(r["relaxations"]))
-    Console(stderr=True, width=140).print(table)
-
-
-@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics"))
-def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
-    """Keep the best Rx-angle branch (radius, secondary, Voronoi CV) and the per-angle table."""
-    feasible = [i for i, c in enumerate(candidates) if c.feasible]
-    if not feasible:
-        reasons = "; ".join(f"{c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
-        raise UserError(f"no Rx angle gives a feasible layout ({reasons})")
-    best = best_branch(candidates, params.radius_tolerance_mm)
-    rows = angle_table(candidates)
-    if params.print_table:
-        print_angle_table(rows, best)
-    chosen = candidates[best]
-    metrics = {**chosen.metrics, "chosen_angle_deg": chosen.angle_deg, "angles": rows}
-    return {"layout": chosen.layout, "metrics": metrics}

@@ -31,7 +31,6 @@ class RenderStyle:
     crossing_bgr: tuple[int, int, int] = (0, 255, 255)
     pad_bgr: tuple[int, int, int] = (0, 160, 255)
     crossing_radius_mm: float = 1.0
-    pad_radius_mm: float = 2.0
     depth_tolerance_mm: float = 2.0
     max_incidence_deg: float = 80.0
     landmark_max_incidence_deg: float = 60.0  # crossings/pads: steeper spots smear and shift with pose error
@@ -132,7 +131,7 @@ def render_layers(
         for (u, v), z, has_pad in zip(cross_uv, cross_dev[:, 2], scene.pad[cross_vis]):
             centre = (int(round(u * scale)), int(round(v * scale)))
             if has_pad:
-                r = int(round(style.pad_radius_mm * f_px / z * scale))
+                r = int(round(scene.pad_radius_mm * f_px / z * scale))
                 cv2.circle(img, centre, r, style.pad_bgr, -1, cv2.LINE_AA, shift)
             r = int(round(style.crossing_radius_mm * f_px / z * scale))
             cv2.circle(img, centre, r, style.crossing_bgr, max(1, style.line_px // 2), cv2.LINE_AA, shift)

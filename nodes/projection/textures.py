@@ -54,9 +54,7 @@ class TextureParams(NodeParams):
 
     texture_px: int = Field(2048, ge=256, le=8192, description="texture width = height (px)")
     padding_px: int = Field(4, ge=0, le=32, description="gutter between atlas charts (px)")
-    line_width_mm: float = Field(1.0, gt=0, description="drawn curve width on the surface (mm)")
     crossing_radius_mm: float = Field(1.0, gt=0, description="crossing ring radius (mm)")
-    pad_radius_mm: float = Field(2.0, gt=0, description="electrode pad disc radius (mm)")
     background: str = Field("#d8d8d8", description="texture background colour (#RRGGBB)")
     tx_colour: str = Field("#d03020", description="Tx curve colour (#RRGGBB)")
     rx_colour: str = Field("#2050d0", description="Rx curve colour (#RRGGBB)")
@@ -126,13 +124,13 @@ def _bake(
     density = texels_per_mm(mesh, atlas, size)
     shift = 4
     scale = float(1 << shift)
-    width = max(1, int(round(params.line_width_mm * density)))
+    width = max(1, int(round(layout.trace_width_mm * density)))
     for curve_set, colour in curves:
         segs = segment_uv_pixels(mesh, atlas, curve_set, size)
         if len(segs):
             cv2.polylines(img, list(np.rint(segs * scale).astype(np.int32)), False, colour, width, cv2.LINE_AA, shift)
     centres = np.rint(face_uv_pixels(atlas, layout.cells.faces, layout.cells.bary, size) * scale).astype(np.int64)
-    pad_r = int(round(pad_radius_mm(params, layout) * density * scale))
+    pad_r = int(round(layout.pad_radius_mm * density * scale))
     ring_r = int(round(params.crossing_radius_mm * density * scale))
     ring_w = max(1, width // 2)
     for (x, y), has_pad in zip(centres, np.asarray(layout.pad, bool)):
@@ -198,15 +196,10 @@ def mtl_text(texture_file: str) -> str:
     return f"newmtl layout\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {texture_file}\n"
 
 
-def pad_radius_mm(params: TextureParams, layout: Layout) -> float:
-    """The electrode pad radius drawn (mm): the one place the bake and the atlas read it."""
-    return params.pad_radius_mm
-
-
 def paint_reach_mm(params: TextureParams, layout: Layout) -> tuple[float, float]:
-    """How far (mm) paint reaches from a curve and from a crossing (pad disc or ring)."""
-    line = params.line_width_mm / 2
-    return line, max(pad_radius_mm(params, layout), params.crossing_radius_mm + line)
+    """How far (mm) paint reaches from a curve and from a crossing (the layout's pad disc or a ring)."""
+    line = layout.trace_width_mm / 2
+    return line, max(layout.pad_radius_mm, params.crossing_radius_mm + line)
 
 
 def layout_atlas(mesh: Mesh, layout: Layout, params: TextureParams) -> Atlas:

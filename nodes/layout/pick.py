@@ -1,0 +1,125 @@
+"""``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
+
+Branches are taken in order; the best is chosen by (coverage radius within ``radius_tolerance_mm``
+of the best, then the power mean of the sample distances when the secondary objective is on, then
+the Voronoi CV of the pads). Every branch gets a row in ``metrics["angles"]`` and the printed table,
+with its notes: a failed branch with its reason, and a feasible branch whose coverage radius
+exceeds ``outlier_factor`` times the median of the feasible branches as far worse. Units: mm, deg.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams, node
+from .sweep import AngleLayout
+
+
+class PickParams(NodeParams):
+    print_table: bool = Field(True, description="print the per-angle table to the console")
+    radius_tolerance_mm: float = Field(
+        1.0, ge=0, description="coverage radii within this of the best count as equal (then mean, then CV)"
+    )
+    outlier_factor: float = Field(
+        1.5, gt=1, description="a branch whose coverage radius exceeds this times the median is noted as far worse"
+    )
+
+
+def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float) -> int:
+    """Index of the best feasible branch: smallest coverage radius (ties within the tolerance, since
+    the K samples resolve no finer), then the secondary objective when it is on (power mean of the
+    sample distances), then the Voronoi CV."""
+    feasible = [i for i, c in enumerate(candidates) if c.feasible]
+    best_radius = min(candidates[i].metrics["coverage_radius_mm"] for i in feasible)
+    tied = [i for i in feasible if candidates[i].metrics["coverage_radius_mm"] <= best_radius + radius_tolerance_mm]
+
+    def key(i: int) -> tuple:
+        m = candidates[i].metrics
+        mean = m["power_mean_distance_mm"] if m["secondary"] else 0.0
+        cv = m["voronoi_cv"] if m["voronoi_cv"] is not None else float("inf")
+        return (mean, cv, m["coverage_radius_mm"])
+
+    return min(tied, key=key)
+
+
+def branch_notes(candidates: list[AngleLayout], outlier_factor: float) -> list[str]:
+    """Per branch: its failure reason, a 'far worse' note when its coverage radius exceeds
+    ``outlier_factor`` times the median of the feasible branches, or ''."""
+    radii = [c.metrics["coverage_radius_mm"] for c in candidates if c.feasible]
+    median = float(np.median(radii)) if radii else float("nan")
+    notes = []
+    for c in candidates:
+        if not c.feasible:
+            notes.append(f"failed: {c.message}")
+        elif c.metrics["coverage_radius_mm"] > outlier_factor * median:
+            notes.append(f"far worse: coverage radius {c.metrics['coverage_radius_mm']:.1f} mm > "
+                         f"{outlier_factor:g} x median {median:.1f} mm")
+        else:
+            notes.append("")
+    return notes
+
+
+def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> list[dict]:
+    """One row per branch: angle, coverage, Voronoi CV (all crossings, pads), cells, clearance,
+    phase-1 gap, seconds, status and notes."""
+    rows = []
+    for c, note in zip(candidates, branch_notes(candidates, outlier_factor)):
+        m = c.metrics
+        stages = m.get("phase1", {}).get("stages", [])
+        rows.append({
+            "angle_deg": c.angle_deg,
+            "feasible": c.feasible,
+            "coverage_radius_mm": m.get("coverage_radius_mm"),
+            "mean_distance_mm": m.get("mean_distance_mm"),
+            "voronoi_cv": m.get("voronoi_cv"),
+            "voronoi_cv_all_crossings": m.get("voronoi_cv_all_crossings"),
+            "pads": m.get("pads"),
+            "cells": m.get("cells"),
+            "channel_pairs": m.get("channel_pairs"),
+            "min_same_layer_clearance_mm": m.get("min_same_layer_clearance_mm"),
+            "channels": f"{m.get('tx_channels', 0)}x{m.get('rx_channels', 0)}",
+            "seconds": m.get("seconds", {}).get("total"),
+            "status": "/".join(s["status"] for s in stages) or c.message,
+            "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
+            "bound": [s.get("bound") for s in stages],
+            "relaxations": len(m.get("relaxations", [])),
+            "note": note,
+        })
+    return rows
+
+
+def print_angle_table(rows: list[dict], best: int) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="layout per Rx angle (* = chosen)")
+    columns = ("angle", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "s",
+               "status", "gap", "relax", "note")
+    for name in columns:
+        table.add_column(name, justify="right")
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    for i, r in enumerate(rows):
+        cells = "-" if r["cells"] is None else f"{r['cells']}/{r['channel_pairs']}"
+        table.add_row(("*" if i == best else "") + fmt(r["angle_deg"], "+.0f"), fmt(r["coverage_radius_mm"], ".2f"),
+                      fmt(r["mean_distance_mm"], ".2f"), fmt(r["voronoi_cv_all_crossings"], ".3f"),
+                      fmt(r["voronoi_cv"], ".3f"), cells, fmt(r["pads"], "d"), fmt(r["min_same_layer_clearance_mm"], ".2f"),
+                      r["channels"], fmt(r["seconds"], ".1f"), r["status"], fmt(r["gap"], ".3f"), str(r["relaxations"]),
+                      r["note"])
+    Console(stderr=True, width=200).print(table)
+
+
+@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics"))
+def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
+    """Keep the best Rx-angle branch (radius, secondary, Voronoi CV) and the per-angle table."""
+    feasible = [i for i, c in enumerate(candidates) if c.feasible]
+    if not feasible:
+        reasons = "; ".join(f"{c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
+        raise UserError(f"no Rx angle gives a feasible layout ({reasons})")
+    best = best_branch(candidates, params.radius_tolerance_mm)
+    rows = angle_table(candidates, params.outlier_factor)
+    if params.print_table:
+        print_angle_table(rows, best)
+    chosen = candidates[best]
+    metrics = {**chosen.metrics, "chosen_angle_deg": chosen.angle_deg, "angles": rows}
+    return {"layout": chosen.layout, "metrics": metrics}

@@ -1,0 +1,101 @@
+"""Same-layer clearance on centre lines: close pairs (phase-1 conflicts) and the reported profile."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from retrotouch.nodes.data.types import CurveSet
+from retrotouch.nodes.layout.clearance import clearance_profile, close_pairs, resample, start_trims, trim_starts
+
+
+def lines(offsets_mm: list[float], length_mm: float = 50.0, rows: int = 26, face_of_row=None) -> CurveSet:
+    """Straight parallel curves along x at the given y offsets (mm); row j of every curve in face
+    ``face_of_row(j)`` (default 0)."""
+    x = np.linspace(0.0, length_mm, rows)
+    points = np.concatenate([np.stack([x, np.full(rows, y), np.zeros(rows)], axis=1) for y in offsets_mm])
+    faces = np.tile([face_of_row(j) if face_of_row else 0 for j in range(rows)], len(offsets_mm)).astype(np.int64)
+    n = len(offsets_mm)
+    return CurveSet(layer="tx", points=points, faces=faces, bary=np.full((len(points), 3), 1 / 3),
+                    offsets=np.arange(n + 1, dtype=np.int64) * rows, lengths_mm=np.full(n, length_mm),
+                    end_reason=np.zeros(n, dtype=np.int8), angle=0.0)
+
+
+EVERYWHERE = np.array([True])
+
+
+def test_resampled_points_cover_the_length_in_short_pieces():
+    points, curve, length, arc = resample(lines([0.0, 5.0]), EVERYWHERE, 0.25)
+    assert length.sum() == pytest.approx(100.0)
+    np.testing.assert_allclose(arc, points[:, 0], atol=1e-9)  # straight lines from x = 0
+    assert length.max() <= 0.25 + 1e-12 and np.array_equal(np.unique(curve), [0, 1])
+    assert np.all((points[:, 0] > 0) & (points[:, 0] < 50))
+
+
+@pytest.mark.parametrize("gap,close", [(1.5, True), (1.99, True), (2.3, False), (5.0, False)])
+def test_close_pairs_flag_exactly_the_pairs_below_the_bound_plus_one_step(gap, close):
+    pairs = close_pairs(lines([0.0, gap, gap + 10.0]), EVERYWHERE, 2.0, step_mm=0.25)
+    assert (pairs.tolist() == [[0, 1]]) is close
+    assert len(pairs) == int(close)
+
+
+def test_only_segments_in_the_region_count():
+    # curves 1.0 mm apart, but only segments 0..9 (the first 20 mm) lie in region face 1
+    curves = lines([0.0, 1.0], face_of_row=lambda j: 1 if j < 10 else 0)
+    region = np.array([False, True])
+    assert close_pairs(curves, region, 2.0).tolist() == [[0, 1]]
+    assert close_pairs(curves, np.array([True, False]), 0.5).tolist() == []
+    profile = clearance_profile(curves, region, 2.0)
+    assert profile["length_in_region_mm"] == pytest.approx(2 * 20.0)
+    assert profile["share_closer_than_bound"] == pytest.approx(1.0)
+
+
+def test_profile_measures_the_closest_centre_lines_and_the_close_length():
+    profile = clearance_profile(lines([0.0, 1.2, 6.0]), EVERYWHERE, 2.0, step_mm=0.1)
+    assert profile["min_centre_distance_mm"] == pytest.approx(1.2, abs=1e-9)
+    assert profile["length_closer_than_bound_mm"] == pytest.approx(100.0)
+    assert profile["share_closer_than_bound"] == pytest.approx(100.0 / 150.0)
+    alone = clearance_profile(lines([0.0]), EVERYWHERE, 2.0)
+    assert alone["min_centre_distance_mm"] is None and alone["share_closer_than_bound"] == 0.0
+
+
+def fan(angles_deg: list[float], length_mm: float = 40.0, rows: int = 81) -> CurveSet:
+    """Straight curves from a common start at the origin (a pole), one per angle."""
+    s = np.linspace(0.0, length_mm, rows)
+    a = np.radians(angles_deg)
+    points = np.concatenate([np.stack([s * np.cos(t), s * np.sin(t), np.zeros(rows)], axis=1) for t in a])
+    n = len(a)
+    return CurveSet(layer="tx", points=points, faces=np.zeros(len(points), dtype=np.int64),
+                    bary=np.full((len(points), 3), 1 / 3), offsets=np.arange(n + 1, dtype=np.int64) * rows,
+                    lengths_mm=np.full(n, length_mm), end_reason=np.zeros(n, dtype=np.int8), angle=0.0)
+
+
+def test_curves_from_a_common_start_are_trimmed_where_they_have_room():
+    curves = fan([-10.0, 10.0])  # 2 s sin(10 deg) apart at arc s: 2 mm at s = 5.76 mm
+    assert close_pairs(curves, EVERYWHERE, 2.0).tolist() == [[0, 1]]
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=20.0).tolist() == []
+    first = start_trims(curves, EVERYWHERE, 2.0, free_start_mm=20.0)
+    trimmed, cut = trim_starts(curves, first)
+    np.testing.assert_allclose(cut, first * 0.5)  # rows every 0.5 mm
+    assert cut[0] == 0.0  # the first curve in spread order reaches the pole
+    assert 5.76 <= cut[1] <= 5.76 + 0.25 + 0.5 + 1e-9  # conservative by one step, then one row
+    np.testing.assert_allclose(trimmed.lengths_mm, 40.0 - cut)
+    assert clearance_profile(trimmed, EVERYWHERE, 2.0)["min_centre_distance_mm"] >= 2.0
+    assert trimmed.offsets[-1] == len(trimmed.points) == 2 * 81 - first.sum()
+
+
+def test_spread_order_covers_the_range_evenly():
+    from retrotouch.nodes.layout.clearance import spread_order
+
+    assert spread_order(8).tolist() == [0, 4, 2, 6, 1, 5, 3, 7]
+    assert sorted(spread_order(21).tolist()) == list(range(21))
+
+
+def test_a_free_start_next_to_the_middle_of_another_curve_still_conflicts():
+    x = np.linspace(0.0, 50.0, 101)
+    a = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)  # its first 10 mm run beside b's last 10 mm
+    b = np.stack([x - 40.0, np.ones_like(x), np.zeros_like(x)], axis=1)
+    curves = CurveSet(layer="tx", points=np.vstack([a, b]), faces=np.zeros(202, dtype=np.int64),
+                      bary=np.full((202, 3), 1 / 3), offsets=np.array([0, 101, 202]), lengths_mm=np.full(2, 50.0),
+                      end_reason=np.zeros(2, dtype=np.int8), angle=0.0)
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=20.0).tolist() == [[0, 1]]
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=60.0).tolist() == []  # both in their free starts
