@@ -28,6 +28,7 @@ from typing import Any, Optional
 
 import typer
 
+from ...graph.app import current
 from ...graph.errors import UserError
 
 
@@ -162,7 +163,20 @@ def sense(
                                            "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
                                            "round by round."),
 ) -> None:
-    """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
+    """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording.
+    Ctrl-C ends it with one ``interrupted`` line (as the engine words it) and exit code 130."""
+    try:
+        _sense(**locals())
+    except KeyboardInterrupt:
+        # Handled here: once a command runs, click turns Ctrl-C into a silent exit 130.
+        print(f"{current().name}: error: interrupted", file=sys.stderr, flush=True)
+        raise typer.Exit(130) from None
+
+
+def _sense(port, layout, simulate, script, fast, loop, snr, seed, coupling, replay, speed, record, frame_format,
+           baudrate, flip_tx, flip_rx, skip_tx, skip_rx, skip_lines, udp, websocket, view, view_port, duration,
+           evaluate, protocol) -> None:
+    """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
     from .virtual_board import BoardParams
 
@@ -233,7 +247,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
     sensing_map = load_sensing_map(layout_path)
     processor = TouchProcessor(sensing_map)
     sinks = EventSinks(udp=udp, websocket_port=websocket)
-    live = reader = None
+    live = reader = frames = None
     try:
         if view_port is not None:
             live = _live_view(processor, view_port)
@@ -241,8 +255,9 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
             from .muca_serial import MucaReader
 
             reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
-                                options=source.options, skip_first_lines=source.skip_lines, record=source.record)
-            frames: Iterable[Any] = reader.frames()
+                                options=source.options, skip_first_lines=source.skip_lines, record=source.record,
+                                on_status=lambda line: print(line, file=sys.stderr, flush=True))
+            frames = reader.frames()
         elif source.replay:
             from .recording import replay_frames
 
@@ -254,9 +269,9 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
                                 source.frame_format, source.record)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
-    except KeyboardInterrupt:
-        pass
     finally:
+        if hasattr(frames, "close"):
+            frames.close()  # a generator: stops the simulator and closes its port now
         if reader is not None:
             reader.close()
         if live is not None:
