@@ -34,9 +34,9 @@ def run():
 
 def validate_sensing_map(doc: dict, n_tx_max: int = 21, n_rx_max: int = 12) -> None:
     """Structure and types exactly as the format in retrotouch.nodes.data.sensing_map."""
-    assert set(doc) == {"format", "units", "up", "mesh", "design", "tx_channels", "rx_channels", "channels", "cells"}
-    assert set(doc["design"]) == {"pad_radius_mm", "d_min_mm", "trace_width_mm", "clearance_mm"}
-    assert all(doc["design"][k] > 0 for k in ("pad_radius_mm", "d_min_mm", "trace_width_mm"))
+    assert set(doc) == {"format", "units", "up", "mesh", "design", "sensing_faces", "tx_channels", "rx_channels",
+                        "channels", "cells"}
+    assert all(0 <= a < b <= doc["mesh"]["faces"] for a, b in doc["sensing_faces"])
     assert doc["format"] == SENSING_MAP_FORMAT and doc["units"] == "mm"
     assert len(doc["up"]) == 3 and np.linalg.norm(doc["up"]) == pytest.approx(1.0)
     assert set(doc["mesh"]) == {"file", "sha256", "vertices", "faces"}
@@ -79,6 +79,8 @@ def test_sensing_map_matches_schema_and_mesh(run):
         assert np.dot(cell["normal"], cell["point"]) > 0  # outward on the sphere
     assert sum(c["pad"] for c in doc["cells"]) == picked["metrics"]["pads"] == int(layout.pad.sum())
     assert doc["up"] == [0.0, 0.0, 1.0]  # the regions' resting pose
+    regions = synthetic_instance()[1]
+    assert sum(b - a for a, b in doc["sensing_faces"]) == int(regions.sensing_faces.sum())
 
 
 def test_metrics_and_pick(run):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import pty
+import re
 import threading
 import time
 
@@ -198,3 +199,104 @@ def test_reader_reconnects_after_unplug():
         os.close(slave)
     assert reader.reconnects == 1
     assert all(np.array_equal(a, b) for a, b in zip(got, frames))
+
+
+def _field_lines(rng: np.random.Generator, kind: str) -> bytes:
+    """One malformed line of the operator's fuzz classes (issue 17): a sign, a decimal point or hex
+    in one field, or 600-3000 fields; plus a field count off by one, a leading zero, a value over
+    65535 and a frame glued behind a partial number."""
+    fields = [str(v).encode() for v in rng.integers(0, 65536, 252)]
+    k = int(rng.integers(252))
+    if kind == "negative":
+        fields[k] = b"-" + fields[k]
+    elif kind == "decimal":
+        fields[k] = fields[k] + b".5"
+    elif kind == "hex":
+        fields[k] = b"0x1F"
+    elif kind == "many_fields":
+        fields = [str(v).encode() for v in rng.integers(0, 65536, int(rng.integers(600, 3001)))]
+    elif kind == "one_short":
+        fields = fields[:251]
+    elif kind == "leading_zero":
+        fields[k] = b"0" + fields[k]
+    elif kind == "too_large":
+        fields[k] = b"65536"
+    elif kind == "glued_number":  # a frame behind the start of a line that lost its newline
+        return b",".join(fields[:k + 1]) + b"1" + encode_ascii_frame(grid(k, 0, 65536))
+    return b",".join(fields) + b"\r\n"
+
+
+MALFORMED = ("negative", "decimal", "hex", "many_fields", "one_short", "leading_zero", "too_large", "glued_number")
+
+
+def test_fuzz_operator_classes_accept_no_invalid_line_and_lose_no_frame():
+    """2,000 valid frames (some with empty fields, some behind glued status text) interleaved with
+    4,000 malformed lines of the issue's classes, cut into random chunks."""
+    rng = np.random.default_rng(17)
+    items, valid, malformed = [], [], 0
+    for k in range(6000):
+        if k % 3 == 0:
+            values = grid(k, 0, 65536)
+            values.ravel()[rng.integers(0, 252, int(rng.integers(0, 4)))] = 0
+            line = ",".join("" if v == 0 and k % 2 else str(v) for v in values.ravel()).encode() + b"\r\n"
+            items.append((b"i2c write failed" if k % 7 == 0 else b"") + line)
+            valid.append(values)
+        else:
+            items.append(_field_lines(rng, MALFORMED[k % len(MALFORMED)]))
+            malformed += 1
+    stream = b"".join(items)
+    cuts = np.sort(rng.integers(0, len(stream), 3000))
+    parser = AsciiFrameParser()
+    out = parse_stream((stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)])), parser)
+    assert len(out) == len(valid)  # no invalid line accepted, no valid frame lost
+    assert all(np.array_equal(a, b) for a, b in zip(out, valid))
+    assert parser.stats.rejected_lines == malformed and parser.stats.salvaged_lines == sum(
+        1 for item in items if item.startswith(b"i2c"))
+
+
+def _best_seconds_per_line(lines: list[bytes], repeats: int = 7) -> float:
+    block = b"".join(lines)
+    best = np.inf
+    for _ in range(repeats):
+        parser = AsciiFrameParser()
+        started = time.perf_counter()
+        parser.feed(block)
+        best = min(best, time.perf_counter() - started)
+    return best / len(lines)
+
+
+def test_rejecting_a_line_costs_no_more_than_parsing_a_valid_one():
+    """Per line, each malformed class (including 600-3000 fields, up to 12x a frame's bytes) is
+    rejected within twice the time a valid frame takes to parse, measured side by side (best of 7):
+    a value over 65535 is only found by converting the whole line, as for a valid one; every other
+    class is rejected before any conversion. (The old parser took 30-100x a valid line.)"""
+    rng = np.random.default_rng(3)
+    valid = [encode_ascii_frame(grid(k, 0, 65536)) for k in range(300)]
+    valid_s = _best_seconds_per_line(valid)
+    for kind in MALFORMED:
+        lines = [_field_lines(rng, kind) for _ in range(300)]
+        assert _best_seconds_per_line(lines) <= 2.0 * valid_s, kind
+
+
+def test_reader_reports_the_wait_with_its_time_and_gives_up_after_its_timeout():
+    attempts = []
+
+    def open_port():
+        attempts.append(time.monotonic())
+        if len(attempts) == 1:
+            master, slave = pty.openpty()
+            port = serial.Serial(os.ttyname(slave), timeout=0.05)
+            os.close(master)  # the board is gone at once: the first read errors
+            os.close(slave)
+            return port
+        raise serial.SerialException("no such device")
+
+    lines: list[str] = []
+    reader = MucaReader("pty", open_port=open_port, reconnect_interval_s=0.05, reconnect_timeout_s=1.0,
+                        on_status=lines.append, status_interval_s=0.3)
+    assert list(reader.frames()) == []
+    reader.close()
+    assert "went away" in lines[0] and "waiting for it to come back" in lines[0]
+    waiting = [line for line in lines if line.startswith("still waiting")]
+    assert 2 <= len(waiting) <= 4 and all(re.search(r"\(\d+ s, since \d\d:\d\d:\d\d\)", w) for w in waiting)
+    assert "did not come back within 1 s" in lines[-1] and len(lines) == len(waiting) + 2

@@ -7,6 +7,7 @@ Written next to ``mesh.ply`` (the object's mesh, :func:`..data.ply.ply_bytes`) i
      "up": [ux, uy, uz],                            # unit, opposite to the side the object rests on
      "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
      "design": {"pad_radius_mm": 2.0, "d_min_mm": 8.0, "trace_width_mm": 1.0, "clearance_mm": 1.0},  # as laid out
+     "sensing_faces": [[start, stop], ...],         # face index ranges of the sensing region
      "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
      "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
                   "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},
@@ -16,8 +17,10 @@ Written next to ``mesh.ply`` (the object's mesh, :func:`..data.ply.ply_bytes`) i
 Cells list only channel pairs whose curves cross (at most one cell per pair); the board frame index
 of a cell is ``tx * NUM_RX + rx`` (:mod:`.board`). A cell's normal is the barycentric interpolation
 of the unit area-weighted vertex normals (:func:`..geometry.triangles.vertex_normals`), normalised:
-smooth across faces, outward because faces are CCW seen from outside. Version 2 added ``up``; the
-reader refuses version 1 files (their up axis is unknown) with a one-line error saying to re-run.
+smooth across faces, outward because faces are CCW seen from outside. The sensing region
+(``regions.detect``: where traces may run, base and exclusions left out) is what an evaluation
+spreads its touch locations over. Version 2 added ``up`` and ``sensing_faces``; the reader refuses
+version 1 files (their up axis is unknown) with a one-line error saying to re-run the pipeline.
 """
 from __future__ import annotations
 
@@ -47,6 +50,7 @@ class SensingMap:
     vertices: np.ndarray  # (n, 3) float64, mm
     faces: np.ndarray  # (m, 3) int64
     up: np.ndarray  # (3,) float64, unit
+    sensing_faces: np.ndarray  # (m,) bool, the sensing region
     num_tx: int  # Tx channels wired (<= NUM_TX)
     num_rx: int  # Rx channels wired (<= NUM_RX)
     cell_tx: np.ndarray  # (K,) int64
@@ -93,12 +97,14 @@ def sensing_map_files(
     cell_bary: np.ndarray,
     cell_pad: np.ndarray,
     channels: dict[str, list[tuple[int, float]]],
+    sensing_faces: np.ndarray,
     design: dict[str, float] | None = None,
 ) -> dict[str, bytes]:
-    """The bytes of ``sensing_map.json`` and ``mesh.ply`` for a layout: mesh (mm), ``up`` (3,),
-    per cell its channels, crossing point (mm), face, barycentrics and pad flag, per layer
-    (``"tx"``, ``"rx"``) one ``(curve id, length_mm)`` per channel in channel order, and the design
-    values the layout was made with (mm; written when given)."""
+    """The bytes of ``sensing_map.json`` and ``mesh.ply`` for a layout: mesh (mm), ``up`` (3,), the
+    sensing region ``sensing_faces`` (m,) bool, per cell its channels, crossing point (mm), face,
+    barycentrics and pad flag, per layer (``"tx"``, ``"rx"``) one ``(curve id, length_mm)`` per
+    channel in channel order, and the design values the layout was made with (mm; written when
+    given)."""
     mesh_bytes = ply_bytes(vertices, faces)
     up = np.asarray(up, dtype=np.float64)
     normals = cell_normals(vertices, faces, cell_faces, cell_bary)
@@ -114,6 +120,7 @@ def sensing_map_files(
         "mesh": {"file": MESH_FILE, "sha256": hashlib.sha256(mesh_bytes).hexdigest(),
                  "vertices": int(len(vertices)), "faces": int(len(faces))},
         **({"design": {name: float(value) for name, value in design.items()}} if design is not None else {}),
+        "sensing_faces": face_ranges(sensing_faces),
         "tx_channels": len(channels["tx"]),
         "rx_channels": len(channels["rx"]),
         "channels": {"tx": layer("tx", "Tx"), "rx": layer("rx", "Rx")},
@@ -123,6 +130,23 @@ def sensing_map_files(
                   for k in range(len(cell_tx))],
     }
     return {SENSING_MAP_FILE: json.dumps(document, indent=1).encode(), MESH_FILE: mesh_bytes}
+
+
+def face_ranges(mask: np.ndarray) -> list[list[int]]:
+    """``[[start, stop], ...]`` half-open index ranges of the True runs of a (m,) bool mask."""
+    padded = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
+    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+
+
+def face_mask(ranges: list[list[int]], count: int) -> np.ndarray:
+    """The (count,) bool mask of :func:`face_ranges` output (ValueError outside 0..count)."""
+    mask = np.zeros(count, dtype=bool)
+    for start, stop in ranges:
+        if not 0 <= int(start) < int(stop) <= count:
+            raise ValueError(f"face range [{start}, {stop}) outside 0..{count}")
+        mask[int(start):int(stop)] = True
+    return mask
 
 
 def write_sensing_map(folder: str | Path, files: dict[str, bytes]) -> Path:
@@ -167,6 +191,7 @@ def load_sensing_map(path: str | Path) -> SensingMap:
         mesh_file = path.parent / doc["mesh"]["file"]
         num_tx, num_rx = int(doc["tx_channels"]), int(doc["rx_channels"])
         up = np.array(doc["up"], dtype=np.float64).reshape(3)
+        sensing_ranges = doc["sensing_faces"]
         cells = doc["cells"]
         cell_tx = np.array([c["tx"] for c in cells], dtype=np.int64)
         cell_rx = np.array([c["rx"] for c in cells], dtype=np.int64)
@@ -188,7 +213,11 @@ def load_sensing_map(path: str | Path) -> SensingMap:
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if faces_k.max() >= len(faces):
         raise UserError(f"sensing map {path} names face {faces_k.max()} but {mesh_file} has {len(faces)} faces")
-    return SensingMap(vertices, faces, up / np.linalg.norm(up), num_tx, num_rx, cell_tx, cell_rx, points, faces_k,
+    try:
+        sensing = face_mask(sensing_ranges, len(faces))
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"sensing map {path} has bad sensing_faces ({exc}): regenerate it with the pipeline") from None
+    return SensingMap(vertices, faces, up / np.linalg.norm(up), sensing, num_tx, num_rx, cell_tx, cell_rx, points, faces_k,
                       bary, normals / np.linalg.norm(normals, axis=1, keepdims=True), pad, str(path))
 
 

@@ -2,7 +2,7 @@
 
 ``sensing_map.json`` and ``mesh.ply`` come from the one writer,
 :func:`retrotouch.nodes.data.sensing_map.sensing_map_files` (format and cell normals described
-there); the up axis is the resting pose ``regions.detect`` found.
+there); the up axis and the sensing region are what ``regions.detect`` found.
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegi
     channels = {"tx": list(zip(layout.tx_source.tolist(), layout.tx.lengths_mm.tolist())),
                 "rx": list(zip(layout.rx_source.tolist(), layout.rx.lengths_mm.tolist()))}
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
-                              cells.faces, cells.bary, layout.pad, channels, design=layout.design_values())
+                              cells.faces, cells.bary, layout.pad, channels, regions.sensing_faces,
+                              design=layout.design_values())
     return Files({**files, "metrics.json": json.dumps(metrics, indent=1, default=_json_default).encode()})
 
 

@@ -7,8 +7,9 @@ Usage::
     retrotouch sense --simulate [script.json] [--fast] [--layout ...]       # the virtual board on a pty
     retrotouch sense --replay session.jsonl --layout out/retrofit           # a recording
     ... --record session.jsonl   --udp 127.0.0.1:9000   --websocket 8765   --view [--view-port 8080]
-    ... --evaluate   (with --simulate or --replay: the 15 x 10 SNR / localization protocol, one JSON report;
-                      a hardware recording without labels needs --protocol locations.json)
+    ... --evaluate [--locations points.json] [--board board.yaml]   (with --simulate or --replay: the
+                      15 x 10 SNR / localization protocol, one JSON report; a hardware recording
+                      without labels needs --locations or --protocol)
 
 Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
 gestures from :mod:`retrotouch.nodes.sensing.gestures`); the same lines go to every ``--udp`` target as
@@ -28,6 +29,7 @@ from typing import Any, Optional
 
 import typer
 
+from ...graph.app import current
 from ...graph.errors import UserError
 
 
@@ -137,10 +139,12 @@ def sense(
     script: Optional[str] = typer.Argument(None, help="Simulation script (with --simulate)."),
     fast: bool = typer.Option(False, "--fast", help="Simulator: run as fast as the processing goes."),
     loop: bool = typer.Option(False, "--loop", help="Simulator: repeat the script until stopped."),
-    snr: float = typer.Option(60.0, "--snr", help="Simulator: peak signal over noise sigma."),
-    seed: int = typer.Option(0, "--seed", help="Simulator: random seed."),
-    coupling: str = typer.Option("gaussian", "--coupling", help="Simulator: finger coupling profile, gaussian (the "
-                                 "processing's model) or disc (flat top, power-law tail: a model mismatch)."),
+    board: Optional[str] = typer.Option(None, "--board", help="Simulator: board model YAML (BoardParams settings over "
+                                        "the default board, which is unlike the processing's assumptions)."),
+    snr: Optional[float] = typer.Option(None, "--snr", help="Simulator: peak signal over noise sigma (board: 60)."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Simulator: random seed (board: 0)."),
+    coupling: Optional[str] = typer.Option(None, "--coupling", help="Simulator: finger coupling profile, gaussian (the "
+                                           "processing's model) or disc (flat top, power-law tail; the default board's)."),
     replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
     speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
     record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
@@ -158,21 +162,41 @@ def sense(
     duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds of frames."),
     evaluate: bool = typer.Option(False, "--evaluate", help="Run the SNR/localization protocol (with --simulate "
                                   "or --replay) and print its report as one JSON object."),
+    locations: Optional[str] = typer.Option(None, "--locations", help="With --evaluate: JSON list of the touched points "
+                                            "[[x, y, z], ...] (mm on the object; a --replay touched them 10 times "
+                                            "round by round); default: 15 spread over the sensing surface."),
     protocol: Optional[str] = typer.Option(None, "--protocol", help="With --evaluate --replay of an unlabelled "
                                            "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
                                            "round by round."),
 ) -> None:
-    """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording."""
+    """Stream touch and gesture events (JSON lines) from a Muca board, the simulator or a recording.
+    Ctrl-C ends it with one ``interrupted`` line (as the engine words it) and exit code 130."""
+    try:
+        _sense(**locals())
+    except KeyboardInterrupt:
+        # Handled here: once a command runs, click turns Ctrl-C into a silent exit 130.
+        print(f"{current().name}: error: interrupted", file=sys.stderr, flush=True)
+        raise typer.Exit(130) from None
+
+
+def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, coupling, replay, speed, record, frame_format,
+           baudrate, flip_tx, flip_rx, skip_tx, skip_rx, skip_lines, udp, websocket, view, view_port, duration,
+           evaluate, locations, protocol) -> None:
+    """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
-    from .virtual_board import BoardParams
 
     _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
-    board_params = BoardParams(snr=snr, seed=seed, coupling_model=coupling)
+    if locations and not evaluate:
+        raise UserError("--locations goes with --evaluate (the points touched in the protocol)")
+    if board and not simulate:
+        raise UserError("--board goes with --simulate (it describes the virtual board)")
+    board_params = _board(board, snr, seed, coupling)
     if layout is None and not simulate:
         raise UserError("--layout is required: pass the run folder or its sensing_map.json")
     layout_path = _default_layout() if layout is None else resolve_sensing_map_path(layout)
     if evaluate:
-        _evaluate(layout_path, replay, board_params, record, protocol)
+        _evaluate(layout_path, replay, board_params, record, protocol or (locations if replay else None),
+                  None if replay else locations)
         return
     from .frames import FrameOptions
 
@@ -198,7 +222,7 @@ def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, co
         raise UserError("--evaluate needs --simulate or a labelled --replay recording")
     if protocol and not (evaluate and replay):
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
-    if coupling not in ("gaussian", "disc"):
+    if coupling not in (None, "gaussian", "disc"):
         raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
     if frame_format not in ("ascii", "binary"):
         raise UserError(f"--format {frame_format!r}: use ascii or binary")
@@ -233,7 +257,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
     sensing_map = load_sensing_map(layout_path)
     processor = TouchProcessor(sensing_map)
     sinks = EventSinks(udp=udp, websocket_port=websocket)
-    live = reader = None
+    live = reader = frames = None
     try:
         if view_port is not None:
             live = _live_view(processor, view_port)
@@ -241,8 +265,9 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
             from .muca_serial import MucaReader
 
             reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
-                                options=source.options, skip_first_lines=source.skip_lines, record=source.record)
-            frames: Iterable[Any] = reader.frames()
+                                options=source.options, skip_first_lines=source.skip_lines, record=source.record,
+                                on_status=lambda line: print(line, file=sys.stderr, flush=True))
+            frames = reader.frames()
         elif source.replay:
             from .recording import replay_frames
 
@@ -254,9 +279,14 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
                                 source.frame_format, source.record)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
-    except KeyboardInterrupt:
-        pass
+        if live is not None:
+            print("the frames ended; the live view keeps serving its last frame (Ctrl-C to stop)", file=sys.stderr,
+                  flush=True)
+            while True:
+                time.sleep(3600)
     finally:
+        if hasattr(frames, "close"):
+            frames.close()  # a generator: stops the simulator and closes its port now
         if reader is not None:
             reader.close()
         if live is not None:
@@ -300,16 +330,33 @@ def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> 
     return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
 
 
+def _board(board: Optional[str], snr: Optional[float], seed: Optional[int], coupling: Optional[str]):
+    """The simulated board: a ``--board`` file over the default board, then the single options."""
+    from pydantic import ValidationError
+
+    from .virtual_board import REALISTIC_BOARD, BoardParams, load_board
+
+    params = load_board(board) if board else REALISTIC_BOARD
+    given = {key: value for key, value in (("snr", snr), ("seed", seed), ("coupling_model", coupling)) if value is not None}
+    try:
+        return BoardParams.model_validate({**params.model_dump(), **given})
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        raise UserError(f"--{str(error['loc'][0]).split('_')[0]}: {error['msg']}") from None
+
+
 def _evaluate(layout_path: Path, replay: Optional[str], board_params, record: Optional[str],
-              protocol: Optional[str]) -> None:
+              protocol: Optional[str], locations: Optional[str]) -> None:
     from .evaluation import EvalParams, evaluate_recording, evaluate_simulator
 
     started = time.perf_counter()
     if replay:
         report = evaluate_recording(replay, layout_path, protocol=protocol)
     else:
-        report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record)
+        report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record,
+                                    locations=locations)
     print(json.dumps({**report.summary(), "per_location": list(report.locations),
+                      "board": board_params.model_dump(mode="json") if not replay else None,
                       "seconds": round(time.perf_counter() - started, 2)}))
 
 

@@ -27,6 +27,7 @@ COUPLING_MIN_ESTIMATES = 30  # width estimates whose median becomes the coupling
 COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
 AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
 AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
+EXPLAINED_FACTOR = 2.0  # one finger explains a peak whose delta it models within this factor
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
 
 
@@ -91,6 +92,9 @@ class CouplingFit:
         if single:
             return
         fits = self._merge_same_finger(found, fits)
+        if len(found) > 1 and self._one_finger_explains(found, delta, sigma):
+            found[0][4] = sum(entry[4] for entry in found)
+            del found[1:]
         if len(found) == 1:  # merged into one finger after all: fit it to every delta
             entry = found[0]
             refined = self.refine(self.map.cell_points[entry[0]], int(self.map.cell_faces[entry[0]]), delta, sigma,
@@ -118,6 +122,19 @@ class CouplingFit:
             fits = [fits[j] for j in kept]
         return fits
 
+    def _one_finger_explains(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> bool:
+        """Whether one finger fitted to every delta (from the strongest peak, nothing learned) reads
+        within ``EXPLAINED_FACTOR`` of every peak's delta: a finger between crossings of a sparse layout
+        raises several local maxima that no tail bound from a crossing can tell from two fingers."""
+        cell = found[0][0]
+        fit = self.refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), delta, sigma, update=False)
+        if fit is None:
+            return False
+        peaks = np.array([entry[0] for entry in found])
+        offsets = self.map.cell_points[peaks] - fit[0]
+        model = self.cell_gain[peaks] * math.exp(fit[3]) * self.profile.at_squared(np.sum(offsets**2, axis=1))[0]
+        return bool(np.all((model >= delta[peaks] / EXPLAINED_FACTOR) & (model <= EXPLAINED_FACTOR * delta[peaks])))
+
     def _refit_beside_others(self, found: list[list[Any]], fits: list, delta: np.ndarray, sigma: np.ndarray) -> None:
         """Second pass: each touch refitted to the deltas minus the other touches' fitted coupling."""
         cells = self.map.cell_points
@@ -135,7 +152,7 @@ class CouplingFit:
             if refined is not None:
                 entry[1:4] = refined[:3]
 
-    def refine(self, point, face, values, sigma, log_amplitude=None, learn_profile=False):
+    def refine(self, point, face, values, sigma, log_amplitude=None, learn_profile=False, update=True):
         """Maximum-likelihood coupling fit around ``point`` (the peak crossing, or a first fit's point
         refitted from its log-amplitude ``log_amplitude``); returns (point, face, bary) on the surface
         and the fitted log-amplitude ``a`` (log counts), or None when no crossing near ``point``
@@ -152,7 +169,8 @@ class CouplingFit:
         facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta) and
         keeps the lowest cost; a refit starts from its first fit only. A well-posed fit with
         ``learn_profile`` gives the coupling profile its (squared distance, delta / (g exp(a)),
-        weight) pairs (:class:`~retrotouch.nodes.sensing.coupling_profile.ProfileLearner`).
+        weight) pairs (:class:`~retrotouch.nodes.sensing.coupling_profile.ProfileLearner`); without
+        ``update`` the fit changes nothing it has learned.
         """
         cells = self.map.cell_points
         offsets = cells - point
@@ -163,7 +181,7 @@ class CouplingFit:
         if not strong.any():
             return None
         width_learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES
-        if self.params.adapt_coupling and not width_learned:
+        if update and self.params.adapt_coupling and not width_learned:
             # Width estimates only from touches many crossings see around the peak (log-linear form).
             learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
             if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
@@ -184,7 +202,7 @@ class CouplingFit:
         plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
         fits = [plane_fit.run(p, f, log_amplitude) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
-        if self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
+        if update and self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
             scale = h * math.exp(log_amplitude)
             offsets = x - point
             squared = np.einsum("ij,ij->i", offsets, offsets) / self.coupling_sigma**2  # in widths

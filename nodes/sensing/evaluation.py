@@ -1,23 +1,25 @@
 """The paper's sensing evaluation: SNR per location and 3D localization error over 15 locations x
-10 repetitions, on a recording with ground-truth labels or on the simulator.
+10 presses, on a recording with ground-truth labels or on the simulator, scored strictly.
 
 Protocol: press ``p`` (location ``i``, repetition ``r``) is a label
 ``{"gesture": "press", "location": i, "repetition": r, "point": [x, y, z], "t_end": t1}`` at time
-``t0`` (the simulator writes them; for hardware, insert them into the recording while touching the
-marked locations). Frames in ``[t0 + settle, t1)`` are touch frames; frames farther than
-``rest_margin`` from every press are rest frames.
+``t0`` (the simulator writes them; a hardware session is scored with the list of touched
+locations, :func:`load_protocol`). Locations: :mod:`.locations` (spread over the sensing surface by
+default, or a user's file).
 
-* Localization error of a press: distance (mm, 3D) between the mean reported touch point over its
-  touch frames (the touch nearest the truth in each frame) and the label's point.
-* SNR of a location, on baseline-removed deltas of the cell that responds most to it:
-  ``signal = mean(touch) - mean(rest)``; ``snr_sigma = signal / std(rest)`` (the common HCI form)
-  and ``snr_p2p = signal / peak-to-peak(rest)`` (the CapSense form).
-* False touches: touch-downs outside every press window (+ margin); missed presses: presses with
-  no touch in their touch frames.
+Strict scoring, per press (window ``[t0, t1 + rest_margin)``):
 
-A hardware session needs no hand-made labels: record it while touching the marked locations round
-by round, then score it with a protocol file listing the locations (:func:`load_protocol`); the
-detected presses are matched to the protocol in order.
+* the press's touch is the track of the *first* touch-down in its window; its error is the
+  distance (mm, 3D) between that track's mean point over the settled frames ``[t0 + settle, t1)``
+  and the label's point (no choosing of the touch nearest the truth);
+* a press without a touch-down in its window is *missed*; one with other than exactly one
+  touch-down counts in ``presses_without_one_touch_down``; every touch-down after the first in a
+  window is a *ghost touch*;
+* touch-downs farther than ``rest_margin`` from every press are *false touches at rest*.
+
+SNR of a location, on baseline-removed deltas of the cell that responds most to it:
+``signal = mean(touch) - mean(rest)``; ``snr_sigma = signal / std(rest)`` (the common HCI form) and
+``snr_p2p = signal / peak-to-peak(rest)`` (the CapSense form).
 """
 from __future__ import annotations
 
@@ -29,14 +31,12 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial import Delaunay, QhullError
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams
-from ..data.board import default_coupling_width_mm
-from ..data.sensing_map import SensingMap, load_sensing_map
-from ..geometry.surface import SurfaceProjector, farthest_point_sampling
+from ..data.sensing_map import load_sensing_map
 from .frames import Frame
+from .locations import crossing_locations, load_locations, nearest_crossing_mm, spread_locations
 from .processing import ProcessingParams, TouchProcessor
 from .pty_board import frames_through_pty
 from .recording import replay_frames
@@ -53,59 +53,9 @@ class EvalParams(NodeParams):
     gap_ms: float = Field(700.0, gt=0, description="pause after each press")
     settle_ms: float = Field(100.0, ge=0, description="frames this soon after a press starts are not measured")
     rest_margin_ms: float = Field(300.0, ge=0, description="frames this close to a press are neither touch nor rest")
-    location_rule: Literal["surrounded", "near"] = Field(
-        "surrounded", description="where locations may be: surrounded by crossings, or anywhere near one (evaluation_locations)")
+    location_rule: Literal["spread", "surrounded", "near"] = Field(
+        "spread", description="where locations are: spread over the sensing surface, or near crossings (locations.py)")
     seed: int = 0
-
-
-def surrounded(sensing_map: SensingMap, points: np.ndarray, reach: float) -> np.ndarray:
-    """Whether each surface point (n, 3) lies inside the convex hull, in its tangent plane, of the
-    crossings within ``reach`` (mm) of it (at least three, not all collinear)."""
-    projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
-    _, faces, _ = projector.project(points)
-    inside = np.zeros(len(points), dtype=bool)
-    for k, (point, face) in enumerate(zip(points, faces)):
-        near = np.linalg.norm(sensing_map.cell_points - point, axis=1) <= reach
-        if np.count_nonzero(near) < 3:
-            continue
-        planar = (sensing_map.cell_points[near] - point) @ projector.face_frames[face][:2].T
-        try:
-            inside[k] = Delaunay(planar).find_simplex(np.zeros(2)) >= 0
-        except QhullError:  # all collinear (or coincident): nothing is enclosed
-            continue
-    return inside
-
-
-def evaluation_locations(sensing_map: SensingMap, params: EvalParams = EvalParams(),
-                         board_params: BoardParams = BoardParams()) -> tuple[np.ndarray, dict[str, Any]]:
-    """The protocol's touch locations (``params.locations``, mm) and how they were chosen.
-
-    Candidates: ``20 x locations`` random points of the sensed region (within 0.8 pitch of a
-    crossing, around crossings with at least the median number of neighbours;
-    :meth:`ScriptBuilder.location`). Rule ``"surrounded"`` (default) keeps the candidates inside the
-    tangent-plane convex hull of the crossings within two coupling widths ``2 s`` (``s`` the board's
-    finger coupling width): there a nominal finger reaches crossings on at least three sides with
-    >= exp(-2) = 13.5 % of its peak signal, so both tangent directions are measured, which is what
-    "a location on the instrumented surface" means on hardware (the paper touched 15 such
-    locations). Rule ``"near"`` keeps every candidate, including spots in gaps of a sparse layout
-    where only one or two crossings see the finger (one direction then rests on the fit's priors).
-    Either way the fraction of candidates the rule keeps is reported (``surrounded_fraction``), so a
-    layout that leaves much of its sensed region unsurrounded shows it; farthest-point sampling
-    spreads the locations over the kept candidates.
-    """
-    builder = ScriptBuilder(sensing_map, board_params, params.seed)
-    candidates = np.array([builder.location("random") for _ in range(20 * params.locations)])
-    pitch = sensing_map.pitch_mm()
-    width = board_params.coupling_sigma_mm or default_coupling_width_mm(board_params.finger_radius_mm, pitch)
-    inside = surrounded(sensing_map, candidates, 2.0 * width)
-    pool = candidates[inside] if params.location_rule == "surrounded" else candidates
-    if len(pool) < params.locations:
-        raise UserError(f"only {len(pool)} of {len(candidates)} candidate locations are surrounded by crossings: "
-                        "evaluate fewer locations or use location_rule 'near'")
-    points = pool[farthest_point_sampling(pool, params.locations, params.seed)]
-    return points, {"location_rule": params.location_rule, "candidates": len(candidates),
-                    "surrounded_fraction": round(float(inside.mean()), 4),
-                    "locations_surrounded": int(surrounded(sensing_map, points, 2.0 * width).sum())}
 
 
 def press_steps(points: np.ndarray, params: EvalParams) -> list[dict[str, Any]]:
@@ -117,15 +67,15 @@ def press_steps(points: np.ndarray, params: EvalParams) -> list[dict[str, Any]]:
 
 @dataclasses.dataclass(frozen=True)
 class EvalReport:
-    """Per-press errors, per-location SNR and counts of detection failures."""
+    """Per-press errors and touch-down counts, per-location figures and counts of failures."""
 
     errors_mm: np.ndarray  # (presses,) nan for a missed press
     press_location: np.ndarray  # (presses,) int
-    locations: tuple[dict[str, Any], ...]  # per location: point, cell, crossings_seen, snr_sigma, snr_p2p, error_mm_mean
-    false_touches: int
-    missed_presses: int
+    touch_downs: np.ndarray  # (presses,) touch-downs in each press window
+    locations: tuple[dict[str, Any], ...]  # per location: point, error, nearest crossing, SNR, ...
+    false_touches_at_rest: int
     frames: int
-    choice: dict[str, Any] = dataclasses.field(default_factory=dict)  # how the simulator chose the locations
+    choice: dict[str, Any] = dataclasses.field(default_factory=dict)  # how the locations were chosen
 
     def summary(self) -> dict[str, Any]:
         e = self.errors_mm[np.isfinite(self.errors_mm)]
@@ -133,34 +83,53 @@ class EvalReport:
         snr_p2p = np.array([loc["snr_p2p"] for loc in self.locations])
         stats = {}
         if len(e):
-            stats = {"localization_error_mm_mean": float(e.mean()), "localization_error_mm_min": float(e.min()),
-                     "localization_error_mm_max": float(e.max()),
-                     "localization_error_mm_mad": float(np.mean(np.abs(e - e.mean()))),
-                     "localization_error_mm_std": float(e.std()), "localization_error_mm_var": float(e.var()),
-                     "localization_error_mm_rmse": float(np.sqrt(np.mean(e**2)))}
+            stats = {"localization_error_mm_mean": float(e.mean()), "localization_error_mm_median": float(np.median(e)),
+                     "localization_error_mm_min": float(e.min()), "localization_error_mm_max": float(e.max()),
+                     "localization_error_mm_std": float(e.std()), "localization_error_mm_rmse": float(np.sqrt(np.mean(e**2)))}
         return {**{k: round(v, 4) for k, v in stats.items()},
                 "snr_mean": round(float(snr_sigma.mean()), 2), "snr_std": round(float(snr_sigma.std()), 2),
                 "snr_p2p_mean": round(float(snr_p2p.mean()), 2), "snr_p2p_std": round(float(snr_p2p.std()), 2),
                 "presses": int(len(self.errors_mm)), "locations": len(self.locations),
+                "missed_presses": int(np.count_nonzero(self.touch_downs == 0)),
+                "presses_without_one_touch_down": int(np.count_nonzero(self.touch_downs != 1)),
+                "ghost_touches": int(np.maximum(self.touch_downs - 1, 0).sum()),
+                "false_touches_at_rest": self.false_touches_at_rest,
                 "crossings_seen_min": min((loc["crossings_seen"] for loc in self.locations), default=0),
-                "false_touches": self.false_touches, "missed_presses": self.missed_presses, "frames": self.frames,
-                **self.choice}
+                "nearest_crossing_mm_max": max((loc["nearest_crossing_mm"] for loc in self.locations), default=0.0),
+                "frames": self.frames, **self.choice}
+
+
+@dataclasses.dataclass
+class _Presses:
+    """Ground truth of the labelled presses and what the processing did during them."""
+
+    starts: np.ndarray
+    ends: np.ndarray
+    truth: np.ndarray
+    location: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.starts)
+        self.sums, self.counts = np.zeros((n, 3)), np.zeros(n, dtype=np.int64)
+        self.first_touch = np.full(n, -1)  # track id of the first touch-down of each press
+        self.touch_downs = np.zeros(n, dtype=np.int64)
+
+    @classmethod
+    def of(cls, labels: list[tuple[float, dict[str, Any]]]) -> _Presses:
+        presses = sorted(((t, label) for t, label in labels if label.get("gesture") == "press"), key=lambda p: p[0])
+        if not presses:
+            raise UserError("the recording holds no press labels: the evaluation needs {\"gesture\": \"press\", "
+                            "\"location\": i, \"point\": [x, y, z], \"t_end\": t} labels (see sensing/evaluation.py)")
+        return cls(np.array([t for t, _ in presses]), np.array([float(label["t_end"]) for _, label in presses]),
+                   np.array([label["point"] for _, label in presses], dtype=np.float64),
+                   np.array([int(label.get("location", k)) for k, (_, label) in enumerate(presses)]))
 
 
 def evaluate(frames: Iterable[Frame], labels: list[tuple[float, dict[str, Any]]], processor: TouchProcessor,
              params: EvalParams = EvalParams()) -> EvalReport:
-    """Run ``processor`` over ``frames`` and score it against the press ``labels``."""
-    presses = sorted((t, label) for t, label in labels if label.get("gesture") == "press")
-    if not presses:
-        raise UserError("the recording holds no press labels: the evaluation needs {\"gesture\": \"press\", "
-                        "\"location\": i, \"point\": [x, y, z], \"t_end\": t} labels (see sense_eval)")
-    starts = np.array([t for t, _ in presses])
-    ends = np.array([float(label["t_end"]) for _, label in presses])
-    truth = np.array([label["point"] for _, label in presses], dtype=np.float64)
-    location = np.array([int(label.get("location", k)) for k, (_, label) in enumerate(presses)])
+    """Run ``processor`` over ``frames`` and score it strictly against the press ``labels``."""
+    presses = _Presses.of(labels)
     settle, margin = params.settle_ms / 1000, params.rest_margin_ms / 1000
-    sums = np.zeros((len(presses), 3))
-    counts = np.zeros(len(presses), dtype=np.int64)
     deltas, frame_press, rest = [], [], []
     false_touches = 0
     n_frames = 0
@@ -171,44 +140,65 @@ def evaluate(frames: Iterable[Frame], labels: list[tuple[float, dict[str, Any]]]
             continue
         t = frame.t
         # Labels sit on frame times; the epsilon keeps rounding in recordings from moving a boundary frame.
-        inside = np.flatnonzero((t >= starts + settle - 1e-6) & (t < ends - 1e-6))
-        near = np.any((t >= starts - margin) & (t < ends + margin))
+        window = np.flatnonzero((t >= presses.starts - 1e-6) & (t < presses.ends + margin - 1e-6))
+        settled = np.flatnonzero((t >= presses.starts + settle - 1e-6) & (t < presses.ends - 1e-6))
+        near = np.any((t >= presses.starts - margin) & (t < presses.ends + margin))
         deltas.append(result.delta)
-        frame_press.append(int(inside[0]) if len(inside) else -1)
+        frame_press.append(int(settled[0]) if len(settled) else -1)
         rest.append(not near)
         for event in result.events:
-            if event["type"] == "touch_down" and not near:
+            if event["type"] != "touch_down":
+                continue
+            if len(window):
+                k = int(window[0])
+                if presses.touch_downs[k] == 0:
+                    presses.first_touch[k] = event["id"]
+                presses.touch_downs[k] += 1
+            elif not near:
                 false_touches += 1
-        if len(inside) and result.touches:
-            k = int(inside[0])
-            points = np.array([touch.point for touch in result.touches])
-            sums[k] += points[np.argmin(np.linalg.norm(points - truth[k], axis=1))]
-            counts[k] += 1
-    errors = np.full(len(presses), np.nan)
-    seen = counts > 0
-    errors[seen] = np.linalg.norm(sums[seen] / counts[seen, None] - truth[seen], axis=1)
-    deltas_arr = np.array(deltas)
-    frame_press_arr = np.array(frame_press)
-    rest_arr = np.array(rest, dtype=bool)
-    report_locations = []
-    for i in np.unique(location):
-        touch_frames = np.isin(frame_press_arr, np.flatnonzero(location == i))
-        if not touch_frames.any() or not rest_arr.any():
+        if len(settled):
+            k = int(settled[0])
+            mine = [touch.point for touch in result.touches if touch.id == presses.first_touch[k]]
+            if mine:
+                presses.sums[k] += mine[0]
+                presses.counts[k] += 1
+    errors = np.full(len(presses.starts), np.nan)
+    seen = presses.counts > 0
+    errors[seen] = np.linalg.norm(presses.sums[seen] / presses.counts[seen, None] - presses.truth[seen], axis=1)
+    per_location = _per_location(processor, presses, errors, np.array(deltas), np.array(frame_press),
+                                 np.array(rest, dtype=bool))
+    return EvalReport(errors, presses.location, presses.touch_downs, per_location, false_touches, n_frames)
+
+
+def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarray, deltas: np.ndarray,
+                  frame_press: np.ndarray, rest: np.ndarray) -> tuple[dict[str, Any], ...]:
+    """Per location: its point, errors (mean, max), nearest crossing, SNR (sigma and p2p forms) of
+    the cell that responds most, crossings that see it, touch-down counts."""
+    out = []
+    for i in np.unique(presses.location):
+        own = presses.location == i
+        touch_frames = np.isin(frame_press, np.flatnonzero(own))
+        if not touch_frames.any() or not rest.any():
             continue
-        mean_touch = deltas_arr[touch_frames].mean(axis=0)
+        mean_touch = deltas[touch_frames].mean(axis=0)
         cell = int(np.argmax(mean_touch))
-        rest_values = deltas_arr[rest_arr, cell]
+        rest_values = deltas[rest, cell]
         signal = float(mean_touch[cell] - rest_values.mean())
-        rest_sigma = np.maximum(deltas_arr[rest_arr].std(axis=0), 1e-9)
-        report_locations.append({
-            "location": int(i), "point": truth[location == i][0].round(3).tolist(), "cell": cell,
-            "crossings_seen": int(np.count_nonzero(mean_touch - deltas_arr[rest_arr].mean(axis=0) > 6.0 * rest_sigma)),
+        rest_sigma = np.maximum(deltas[rest].std(axis=0), 1e-9)
+        point = presses.truth[own][0]
+        found = np.isfinite(errors[own])
+        out.append({
+            "location": int(i), "point": point.round(3).tolist(),
+            "nearest_crossing_mm": round(float(nearest_crossing_mm(processor.map, point)[0]), 2), "cell": cell,
+            "crossings_seen": int(np.count_nonzero(mean_touch - deltas[rest].mean(axis=0) > 6.0 * rest_sigma)),
             "signal_counts": round(signal, 2),
             "snr_sigma": round(signal / max(float(rest_values.std()), 1e-9), 2),
             "snr_p2p": round(signal / max(float(np.ptp(rest_values)), 1e-9), 2),
-            "error_mm_mean": round(float(np.nanmean(errors[location == i])), 4) if seen[location == i].any() else None,
+            "error_mm_mean": round(float(np.mean(errors[own][found])), 4) if found.any() else None,
+            "error_mm_max": round(float(np.max(errors[own][found])), 4) if found.any() else None,
+            "touch_downs": presses.touch_downs[own].tolist(),
         })
-    return EvalReport(errors, location, tuple(report_locations), false_touches, int((~seen).sum()), n_frames)
+    return tuple(out)
 
 
 def evaluate_simulator(
@@ -218,12 +208,20 @@ def evaluate_simulator(
     processing_params: ProcessingParams = ProcessingParams(),
     through_pty: bool = True,
     record: str | Path | None = None,
+    locations: str | Path | None = None,
 ) -> EvalReport:
     """The protocol on the virtual board, read back through a pseudo-terminal in fast mode (or fed to
-    the processor directly when ``through_pty`` is False)."""
+    the processor directly when ``through_pty`` is False); ``locations`` a user's JSON list of points
+    (:func:`.locations.load_locations`) instead of ``eval_params.location_rule``'s."""
     sensing_map = load_sensing_map(sensing_map_path)
     board = VirtualBoard(sensing_map, board_params)
-    points, choice = evaluation_locations(sensing_map, eval_params, board_params)
+    if locations is not None:
+        points, choice = load_locations(locations, sensing_map), {"location_rule": f"file {locations}"}
+    elif eval_params.location_rule == "spread":
+        points, choice = spread_locations(sensing_map, eval_params.locations, eval_params.seed), {"location_rule": "spread"}
+    else:
+        points, choice = crossing_locations(sensing_map, eval_params.locations, eval_params.location_rule,
+                                            eval_params.seed, board_params)
     script = ScriptBuilder(sensing_map, board_params, eval_params.seed).build(press_steps(points, eval_params))
     processor = TouchProcessor(sensing_map, processing_params)
     if through_pty:
@@ -236,18 +234,20 @@ def evaluate_simulator(
 
 
 def load_protocol(path: str | Path) -> tuple[np.ndarray, int]:
-    """``{"points": [[x, y, z], ...], "repetitions": 10}`` (mm): the marked locations of a hardware
-    session, touched in rounds (every location once per round, in list order)."""
+    """``{"points": [[x, y, z], ...], "repetitions": 10}`` or a plain list of points (10 repetitions)
+    (mm): the marked locations of a hardware session, touched in rounds (every location once per
+    round, in list order)."""
     path = Path(path)
+    example = "write {\"points\": [[x, y, z], ...], \"repetitions\": 10} or a list of points"
     if not path.is_file():
-        raise UserError(f"protocol file {path} not found: write {{\"points\": [[x, y, z], ...], \"repetitions\": 10}}")
+        raise UserError(f"protocol file {path} not found: {example}")
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = {"points": doc} if isinstance(doc, list) else doc
         points = np.array(doc["points"], dtype=np.float64).reshape(-1, 3)
         repetitions = int(doc.get("repetitions", 10))
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"protocol file {path} is malformed ({exc}): write "
-                        "{\"points\": [[x, y, z], ...], \"repetitions\": 10}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UserError(f"protocol file {path} is malformed ({type(exc).__name__}): {example}") from None
     return points, repetitions
 
 

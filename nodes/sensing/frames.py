@@ -12,9 +12,9 @@ Frame conventions (stated once here, used by the simulator and the touch process
   ``-1`` (= no reading) and are ignored downstream.
 * ASCII format (Muca_Raw.ino): one frame per line, ``num_tx * num_rx`` unsigned decimal fields
   separated by commas, CRLF. Empty fields (sketches that print only positive values) read 0. Any
-  other line (``[Muca] ...``, ``Calibration performed k/20``, garbage, truncated frames) is skipped
-  and counted; a line whose frame follows status text glued on without a newline (the 2020 library
-  prints ``i2c write failed`` without one) is salvaged when the text ends in a non-digit.
+  other line (``[Muca] ...``, ``Calibration performed k/20``, garbage, truncated frames, signs,
+  decimals, hex) is skipped and counted; a frame behind status text glued on without a newline
+  (the 2020 library prints ``i2c write failed`` without one) is salvaged.
 * Binary format (Muca_Raw_Basic.ino SendRawByte): ``2 + num_tx * num_rx`` bytes per frame,
   ``[min_hi, min_lo, uint8(value - min) ...]``, no sync marker. Frames are cut every
   ``2 + cells`` bytes from the start of the stream (after any status lines); the reader drops a
@@ -77,7 +77,18 @@ class ParserStats:
 
 
 class AsciiFrameParser:
-    """Incremental parser for the ASCII frame format; feed it bytes in any chunking."""
+    """Incremental parser for the ASCII frame format; feed it bytes in any chunking.
+
+    A frame line is exactly ``cells`` fields separated by commas, each empty (reads 0) or an
+    unsigned decimal integer as the firmware prints it (no sign, no leading zero, no decimal point,
+    at most ``MAX_COUNT``). Every other line is rejected (or counted as a status line) after work
+    proportional to its length: a length test, a comma count, a scan for bytes other than digits
+    and commas, one anchored regular-expression match without backtracking, and the integer
+    conversion of a line that matched. Status text the firmware glues
+    to a frame without a newline (``GLUED_STATUS``) is stripped from the start of a line first.
+    """
+
+    GLUED_STATUS = (b"i2c write failed",)  # printed without a newline by the 2020 library
 
     def __init__(self, options: FrameOptions = FrameOptions(), skip_first_lines: int = 0):
         self.options = options
@@ -85,25 +96,29 @@ class AsciiFrameParser:
         self._pending = bytearray()
         self._lines_to_skip = skip_first_lines
         n = options.cells
-        self._frame_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}" % (n - 1))
-        self._suffix_re = re.compile(rb"[0-9]{0,5}(?:,[0-9]{0,5}){%d}\Z" % (n - 1))
-        # A frame line is at most n fields of 5 digits plus commas; keep a little more than two so a
-        # frame glued behind newline-less garbage survives the trimming of the pending buffer.
+        field = rb"(?:0|[1-9][0-9]{0,4})?"
+        self._frame_re = re.compile(field + rb"(?:," + field + rb"){%d}" % (n - 1))
+        self._commas = n - 1
+        self._max_line = 6 * n  # n fields of at most 5 digits and n - 1 commas
+        # Keep a little more than two frame lines of an unterminated line, so a frame glued behind
+        # newline-less status text survives the trimming of the pending buffer.
         self._max_pending = 2 * (6 * n + 64)
 
     def feed(self, data: bytes) -> list[np.ndarray]:
         """Parse ``data``; returns the complete frames it finished, in order."""
         self._pending += data
-        parts = re.split(rb"[\r\n]", bytes(self._pending))
-        self._pending = bytearray(parts.pop())
+        end = max(self._pending.rfind(b"\n"), self._pending.rfind(b"\r"))
+        frames = []
+        if end >= 0:
+            complete = bytes(self._pending[:end])
+            del self._pending[: end + 1]
+            for line in complete.replace(b"\r", b"\n").split(b"\n"):
+                frame = self.parse_line(line)
+                if frame is not None:
+                    frames.append(frame)
         if len(self._pending) > self._max_pending:
             self.stats.dropped_bytes += len(self._pending) - self._max_pending
             del self._pending[: len(self._pending) - self._max_pending]
-        frames = []
-        for line in parts:
-            frame = self.parse_line(line)
-            if frame is not None:
-                frames.append(frame)
         return frames
 
     def reset(self) -> None:
@@ -119,35 +134,30 @@ class AsciiFrameParser:
             self._lines_to_skip -= 1
             self.stats.rejected_lines += 1
             return None
-        if self._frame_re.fullmatch(line):
-            values = self._values(line)
-        else:
-            values = None
-            match = self._suffix_re.search(line)
-            if match is not None and match.start() > 0 and line[match.start() - 1] not in b"0123456789,":
-                values = self._values(match.group())
-                if values is not None:
-                    self.stats.salvaged_lines += 1
-            if values is None:
-                if line.startswith(STATUS_PREFIXES):
-                    self.stats.status_lines += 1
-                else:
-                    self.stats.rejected_lines += 1
-                return None
+        glued = False
+        while line.startswith(self.GLUED_STATUS):
+            line = line[len(next(s for s in self.GLUED_STATUS if line.startswith(s))):]
+            glued = True
+        values = self._values(line)
         if values is None:
-            self.stats.rejected_lines += 1
+            if line.startswith(STATUS_PREFIXES) or (glued and not line):
+                self.stats.status_lines += 1
+            else:
+                self.stats.rejected_lines += 1
             return None
+        self.stats.salvaged_lines += glued
         self.stats.frames += 1
         return self.options.orient(values)
 
-    @staticmethod
-    def _values(text: bytes) -> np.ndarray | None:
-        """Fields already matched ``[0-9]{0,5}``; empty ones read 0."""
-        fields = text.split(b",")
-        if b",," in text or text.startswith(b",") or text.endswith(b","):
-            values = np.array([int(f) if f else 0 for f in fields], dtype=np.int64)
+    def _values(self, line: bytes) -> np.ndarray | None:
+        """The fields of a frame line, or None when ``line`` is not exactly one frame."""
+        if (len(line) > self._max_line or line.count(b",") != self._commas
+                or line.translate(None, b"0123456789,") or not self._frame_re.fullmatch(line)):
+            return None
+        if b",," in line or line.startswith(b",") or line.endswith(b","):
+            values = np.array([int(f) if f else 0 for f in line.split(b",")], dtype=np.int64)
         else:
-            values = np.array(list(map(int, fields)), dtype=np.int64)
+            values = np.array(list(map(int, line.split(b","))), dtype=np.int64)
         if values.max(initial=0) > MAX_COUNT:
             return None
         return values

@@ -91,9 +91,14 @@ function draw() {
   for (const t of touches) {
     const px = t.point[0] - mesh.centre[0], py = t.point[1] - mesh.centre[1], pz = t.point[2] - mesh.centre[2];
     const X = W / 2 + s * (px * r[0] + py * r[1] + pz * r[2]), Y = H / 2 - s * (px * u[0] + py * u[1] + pz * u[2]);
-    ctx.fillStyle = "#3cf"; ctx.strokeStyle = "#fff"; ctx.lineWidth = 2;
-    ctx.beginPath(); ctx.arc(X, Y, 8, 0, 2 * Math.PI); ctx.fill(); ctx.stroke(); ctx.lineWidth = 1;
-    ctx.fillStyle = "#fff"; ctx.fillText("#" + t.id, X + 10, Y - 10);
+    // A touch whose surface normal points away from the viewer is on the far side: drawn hidden.
+    const facing = t.normal[0] * d[0] + t.normal[1] * d[1] + t.normal[2] * d[2] > 0;
+    ctx.globalAlpha = facing ? 1 : 0.55; ctx.setLineDash(facing ? [] : [3, 3]);
+    ctx.fillStyle = "#3cf"; ctx.strokeStyle = facing ? "#fff" : "#3cf"; ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.arc(X, Y, 8, 0, 2 * Math.PI); if (facing) ctx.fill(); ctx.stroke(); ctx.lineWidth = 1;
+    ctx.setLineDash([]);
+    ctx.fillStyle = "#fff"; ctx.fillText("#" + t.id + (facing ? "" : " (far side)"), X + 10, Y - 10);
+    ctx.globalAlpha = 1;
   }
 }
 function faceTowards(n) {  // choose yaw/pitch so that depth = n (right x up = depth points at the viewer)

@@ -20,7 +20,9 @@ class MucaReader:
 
     Tolerant: garbage never raises; after an unplug (read error) the port is closed and reopened
     every ``reconnect_interval_s`` until it is back (or ``reconnect_timeout_s`` passes). A port that
-    cannot be opened at start is a one-line :class:`UserError`.
+    cannot be opened at start is a one-line :class:`UserError`. ``on_status`` (if given) receives one
+    line when the board goes away, one every ``status_interval_s`` while the reader waits for it
+    (with the time waited), and one when it is back or the wait is given up.
     """
 
     def __init__(
@@ -36,6 +38,8 @@ class MucaReader:
         reconnect_timeout_s: float | None = None,
         open_port: Callable[..., serial.SerialBase] | None = None,
         record_header: dict[str, Any] | None = None,
+        on_status: Callable[[str], None] | None = None,
+        status_interval_s: float = 10.0,
     ):
         self.port = port
         self.baudrate = baudrate
@@ -46,6 +50,8 @@ class MucaReader:
         self.reconnect_interval_s = reconnect_interval_s
         self.reconnect_timeout_s = reconnect_timeout_s
         self.reconnects = 0
+        self.on_status = on_status
+        self.status_interval_s = status_interval_s
         self._open_port = open_port or (lambda: serial.serial_for_url(port, baudrate=baudrate, timeout=read_timeout_s))
         self._serial: serial.SerialBase | None = None
         self._closed = False
@@ -74,10 +80,12 @@ class MucaReader:
                 data = self._serial.read(max(1, self._serial.in_waiting or 1))
                 if data and self._serial.in_waiting:
                     data += self._serial.read(self._serial.in_waiting)
-            except (serial.SerialException, OSError, TypeError, AttributeError):
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 # TypeError/AttributeError: pyserial's posix backend after the fd went away.
                 if self._closed:
                     return
+                self._status(f"board on {self.port} went away at {_clock()} ({_short(exc)[:80]}): "
+                             "waiting for it to come back (Ctrl-C to stop)")
                 self._drop_port()
                 continue
             now = time.monotonic()
@@ -102,17 +110,31 @@ class MucaReader:
         self.parser.reset()
 
     def _reconnect(self) -> bool:
-        deadline = None if self.reconnect_timeout_s is None else time.monotonic() + self.reconnect_timeout_s
+        started = time.monotonic()
+        deadline = None if self.reconnect_timeout_s is None else started + self.reconnect_timeout_s
+        next_status = started + self.status_interval_s
         while not self._closed:
             try:
                 self._serial = self._open_port()
                 self.reconnects += 1
+                self._status(f"board on {self.port} is back at {_clock()} after {time.monotonic() - started:.1f} s")
                 return True
             except (serial.SerialException, OSError, ValueError):
-                if deadline is not None and time.monotonic() > deadline:
+                now = time.monotonic()
+                if deadline is not None and now > deadline:
+                    self._status(f"board on {self.port} did not come back within {self.reconnect_timeout_s:g} s: "
+                                 "stopping")
                     return False
+                if now >= next_status:
+                    self._status(f"still waiting for the board on {self.port} ({now - started:.0f} s, since "
+                                 f"{_clock(time.time() - (now - started))})")
+                    next_status += self.status_interval_s
                 time.sleep(self.reconnect_interval_s)
         return False
+
+    def _status(self, line: str) -> None:
+        if self.on_status is not None:
+            self.on_status(line)
 
     def close(self) -> None:
         self._closed = True
@@ -124,3 +146,8 @@ class MucaReader:
 
 def _short(exc: BaseException) -> str:
     return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def _clock(when: float | None = None) -> str:
+    """Local wall-clock time ``HH:MM:SS`` (now, or at ``when`` seconds since the epoch)."""
+    return time.strftime("%H:%M:%S", time.localtime(when))

@@ -12,6 +12,7 @@ recordings made in fast mode) replays frame ``k`` at ``k / rate_hz`` instead, th
 from __future__ import annotations
 
 import base64
+import binascii
 import json
 import time
 from collections.abc import Callable, Iterator
@@ -48,18 +49,30 @@ class Recorder:
 
 
 def read_recording(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """A recording -> (header, records); a missing or foreign file is a one-line UserError."""
+    """A recording -> (header, records); a missing, unreadable or foreign file is a one-line UserError."""
     path = Path(path)
+    fix = "pass a file written by `retrotouch sense --record`"
+    if path.is_dir():
+        raise UserError(f"recording {path} is a folder, not a recording: {fix}")
     if not path.is_file():
-        raise UserError(f"recording {path} not found: pass a file written by `retrotouch sense --record`")
-    lines = path.read_text(encoding="utf-8").splitlines()
+        raise UserError(f"recording {path} not found: {fix}")
     try:
+        lines = path.read_text(encoding="utf-8").splitlines()
         header = json.loads(lines[0]) if lines else {}
         records = [json.loads(line) for line in lines[1:] if line.strip()]
-    except json.JSONDecodeError as exc:
-        raise UserError(f"recording {path} is not JSON lines ({exc}): pass a file written by --record") from None
-    if header.get("format") != RECORDING_FORMAT:
-        raise UserError(f"recording {path} has format {header.get('format')!r}, expected {RECORDING_FORMAT!r}")
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"recording {path} is not a recording (not UTF-8 JSON lines: {type(exc).__name__}): "
+                        f"{fix}") from None
+    except OSError as exc:
+        raise UserError(f"cannot read recording {path} ({exc.strerror}): check its permissions") from None
+    found = header.get("format") if isinstance(header, dict) else type(header).__name__
+    if found != RECORDING_FORMAT:
+        raise UserError(f"recording {path} has format {found!r}, expected {RECORDING_FORMAT!r}: {fix}")
+    for number, record in enumerate(records, start=2):
+        if not (isinstance(record, dict) and isinstance(record.get("t"), (int, float))
+                and (isinstance(record.get("b64"), str) or "label" in record)):
+            raise UserError(f"recording {path} line {number} is not a {{\"t\", \"b64\"}} or {{\"t\", \"label\"}} "
+                            f"record: {fix}")
     return header, records
 
 
@@ -90,6 +103,10 @@ def replay_frames(
             delay = start + t / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-        for values in parser.feed(base64.b64decode(record["b64"])):
+        try:
+            data = base64.b64decode(record["b64"], validate=True)
+        except binascii.Error:
+            raise UserError(f"recording {path} holds a record whose b64 bytes do not decode: re-record the session") from None
+        for values in parser.feed(data):
             yield Frame(values, t if board_rate is None else seq / board_rate, seq)
             seq += 1

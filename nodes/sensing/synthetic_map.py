@@ -59,8 +59,10 @@ def synthetic_bunny_map(
     points = np.einsum("kj,kjd->kd", bary, vertices[faces[cell_faces]])
     channels = {layer: [(c, _channel_length(points[ids == c])) for c in range(count)]
                 for layer, ids, count in (("tx", cell_tx, num_tx), ("rx", cell_rx, num_rx))}
+    face_height = vertices[faces].mean(axis=1) @ up
+    sensing_faces = face_height > low + base_fraction * (high - low)
     files = sensing_map_files(vertices, faces, up, cell_tx, cell_rx, points, cell_faces, bary,
-                              np.ones(len(cell_tx), dtype=bool), channels)
+                              np.ones(len(cell_tx), dtype=bool), channels, sensing_faces)
     return write_sensing_map(folder, files)
 
 
