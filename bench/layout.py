@@ -17,7 +17,9 @@ as chosen, spread by farthest-point sampling over all candidate crossings of the
 Reported for the chosen branch: ``cells`` of ``channel_pairs`` (n_drive x n_sense), Voronoi CV over
 all crossings and over the pads, coverage radius, ``min_same_layer_clearance_mm`` (centre lines of
 the selected traces in the sensing region) and the share of each layer's length closer than trace
-width + clearance, ``phase1_gap`` (its worst stage; ``phase1_gap_worst_branch`` over all branches)
+width + clearance, ``phase1_gap`` (its worst stage on the model's objectives, radius and sum of
+distance**p; ``phase1_gap_mm`` the same on the radius and the power mean in mm;
+``phase1_gap_worst_branch`` over all branches)
 and the notes of failed or far worse branches.
 
 Prints the per-angle table; the LAST line is one JSON object. Usage:
@@ -142,6 +144,7 @@ def main() -> None:
         "min_same_layer_clearance_mm": m["min_same_layer_clearance_mm"],
         "share_closer_than_bound": {layer: c["share_closer_than_bound"] for layer, c in m["same_layer_clearance"].items()},
         "phase1_gap": m["phase1_gap"],
+        "phase1_gap_mm": m["phase1_gap_mm"],
         "phase1_gap_worst_branch": max((r["gap"] for r in m["angles"] if r["gap"] is not None), default=None),
         "branch_notes": {f"{r['angle_deg']:+.0f}": r["note"] for r in m["angles"] if r["note"]},
         "voronoi_cv_without_secondary": m_off["voronoi_cv"],

@@ -244,10 +244,13 @@ def _tx_start_trims(params: OptimizeParams, samples: SurfaceSamples, tx: CurveSe
 
 
 def _phase1_summary(report: dict) -> dict:
-    """Phase 1's worst stage gap and every stage's objective and bound (mm)."""
+    """Phase 1's worst stage gap on the model's objectives (radius; sum of level**p), the same in mm
+    (radius; power mean), and every stage's objective and bound (mm)."""
     stages = report.get("stages", [])
     gaps = [st["gap"] for st in stages]
+    mm_gaps = [st.get("gap_power_mean_mm", st["gap"]) for st in stages]
     return {"gap": None if not stages or any(g is None for g in gaps) else max(gaps),
+            "gap_mm": None if not stages or any(g is None for g in mm_gaps) else max(mm_gaps),
             "stages": [{"stage": st["stage"], "status": st["status"], "objective": st["objective"], "bound": st["bound"],
                         "gap": st["gap"]} for st in stages]}
 
@@ -286,6 +289,7 @@ def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fiel
         "min_same_layer_clearance_mm": min(closest) if closest else None,
         "same_layer_clearance": clearance,
         "phase1_gap": _phase1_summary(selection.report)["gap"],
+        "phase1_gap_mm": _phase1_summary(selection.report)["gap_mm"],
         "phase1_summary": _phase1_summary(selection.report),
         "curve_lengths_mm": {"tx": [float(v) for v in tx_lengths], "rx": [float(v) for v in rx_lengths],
                              "total": float(tx_lengths.sum() + rx_lengths.sum())},
