@@ -53,6 +53,8 @@ from .contacts import ContactAreas
 from .coupling_fit import CouplingFit, median
 from .tracking import Tracker
 
+SUPPORT_SIGMA = 3.0  # a touch peak needs another crossing within two pitches above this many noise sigmas
+
 
 class ProcessingParams(NodeParams):
     """Touch processing settings (counts, mm, seconds; see the module docstring)."""
@@ -129,6 +131,7 @@ class TouchProcessor:
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
         self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
+        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K)
         self.tracker = Tracker(params.track_gate_mm)
         self.reset()
 
@@ -165,8 +168,8 @@ class TouchProcessor:
             delta = raw - self.baseline * (1.0 + common)
         delta[~valid] = 0.0
         threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
-        self.active = valid & (delta > threshold)
-        touches = self._touches(delta, sigma) if self.active.any() else []
+        was_active, self.active = self.active, valid & (delta > threshold)
+        touches = self._touches(delta, sigma, was_active) if self.active.any() else []
         tracked, events = self.tracker.track(touches, t)
         self._update_baseline(raw, delta, valid, sigma, tracked, t, dt)
         return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
@@ -212,15 +215,19 @@ class TouchProcessor:
 
     # ---- contact areas and touch points
 
-    def _peaks(self, delta: np.ndarray) -> np.ndarray:
+    def _peaks(self, delta: np.ndarray, sigma: np.ndarray, was_active: np.ndarray) -> np.ndarray:
         """Active cells that are local maxima and not explained by a stronger peak's coupling tail,
         both on gain-normalised deltas ``delta / g`` (a crossing without a pad reads less for the same
         finger: two padded crossings on either side of a finger over pad-less ones are not two touches).
 
-        A candidate must exceed twice the tail bound (:class:`.CouplingFit`) of every stronger peak.
+        A candidate must exceed twice the tail bound (:class:`.CouplingFit`) of every stronger peak,
+        and, unless it was on in the previous frame, another crossing within two pitches must read
+        above ``SUPPORT_SIGMA`` noise sigmas: a finger couples to several crossings, a one-frame
+        spike of the board to one cell.
         """
+        supported = was_active | (self.support & (delta > SUPPORT_SIGMA * sigma)[None]).any(axis=1)
         delta = delta / self.cell_gain
-        candidates = np.flatnonzero(self.active & (delta >= delta[self.peak_neighbours].max(axis=1)))
+        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=1)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
         for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
@@ -229,8 +236,8 @@ class TouchProcessor:
                 kept.append((c, value))
         return np.array([c for c, _ in kept], dtype=np.int64)
 
-    def _touches(self, delta: np.ndarray, sigma: np.ndarray) -> list[Touch]:
-        peaks = self._peaks(delta)
+    def _touches(self, delta: np.ndarray, sigma: np.ndarray, was_active: np.ndarray) -> list[Touch]:
+        peaks = self._peaks(delta, sigma, was_active)
         if len(peaks) == 0:
             return []
         # [cell, point, face, bary, area, centroid]; point/face/bary set by the refinement or below
