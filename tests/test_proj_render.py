@@ -63,7 +63,7 @@ def test_culling_and_occlusion():
         layer_offsets=(np.array([0, 90, 180]), np.array([0, 90])),
         crossing_points=np.zeros((0, 3)),
         crossing_normals=np.zeros((0, 3)),
-        pad=np.zeros(0, bool),
+        pad=np.zeros(0, bool), pad_radius_mm=2.0,
     )
     images = render_layers(scene, np.eye(4), PROJECTOR)
     assert list(images) == ["tx", "rx"]
@@ -86,7 +86,7 @@ def test_rendered_lines_sit_on_the_projected_points():
         layer_offsets=(np.array([0, len(pts)]), np.array([0])),
         crossing_points=np.zeros((0, 3)),
         crossing_normals=np.zeros((0, 3)),
-        pad=np.zeros(0, bool),
+        pad=np.zeros(0, bool), pad_radius_mm=2.0,
     )
     images = render_layers(scene, np.eye(4), PROJECTOR)
     lit_rows, lit_cols = np.nonzero(images["tx"].max(axis=2) > 127)
@@ -108,7 +108,7 @@ def test_textured_route_interpolates_uv_perspective_correctly():
     scene = ProjectionScene(
         vertices=corners, faces=faces, layer_names=("tx",), layer_points=(np.zeros((0, 3)),),
         layer_normals=(np.zeros((0, 3)),), layer_offsets=(np.array([0]),), crossing_points=np.zeros((0, 3)),
-        crossing_normals=np.zeros((0, 3)), pad=np.zeros(0, bool),
+        crossing_normals=np.zeros((0, 3)), pad=np.zeros(0, bool), pad_radius_mm=2.0,
         atlas_vertex_map=np.arange(4), atlas_faces=faces, atlas_uv=uv, layer_textures=(texture,),
     )
     device = DeviceIntrinsics(K, np.zeros(5), 640, 480)
