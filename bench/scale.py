@@ -7,7 +7,9 @@ over a node's branches (so the mapped layout stages count CPU-seconds of all bra
 wall clock of the run overlaps them on the cores). Peak memory is sampled every 0.2 s over the
 whole process tree (the run and any workers it starts): ``peak_rss_mb`` is the summed PSS (shared
 pages counted once), ``peak_rss_sum_mb`` the summed RSS (shared pages counted per process). The exponent is the least-squares slope of
-log(seconds) over log(vertices), for the whole run and per stage.
+log(seconds) over log(vertices), for the whole run and per stage. CPU seconds (user + system of
+the run and every process it waited for) are reported beside the wall clock: on a shared,
+loaded machine they are the figure that compares across runs.
 
 Prints a table, then as its LAST line one JSON object with ``seconds_by_vertices``,
 ``peak_rss_mb_by_vertices``, ``exponent``, ``stage_seconds_by_vertices`` and ``stage_exponent``.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -36,7 +39,11 @@ def tree_memory_bytes(process: psutil.Process) -> tuple[int, int]:
     once; RSS counts them in every process (an upper bound).
     """
     pss = rss = 0
-    for p in [process, *process.children(recursive=True)]:
+    try:
+        tree = [process, *process.children(recursive=True)]
+    except psutil.Error:  # exited between two samples
+        return 0, 0
+    for p in tree:
         try:
             info = p.memory_full_info()
             pss += getattr(info, "pss", info.rss)
@@ -47,25 +54,31 @@ def tree_memory_bytes(process: psutil.Process) -> tuple[int, int]:
 
 
 def run_once(vertices: int, cache_dir: Path, out_dir: Path) -> dict:
-    """One cold run: wall seconds, peak tree RSS (MB) and per-node seconds from the manifest."""
+    """One cold run: wall and CPU seconds, peak tree memory (MB) and per-node seconds from the manifest."""
     command = [sys.executable, "-m", "retrotouch.nodes", "run", str(PIPELINE), "-S", f"vertices={vertices}",
                "--out", str(out_dir), "--cache-dir", str(cache_dir)]
     start = time.perf_counter()
-    child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    log = out_dir.parent / "stderr.txt"
+    with open(log, "w") as err:
+        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
     watched = psutil.Process(child.pid)
     peak_pss = peak_rss = 0
-    while child.poll() is None:
+    while True:
+        done, status, usage = os.wait4(child.pid, os.WNOHANG)
+        if done:
+            break
         pss, rss = tree_memory_bytes(watched)
         peak_pss, peak_rss = max(peak_pss, pss), max(peak_rss, rss)
         time.sleep(0.2)
     seconds = time.perf_counter() - start
-    if child.returncode != 0:
-        raise SystemExit(f"run at {vertices} vertices failed ({child.returncode}): {child.stderr.read()[-2000:]}")
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"run at {vertices} vertices failed ({status}): {log.read_text()[-2000:]}")
     manifest = json.loads((out_dir / "manifest.json").read_text())
     stages: dict[str, float] = {}
     for entry in manifest["nodes"]:
         stages[entry["node"]] = stages.get(entry["node"], 0.0) + float(entry.get("seconds") or 0.0)
-    return {"seconds": seconds, "peak_rss_mb": peak_pss / 2**20, "peak_rss_sum_mb": peak_rss / 2**20, "stages": stages}
+    return {"seconds": seconds, "cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_rss_mb": peak_pss / 2**20,
+            "peak_rss_sum_mb": peak_rss / 2**20, "stages": stages}
 
 
 def slope(sizes: list[int], seconds: list[float]) -> float:
@@ -89,7 +102,7 @@ def main() -> None:
             root = args.keep_cache / str(n) if args.keep_cache else Path(scratch) / str(n)
             root.mkdir(parents=True, exist_ok=True)
             results[n] = run_once(n, root / "cache", root / "out")
-            print(f"{n} vertices: {results[n]['seconds']:.1f} s, peak {results[n]['peak_rss_mb']:.0f} MB "
+            print(f"{n} vertices: {results[n]['seconds']:.1f} s ({results[n]['cpu_seconds']:.1f} CPU-s), peak {results[n]['peak_rss_mb']:.0f} MB "
                   f"(summed RSS {results[n]['peak_rss_sum_mb']:.0f} MB)", flush=True)
     stage_names = list(results[sizes[0]]["stages"])
     stage_exponent = {s: slope(sizes, [results[n]["stages"].get(s, 0.0) for n in sizes]) for s in stage_names}
@@ -98,6 +111,8 @@ def main() -> None:
         print(f"{s:<14}" + "".join(f"{results[n]['stages'].get(s, 0.0):>10.1f}" for n in sizes) + f"{stage_exponent[s]:>10.2f}")
     exponent = slope(sizes, [results[n]["seconds"] for n in sizes])
     print(f"{'wall':<14}" + "".join(f"{results[n]['seconds']:>10.1f}" for n in sizes) + f"{exponent:>10.2f}")
+    cpu_exponent = slope(sizes, [results[n]["cpu_seconds"] for n in sizes])
+    print(f"{'CPU-s':<14}" + "".join(f"{results[n]['cpu_seconds']:>10.1f}" for n in sizes) + f"{cpu_exponent:>10.2f}")
     print(f"{'peak PSS MB':<14}" + "".join(f"{results[n]['peak_rss_mb']:>10.0f}" for n in sizes))
     print(f"{'peak RSS sum':<14}" + "".join(f"{results[n]['peak_rss_sum_mb']:>10.0f}" for n in sizes))
     print(json.dumps({
@@ -105,6 +120,8 @@ def main() -> None:
         "peak_rss_mb_by_vertices": {str(n): round(results[n]["peak_rss_mb"], 1) for n in sizes},
         "peak_rss_sum_mb_by_vertices": {str(n): round(results[n]["peak_rss_sum_mb"], 1) for n in sizes},
         "exponent": round(exponent, 3),
+        "cpu_seconds_by_vertices": {str(n): round(results[n]["cpu_seconds"], 1) for n in sizes},
+        "cpu_exponent": round(cpu_exponent, 3),
         "stage_seconds_by_vertices": {str(n): {s: round(v, 2) for s, v in results[n]["stages"].items()} for n in sizes},
         "stage_exponent": {s: round(v, 3) for s, v in stage_exponent.items()},
     }))
