@@ -67,7 +67,7 @@ def test_bunny_layout_respects_constraints_and_spacing(bunny_run):
 
 
 def test_bunny_layout_keeps_same_layer_clearance(bunny_run):
-    mesh, tx, rx, cross, params, candidate = bunny_run
+    mesh, tx, rx, cross, params, candidate, _ = bunny_run
     m = candidate.metrics
     bound = params.trace_width_mm + params.clearance_mm
     assert m["min_same_layer_clearance_mm"] >= bound
@@ -90,7 +90,7 @@ def test_bunny_sensing_map(bunny_run):
 def test_relaxed_pad_radius_travels_with_the_layout(bunny_run):
     from retrotouch.nodes.fab.unfold import Params as UnfoldParams, unfold
 
-    mesh, tx, rx, cross, params, _ = bunny_run
+    mesh, tx, rx, cross, params, _, _ = bunny_run
     samples = surface_samples(SamplesParams(count=150), mesh, bunny()[1])
     relaxed = params.model_copy(update={"pad_radius_mm": 20.0, "relax_pad_radii_mm": (2.0,)})  # 80 mm spacing cannot work
     candidate = optimize(relaxed, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
