@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from ...graph.errors import UserError
-from ..geometry.triangles import vertex_normals
+from ..geometry.triangles import surface_normals
 from .types import CurveSet, Layout, Mesh
 
 SCENE_FORMAT = "retrotouch.projection_scene/2"
@@ -51,13 +51,6 @@ class ProjectionScene:
     layer_textures: tuple[np.ndarray, ...] = ()
 
 
-def interpolated_normals(mesh: Mesh, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Unit normals at surface points given by face ids and barycentrics (vertex-normal interpolation)."""
-    vn = vertex_normals(mesh.vertices, mesh.faces)
-    n = np.einsum("kj,kjd->kd", bary, vn[mesh.faces[faces]])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-
-
 def build_scene(mesh: Mesh, layout: Layout) -> ProjectionScene:
     """Collect the layout's curves, crossings and pads with their surface normals (Tx layer first)."""
     sets: tuple[CurveSet, ...] = (layout.tx, layout.rx)
@@ -66,10 +59,10 @@ def build_scene(mesh: Mesh, layout: Layout) -> ProjectionScene:
         faces=np.asarray(mesh.faces, np.int64),
         layer_names=tuple(s.layer for s in sets),
         layer_points=tuple(np.asarray(s.points, np.float64) for s in sets),
-        layer_normals=tuple(interpolated_normals(mesh, s.faces, s.bary) for s in sets),
+        layer_normals=tuple(surface_normals(mesh.vertices, mesh.faces, s.faces, s.bary) for s in sets),
         layer_offsets=tuple(np.asarray(s.offsets, np.int64) for s in sets),
         crossing_points=np.asarray(layout.cells.points, np.float64),
-        crossing_normals=interpolated_normals(mesh, layout.cells.faces, layout.cells.bary),
+        crossing_normals=surface_normals(mesh.vertices, mesh.faces, layout.cells.faces, layout.cells.bary),
         pad=np.asarray(layout.pad, bool),
         pad_radius_mm=float(layout.pad_radius_mm),
     )

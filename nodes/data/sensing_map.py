@@ -16,7 +16,7 @@ Written next to ``mesh.ply`` (the object's mesh, :func:`..data.ply.ply_bytes`) i
 
 Cells list only channel pairs whose curves cross (at most one cell per pair); the board frame index
 of a cell is ``tx * NUM_RX + rx`` (:mod:`.board`). A cell's normal is the barycentric interpolation
-of the unit area-weighted vertex normals (:func:`..geometry.triangles.vertex_normals`), normalised:
+of the unit area-weighted vertex normals (:func:`..geometry.triangles.surface_normals`), normalised:
 smooth across faces, outward because faces are CCW seen from outside. The sensing region
 (``regions.detect``: where traces may run, base and exclusions left out) is what an evaluation
 spreads its touch locations over. Version 2 added ``up`` and ``sensing_faces``; the reader refuses
@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
-from ..geometry.triangles import vertex_normals
+from ..geometry.triangles import surface_normals
 from .board import NUM_RX, NUM_TX
 from .ply import ply_bytes
 
@@ -78,14 +78,6 @@ class SensingMap:
         return float(np.median(distances[:, 1]))
 
 
-def cell_normals(vertices: np.ndarray, faces: np.ndarray, cell_faces: np.ndarray, cell_bary: np.ndarray) -> np.ndarray:
-    """(K, 3) unit normals at surface points ``(cell_faces (K,), cell_bary (K, 3))``: barycentric
-    interpolation of the unit area-weighted vertex normals, normalised."""
-    corner_normals = vertex_normals(vertices, faces)[np.asarray(faces)[cell_faces]]
-    n = np.einsum("kc,kcd->kd", cell_bary, corner_normals)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-
 def sensing_map_files(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -107,7 +99,7 @@ def sensing_map_files(
     given)."""
     mesh_bytes = ply_bytes(vertices, faces)
     up = np.asarray(up, dtype=np.float64)
-    normals = cell_normals(vertices, faces, cell_faces, cell_bary)
+    normals = surface_normals(vertices, faces, cell_faces, cell_bary)
 
     def layer(name: str, prefix: str) -> list[dict]:
         return [{"channel": i, "name": f"{prefix}{i:02d}", "curve": int(curve), "length_mm": float(length)}

@@ -56,3 +56,11 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Enclosed volume (mm^3) of a closed mesh, positive when faces are CCW seen from outside."""
     tri = corners(vertices, faces)
     return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+
+
+def surface_normals(vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """``(k, 3)`` unit normals at surface points ``(face_ids (k,), bary (k, 3))``: the barycentric
+    interpolation of :func:`vertex_normals`, normalised (smooth across faces, outward)."""
+    corner_normals = vertex_normals(vertices, faces)[np.asarray(faces)[face_ids]]
+    n = np.einsum("kc,kcd->kd", bary, corner_normals)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
