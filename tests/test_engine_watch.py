@@ -14,6 +14,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from chromium import run_chromium
 
 PIPELINE = """\
 nodes:
@@ -27,19 +28,8 @@ nodes:
 """
 
 
-def _chromium_dom(url: str, profile: Path) -> str:
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--no-first-run", "--disable-sync", f"--user-data-dir={profile}",
-             "--virtual-time-budget=3000", "--dump-dom"]
-    proc = subprocess.Popen([shutil.which("chromium"), *flags, url], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True, start_new_session=True)
-    try:
-        out, _ = proc.communicate(timeout=90)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate()
-        pytest.fail("headless chromium did not finish in 90 s")
-    return out
+def _dom(url: str, profile: Path) -> str:
+    return run_chromium(["--virtual-time-budget=3000", "--dump-dom", url], profile, 90)
 
 
 def _state(url: str) -> dict:
@@ -73,7 +63,7 @@ def test_watch_reruns_on_save_and_keeps_the_last_good_result(tmp_path, test_node
         first_line = proc.stdout.readline()
         url = re.search(r"(http://127\.0\.0\.1:\d+/)", first_line).group(1)
         _wait(url, lambda s: s["phase"] == "ok", "a first result")
-        dom = _chromium_dom(url, tmp_path / "profile")
+        dom = _dom(url, tmp_path / "profile")
         assert _node_states(dom) == {n: "ran" for n in ("src", "plus", "tot", "out", "rows", "table", "pic")}
         assert '<img class="out" src="/files/picture.svg"' in dom
         assert "<td>index</td>" not in dom and "<th>index</th><th>total</th>" in dom  # the records as a table
@@ -84,17 +74,17 @@ def test_watch_reruns_on_save_and_keeps_the_last_good_result(tmp_path, test_node
         # a typo: the error on the page, the last good result still there
         pipeline.write_text(PIPELINE.replace("delta: 10}", "delta: [10}"))
         _wait(url, lambda s: s["phase"] == "error", "the typo's error")
-        dom = _chromium_dom(url, tmp_path / "profile")
+        dom = _dom(url, tmp_path / "profile")
         error = re.search(r'<div id="error">([^<]*)</div>', dom).group(1)
         assert error.startswith("p.yaml:3:") and "YAML syntax error" in error
         assert "<td>36</td>" in dom and json.loads((tmp_path / "out" / "value.json").read_text()) == 3 * 6 + 90
         # fixed, with a slow source: the page shows it running, then the new result
         pipeline.write_text(PIPELINE.replace("delta: 10", "delta: 20").replace("n: 3}", "n: 3, sleep_s: 3}"))
         _wait(url, lambda s: any(n["state"] == "running" for n in s["nodes"]), "a running node")
-        assert _node_states(_chromium_dom(url, tmp_path / "profile"))["src"] == "running"
+        assert _node_states(_dom(url, tmp_path / "profile"))["src"] == "running"
         state = _wait(url, lambda s: s["result_version"] == 2, "the second result")
         assert state["phase"] == "ok" and state["error"] == ""
-        dom = _chromium_dom(url, tmp_path / "profile")
+        dom = _dom(url, tmp_path / "profile")
         assert "<td>66</td>" in dom and "<td>36</td>" not in dom and re.search(r'<div id="error" hidden', dom)
         assert json.loads((tmp_path / "out" / "value.json").read_text()) == 3 * 6 + 180
     finally:

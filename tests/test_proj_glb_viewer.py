@@ -14,11 +14,8 @@ import functools
 import http.server
 import io
 import json
-import os
 import shutil
-import signal
 import struct
-import subprocess
 import threading
 from pathlib import Path
 
@@ -27,6 +24,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from chromium import run_chromium
 from proj_fixtures import bunny_layout, bunny_mm
 from retrotouch.nodes.data.ply import ply_bytes
 from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures
@@ -123,22 +121,6 @@ def test_obj_and_glb_face_order_is_mesh_ply_face_order(baked, tmp_path):
     np.testing.assert_allclose(obj.vertices[obj.faces], ply_corners, atol=1e-5)
 
 
-def _chromium(args: list[str], profile: Path) -> str:
-    """Headless Chromium in its own process group (killed whole if it hangs); returns stdout."""
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             "--enable-unsafe-swiftshader", f"--user-data-dir={profile}"]
-    process = subprocess.Popen([shutil.which("chromium"), *flags, *args], stdout=subprocess.PIPE,
-                               stderr=subprocess.DEVNULL, text=True, start_new_session=True)
-    try:
-        out, _ = process.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        out, _ = process.communicate()
-        pytest.fail("headless chromium did not finish in 120 s")
-    return out
-
-
 class _ViewerSite(http.server.SimpleHTTPRequestHandler):
     """Static files, plus POST /result (the page's report) and GET /wait.png (answered after it)."""
 
@@ -197,7 +179,7 @@ def test_three_js_sees_the_object_in_metres_and_renders_it_lit(baked, served, tm
     mesh, _ = baked
     url, reports, reported = served
     shot = tmp_path / "view.png"
-    _chromium([f"--window-size={VIEW_W},{VIEW_H}", "--virtual-time-budget=5000", f"--screenshot={shot}", url],
+    run_chromium([f"--window-size={VIEW_W},{VIEW_H}", "--virtual-time-budget=5000", f"--screenshot={shot}", url],
               tmp_path / "profile")
     assert reported.is_set() and reports and reports[0].startswith("{"), reports
     report = json.loads(reports[0])

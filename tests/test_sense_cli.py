@@ -19,6 +19,7 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
+from chromium import run_chromium
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.sensing.live_view import LiveView
 from retrotouch.nodes.data.sensing_map import load_sensing_map
@@ -156,22 +157,7 @@ def test_operator_errors_are_one_line_and_exit_2_in_the_real_cli(layout):
         assert len(done.stderr.strip().splitlines()) == 1 and "error" in done.stderr
 
 
-def _chromium(args: list[str], profile) -> str:
-    """Run headless Chromium in its own process group; kill the whole group if it hangs."""
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--no-first-run", "--disable-sync", f"--user-data-dir={profile}"]
-    process = subprocess.Popen([shutil.which("chromium"), *flags, *args], stdout=subprocess.PIPE,
-                               stderr=subprocess.DEVNULL, text=True, start_new_session=True)
-    try:
-        out, _ = process.communicate(timeout=90)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        out, _ = process.communicate()
-        pytest.fail("headless chromium did not finish in 90 s")
-    return out
-
-
-def test_live_view_shows_the_heatmap_and_touch_points_in_headless_chromium(layout, tmp_path):
+def test_live_view_shows_the_heatmap_and_touch_points_in_headlessrun_chromium(layout, tmp_path):
     if shutil.which("chromium") is None:
         pytest.skip("chromium is not installed (apt-get install -y chromium): the live view page is not checked")
     sensing_map = load_sensing_map(layout)
@@ -196,9 +182,9 @@ def test_live_view_shows_the_heatmap_and_touch_points_in_headless_chromium(layou
     feeder.start()
     try:
         assert touched.wait(30), "the simulated press never became a touch"
-        dom = _chromium(["--virtual-time-budget=5000", "--dump-dom", url + "?frames=3&follow=1"], tmp_path / "profile")
+        dom = run_chromium(["--virtual-time-budget=5000", "--dump-dom", url + "?frames=3&follow=1"], tmp_path / "profile")
         shot = tmp_path / "view.png"
-        _chromium(["--window-size=1000,700", "--virtual-time-budget=5000", f"--screenshot={shot}", url + "?frames=3&follow=1"],
+        run_chromium(["--window-size=1000,700", "--virtual-time-budget=5000", f"--screenshot={shot}", url + "?frames=3&follow=1"],
                   tmp_path / "profile")
     finally:
         stop.set()

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.sensing_map import load_sensing_map
 from retrotouch.nodes.geometry.surface import SurfaceProjector
-from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate
+from retrotouch.nodes.sensing.evaluation import evaluate
 from retrotouch.nodes.sensing.frames import Frame
 from retrotouch.nodes.sensing.locations import load_locations, spread_locations
 from retrotouch.nodes.sensing.processing import FrameResult, ProcessingParams, Touch
