@@ -75,6 +75,17 @@ def _leftovers(tmp_path: Path) -> list[str]:
     return sorted(os.listdir(tmp) if tmp.is_dir() else []) + [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
 
 
+def _assert_stopped_cleanly(proc: subprocess.Popen, tmp_path: Path) -> None:
+    """The interrupted run printed one line, exited 130 and left no process or temp folder."""
+    out, err = proc.communicate(timeout=60)
+    assert (proc.returncode, err) == (130, "retrotouch: error: interrupted\n"), out
+    deadline = time.time() + 5
+    while _process_group(proc.pid) and time.time() < deadline:
+        time.sleep(0.05)
+    assert _process_group(proc.pid) == []
+    assert _leftovers(tmp_path) == []
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to find the run's processes")
 @pytest.mark.parametrize("delay_s", [0.15, 0.8, 1.5, 2.6])
 def test_ctrl_c_to_the_process_group_at_any_moment(tmp_path, test_nodes, delay_s):
@@ -86,16 +97,10 @@ def test_ctrl_c_to_the_process_group_at_any_moment(tmp_path, test_nodes, delay_s
         if delay_s == 1.5:  # an impatient operator presses twice
             time.sleep(0.05)
             os.killpg(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        _assert_stopped_cleanly(proc, tmp_path)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert (proc.returncode, err) == (130, "retrotouch: error: interrupted\n"), out
-    deadline = time.time() + 5
-    while _process_group(proc.pid) and time.time() < deadline:
-        time.sleep(0.05)
-    assert _process_group(proc.pid) == []
-    assert _leftovers(tmp_path) == []
     assert not (tmp_path / "out").exists()
     store = Store(str(tmp_path / "cache"))
     for key, _ in store.entries():
@@ -109,15 +114,10 @@ def test_ctrl_c_with_the_other_schedulers(tmp_path, test_nodes, scheduler):
     try:
         time.sleep(3.0)  # the local cluster's workers are running nodes by then
         os.killpg(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        _assert_stopped_cleanly(proc, tmp_path)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert (proc.returncode, err) == (130, "retrotouch: error: interrupted\n"), out
-    deadline = time.time() + 5
-    while _process_group(proc.pid) and time.time() < deadline:
-        time.sleep(0.05)
-    assert _process_group(proc.pid) == [] and _leftovers(tmp_path) == []
 
 
 def test_sigterm_stops_the_same_way(tmp_path, test_nodes):
