@@ -1,4 +1,5 @@
-"""regions.detect on the bunny (170 mm diagonal) and a sphere, called directly."""
+"""regions.detect on the bunny (170 mm diagonal), a sphere, the shared meshes and generated shapes,
+called directly."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,12 +8,14 @@ import numpy as np
 import pytest
 import trimesh
 
+import shapes
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh, SurfaceRegions
-from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.geometry.triangles import corners, normals
-from retrotouch.nodes.regions.faces import FaceGraph
+from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
+from retrotouch.nodes.mesh.repair import RemeshParams, remesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions, parse_axis
+from retrotouch.nodes.regions.faces import FaceGraph
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
@@ -194,3 +197,37 @@ def test_shared_meshes_rest_without_overrides(path: Path) -> None:
     assert r.tipping_angle_deg >= params.min_tipping_deg  # a stable pose
     assert r.sensing_faces.mean() > 0.45
     assert r.base_distance_mm[r.far_vertex] > 0.8 * np.ptp(mesh.vertices @ r.up)  # far from the base
+
+
+def remeshed(tm: trimesh.Trimesh, vertices: int = 2000) -> Mesh:
+    mesh = Mesh(np.asarray(tm.vertices), np.asarray(tm.faces, dtype=np.int64), "shape")
+    return remesh(RemeshParams(target_vertices=vertices), mesh)
+
+
+def test_bottle_stands_on_an_end_and_box_lies_on_its_largest_face() -> None:
+    bottle = remeshed(trimesh.creation.cylinder(radius=30.0, height=200.0, sections=96))
+    r = detect_regions(RegionParams(), bottle)
+    assert abs(r.up[2]) > 0.99 and r.pose_kind == "flat"
+    box = remeshed(shapes.box())
+    r = detect_regions(RegionParams(), box)
+    assert abs(r.up[2]) > 0.99 and r.pose_kind == "flat"  # the 120 x 80 face, not a side
+    assert abs(r.base_area_fraction - 120 * 80 / (2 * (120 * 80 + 120 * 50 + 80 * 50))) < 0.03
+
+
+def test_bowl_rests_on_its_foot_ring_not_upside_down() -> None:
+    bowl = remeshed(shapes.bowl_with_foot_ring())
+    r = detect_regions(RegionParams(), bowl)
+    assert r.up[2] > 0.99 and r.pose_kind == "foot_ring"
+    assert "1 upside-down pose(s) passed over" in r.pose_reason
+    centre = bowl.vertices[r.base_centre]
+    assert np.hypot(centre[0], centre[1]) < 10.0  # the Tx singularity inside the ring, near the axis
+    assert_valid_regions(bowl, r)
+
+
+def test_figurine_base_is_one_foot_and_the_rest_one_piece() -> None:
+    figurine = remeshed(shapes.four_legged_figurine(), 3000)
+    r = detect_regions(RegionParams(), figurine)
+    assert r.up[2] > 0.99 and r.pose_kind == "patches" and "of 4 contact patches" in r.pose_reason
+    assert_valid_regions(figurine, r)
+    soles = np.unique(figurine.faces[r.base_faces])
+    assert np.ptp(figurine.vertices[soles, :2], axis=0).max() < 40.0  # one foot, not the body
