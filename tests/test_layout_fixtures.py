@@ -15,6 +15,7 @@ import numpy as np
 import trimesh
 
 from retrotouch.nodes.data.types import Crossings, CurveEnd, CurveSet, Mesh
+from retrotouch.nodes.geometry.triangles import areas, corners
 
 RADIUS_MM = 50.0
 BASE_THETA = np.deg2rad(150.0)
@@ -36,11 +37,16 @@ def sensing_mask(mesh: Mesh) -> np.ndarray:
 
 class Regions:
     """Stand-in for the regions node output: the layout nodes read ``sensing_faces``, the sensing
-    map sink ``up`` (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
+    map sink ``up`` and the pose (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
 
     def __init__(self, mesh: Mesh):
         self.sensing_faces = sensing_mask(mesh)
         self.up = np.array([0.0, 0.0, 1.0])
+        self.pose_kind = "round"
+        self.pose_reason = "stand-in: a sphere resting on -z"
+        self.tipping_angle_deg = 0.0
+        area = areas(corners(mesh.vertices, mesh.faces))
+        self.base_area_fraction = float(area[~self.sensing_faces].sum() / area.sum())
 
 
 def _to_xyz(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:

@@ -24,14 +24,21 @@ class SensingMapParams(NodeParams):
 def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout,
                       metrics: dict) -> Files:
     """sensing_map.json (up axis; channel pairs -> crossing point, face, barycentrics, normal, pad),
-    mesh.ply, metrics.json."""
+    mesh.ply, metrics.json (the layout's metrics, the resting pose and the ingest repairs)."""
     cells = layout.cells
     channels = {"tx": list(zip(layout.tx_source.tolist(), layout.tx.lengths_mm.tolist())),
                 "rx": list(zip(layout.rx_source.tolist(), layout.rx.lengths_mm.tolist()))}
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
                               cells.faces, cells.bary, layout.pad, channels, regions.sensing_faces,
                               design=layout.design_values())
-    return Files({**files, "metrics.json": json.dumps(metrics, indent=1, default=_json_default).encode()})
+    document = {**metrics, "pose": pose_summary(regions), "ingest_repairs": list(mesh.repairs)}
+    return Files({**files, "metrics.json": json.dumps(document, indent=1, default=_json_default).encode()})
+
+
+def pose_summary(regions: SurfaceRegions) -> dict:
+    """The resting pose the layout was made for, as metrics.json reports it."""
+    return {"kind": regions.pose_kind, "reason": regions.pose_reason, "up": [float(v) for v in regions.up],
+            "tipping_angle_deg": regions.tipping_angle_deg, "base_area_fraction": regions.base_area_fraction}
 
 
 def _json_default(value):

@@ -25,6 +25,8 @@ Then, with heat-method geodesic distances (potpourri3d):
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import potpourri3d as pp3d
 import trimesh
@@ -235,6 +237,7 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
 
     halfedge_face = np.arange(len(graph.halfedges)) // 3
     toward_base = sensing[halfedge_face] & blocked[graph.opposite // 3]
+    print(f"regions.detect: resting pose {base.kind}: {reason}", file=sys.stderr)  # the run summary's line
     return SurfaceRegions(
         base_faces=base.faces,
         exclusion_base=exclusion_base,
