@@ -9,8 +9,8 @@ from retrotouch.nodes.layout.sweep import AngleLayout
 
 def branch(angle, radius, mean, cv, secondary=True, feasible=True):
     metrics = {"coverage_radius_mm": radius, "power_mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
-               "pads": 10, "tx_channels": 21, "rx_channels": 12, "seconds": {"total": 1.0}, "relaxations": [],
-               "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0}], "resolution_mm": 0.5}}
+               "pads": 10, "tx_channels": 21, "rx_channels": 12, "relaxations": [],
+               "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0, "deterministic_time": 0.5}], "resolution_mm": 0.5}}
     return AngleLayout(angle, feasible, "ok" if feasible else "no pads", None, metrics)
 
 
@@ -33,7 +33,7 @@ def test_infeasible_branches_are_skipped_and_listed():
 
 def test_gap_is_unknown_when_a_stage_has_no_incumbent():
     c = branch(0, 30.0, 8.0, 0.5)
-    c.metrics["phase1"]["stages"].append({"status": "UNKNOWN", "gap": None})
+    c.metrics["phase1"]["stages"].append({"status": "UNKNOWN", "gap": None, "deterministic_time": 1.0})
     assert angle_table([c])[0]["gap"] is None
     assert angle_table([branch(0, 30.0, 8.0, 0.5)])[0]["gap"] == pytest.approx(0.0)
 

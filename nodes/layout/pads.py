@@ -19,6 +19,8 @@ import dataclasses
 
 import numpy as np
 
+from .problem import deterministic_solver
+
 PAD_TIME_LIMIT_S = 2.0  # phase-2 CP-SAT limit, deterministic seconds
 
 
@@ -69,11 +71,7 @@ def place_pads(
         w = np.round(100 * np.asarray(tie_break, dtype=float) / max(float(np.max(tie_break)), 1e-12)).astype(int)
         big = int(w.sum()) + 1
         model.maximize(sum((big + int(w[k])) * z[k] for k in range(A)))
-    solver = cp_model.CpSolver()
-    solver.parameters.num_workers = workers
-    solver.parameters.random_seed = seed
-    solver.parameters.max_deterministic_time = time_limit_s
-    solver.parameters.max_time_in_seconds = 4.0 * time_limit_s
+    solver = deterministic_solver(time_limit_s, seed, workers)
     status = solver.solve(model)
     feasible = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     pad = np.array([solver.boolean_value(v) for v in z], dtype=bool) if feasible else np.zeros(A, dtype=bool)
@@ -90,6 +88,6 @@ def place_pads(
         "objective": objective,
         "bound": bound,
         "gap": None if objective is None else (bound - objective) / max(objective, 1.0),
-        "seconds": solver.wall_time,
+        "deterministic_time": solver.deterministic_time,
     }
     return PadResult(pad=pad, feasible=feasible, report=report)

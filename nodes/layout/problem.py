@@ -1,5 +1,6 @@
-"""The phase-1 problem (candidate curves, crossings, conflicts, sample distances), its evaluation and
-the phase-1 defaults shared by the solver and the ``layout.optimize`` params. Units: mm."""
+"""The phase-1 problem (candidate curves, crossings, conflicts, sample distances), its evaluation,
+the phase-1 defaults shared by the solver and the ``layout.optimize`` params, and the CP-SAT solver
+settings both phases use. Units: mm."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,6 +13,20 @@ PHASE1_TIME_LIMIT_S = 1.0  # per CP-SAT solve, deterministic seconds
 PHASE1_RESOLUTION_MM = 0.5  # distance quantisation of the model
 PHASE1_MAX_MEMBERSHIPS = 15000  # (sample, crossing) pairs before a trust region
 PHASE1_POWER = 6  # secondary objective: power mean of the sample distances
+
+
+def deterministic_solver(time_limit_s: float, seed: int, workers: int):
+    """A CP-SAT solver whose result is a function of the model only: a deterministic-time limit
+    (``time_limit_s``, CP-SAT's work units, not wall seconds) and no wall-clock limit, a fixed seed, and
+    with more than one worker the interleaved search (deterministic for any ``workers``)."""
+    from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
+
+    solver = cp_model.CpSolver()
+    solver.parameters.num_workers = workers
+    solver.parameters.interleave_search = workers > 1
+    solver.parameters.random_seed = seed
+    solver.parameters.max_deterministic_time = time_limit_s
+    return solver
 
 
 @dataclasses.dataclass(frozen=True)

@@ -48,14 +48,14 @@ from the stage-1 solution, to stage 2. Without the secondary objective the local
 radius alone, so nothing in the ablation optimises the mean distance.
 
 CP-SAT runs with ``workers`` workers, a fixed seed and ``max_deterministic_time`` equal to the time
-limit (reproducible), plus a 4x wall-clock guard; every stage reports status, objective, bound, gap
-and seconds. If CP-SAT returns no incumbent the heuristic selection is used and
+limit and no wall-clock limit, so the result is a function of the problem only; every stage reports
+status, objective, bound, gap and CP-SAT's deterministic time (no wall seconds: they would make the
+report differ between runs). If CP-SAT returns no incumbent the heuristic selection is used and
 ``report["source"]`` says so. Units: mm.
 """
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 
@@ -66,6 +66,7 @@ from .problem import (
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
     SelectionProblem,
+    deterministic_solver,
     evaluate_selection,
 )
 
@@ -98,7 +99,6 @@ def _stage_report(name: str, solver, status: int, scale: float) -> dict:
         "objective": objective,
         "bound": bound,
         "gap": gap,
-        "seconds": solver.wall_time,
         "deterministic_time": solver.deterministic_time,
     }
 
@@ -241,17 +241,6 @@ class Phase1Model:
         return tx, rx
 
 
-def _solver(time_limit_s: float, seed: int, workers: int):
-    from ortools.sat.python import cp_model
-
-    solver = cp_model.CpSolver()
-    solver.parameters.num_workers = workers
-    solver.parameters.random_seed = seed
-    solver.parameters.max_deterministic_time = time_limit_s
-    solver.parameters.max_time_in_seconds = 4.0 * time_limit_s
-    return solver
-
-
 def _power_mean_stage(m: Phase1Model, solver, start: tuple[np.ndarray, np.ndarray], settings: dict) -> tuple[dict, tuple | None]:
     """Stage 2: with the radius fixed at stage 1's, minimise the sum of distance**power, from a local
     search of stage 1's selection. Returns the stage report (``gap`` on the sum of level**p, the
@@ -297,17 +286,15 @@ def select_curves(
     """Solve phase 1 (see the module docstring) and report every stage."""
     from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
 
-    t0 = time.perf_counter()
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
     _, h_nearest = evaluate_selection(problem, start_tx, start_rx)
-    heuristic["seconds"] = time.perf_counter() - t0
 
     q = _quantised_distances(problem, resolution_mm)
     q_start = np.ceil(h_nearest / resolution_mm - 1e-9).astype(np.int64)
     m = Phase1Model(problem, n_drive, n_sense, q, int(q_start.max()))
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
     m.add_samples(q, sample_cap, power)
-    solver = _solver(time_limit_s, seed, workers)
+    solver = deterministic_solver(time_limit_s, seed, workers)
     size = {"variables": len(m.model.proto.variables), "constraints": len(m.model.proto.constraints),
             "candidate_crossings": int((problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]).sum()),
             "crossings_in_model": len(m.act),
@@ -329,6 +316,6 @@ def select_curves(
             stages.append(report)
     active, nearest = evaluate_selection(problem, tx_sel, rx_sel)
     report = {"heuristic": heuristic, "stages": stages, "model": size, "source": source,
-              "seconds": time.perf_counter() - t0, "resolution_mm": resolution_mm}
+              "resolution_mm": resolution_mm}
     return SelectionResult(tx=tx_sel, rx=rx_sel, active=active, nearest_mm=nearest, coverage_radius_mm=float(nearest.max()),
                            mean_distance_mm=float(nearest.mean()), report=report)
