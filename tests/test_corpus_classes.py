@@ -60,9 +60,10 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     assert metrics["feasible"]
     assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
     assert metrics["voronoi_cv"] < 1.5
-    # cells over the sensing region: no point of it farther than 0.4 x the object's diagonal from a
-    # cell (a sanity bound, not the quality goal: the figurine's legs measure 0.35 at this resolution)
-    assert metrics["coverage_radius_mm"] < 0.4 * shapes.diagonal_mm(name)
+    # cells over the sensing region: no point of it farther than 0.5 x the object's diagonal from a
+    # cell (a sanity bound, not the quality goal: with the same-layer clearance constraint the
+    # figurine's legs measure 0.43 at this resolution, 0.35 without it)
+    assert metrics["coverage_radius_mm"] < 0.5 * shapes.diagonal_mm(name)
     checked = trimesh.load(str(out / "mesh.ply"), process=False)
     mesh = Mesh(np.asarray(checked.vertices, dtype=np.float64), np.asarray(checked.faces, dtype=np.int64), name)
     regions = detect_regions(RegionParams(), mesh)
