@@ -142,18 +142,25 @@ def exit_step(rate: np.ndarray, tables: MeshTables, face: np.ndarray, bary: np.n
     exit_corner = np.argmin(t, axis=1)
     tt = t[rows, exit_corner]
     out = bary + tt[:, None] * dl
+    nxt, c, nb = across_exit_edge(tables, face, exit_corner, out)
+    return exit_corner, out, nxt, c, nb
+
+
+def across_exit_edge(tables: MeshTables, face: np.ndarray, exit_corner: np.ndarray, out: np.ndarray):
+    """Exit barycentrics ``out`` (k, 3) in ``face`` on the edge opposite ``exit_corner``: nudged off
+    vertices and renormalised in place, then restated in the face across that edge. Returns that
+    face, the exit edge's corner there and the barycentrics there."""
+    rows = np.arange(len(face))
     out[rows, exit_corner] = 0.0
     np.maximum(out, VERTEX_NUDGE, out=out)
     out[rows, exit_corner] = 0.0
     out /= out.sum(axis=1, keepdims=True)
-
     nxt = tables.opposite_face[face, exit_corner]
     c = tables.opposite_corner[face, exit_corner]
-    nb = np.empty_like(out)
-    nb[rows, c] = 0.0
+    nb = np.zeros_like(out)
     nb[rows, (c + 1) % 3] = out[rows, (exit_corner + 2) % 3]
     nb[rows, (c + 2) % 3] = out[rows, (exit_corner + 1) % 3]
-    return exit_corner, out, nxt, c, nb
+    return nxt, c, nb
 
 
 def slide_sinks(tables, rate, direction, vertex_faces, base_region, state, sink, left):

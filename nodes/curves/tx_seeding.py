@@ -10,7 +10,7 @@ from ..data.types import CurveEnd, CurveSet
 from ..geometry.mesh_tables import MeshTables
 from .assembly import assemble, concat_traces, join_both_ways, pick_curves
 from .connection import DirectionField
-from .integrator import VERTEX_NUDGE, Traces, trace, vertex_face_table
+from .integrator import Traces, across_exit_edge, trace, vertex_face_table
 
 if TYPE_CHECKING:
     from .tracing import TraceTxParams
@@ -63,15 +63,7 @@ def tx_starts(tables: MeshTables, vertex: int, phi: np.ndarray):
     start = np.zeros((n_curves, 3))
     start[rows, k] = 1.0
     out = start + (1.0 / -rate[rows, k])[:, None] * rate
-    out[rows, k] = 0.0
-    np.maximum(out, VERTEX_NUDGE, out=out)
-    out[rows, k] = 0.0
-    out /= out.sum(axis=1, keepdims=True)
-    g = tables.opposite_face[f, k]
-    c = tables.opposite_corner[f, k]
-    gb = np.zeros_like(out)
-    gb[rows, (c + 1) % 3] = out[rows, (k + 2) % 3]
-    gb[rows, (c + 2) % 3] = out[rows, (k + 1) % 3]
+    g, _, gb = across_exit_edge(tables, f, k, out)
     return (rows, f, start), g, gb
 
 
