@@ -39,6 +39,7 @@ from .problem import (
 )
 from .clearance import clearance_profile, close_pairs, start_trims, trim_starts
 from .selection import select_curves
+from ..data.board import NUM_RX, NUM_TX
 from ..data.types import CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh
 from .metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
 from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
@@ -48,8 +49,8 @@ log = logging.getLogger(__name__)
 
 
 class OptimizeParams(NodeParams):
-    n_drive: int = Field(21, ge=1, le=128, description="Tx channels available (N_drive; 21 on the Muca board)")
-    n_sense: int = Field(12, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
+    n_drive: int = Field(NUM_TX, ge=1, le=128, description="Tx channels available (N_drive; 21 on the Muca board)")
+    n_sense: int = Field(NUM_RX, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
     secondary: bool = Field(True, description="also minimise the sample distances (off: ablation)")
     secondary_power: int = Field(
         PHASE1_POWER, ge=1, le=8, description="secondary objective: power mean of sample distances (1 = plain mean)"

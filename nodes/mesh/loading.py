@@ -15,7 +15,6 @@ Nodes:
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from pathlib import Path
 from typing import Literal
 
@@ -24,6 +23,7 @@ import trimesh
 from pydantic import Field, model_validator
 
 from ...graph.errors import UserError
+from ...graph.hashing import file_sha256
 from ...graph.node import NodeParams, node
 from ..data.builtin import builtin_mesh_path
 from ..data.types import Mesh
@@ -55,15 +55,6 @@ class LoadParams(NodeParams):
 
     def input_files(self) -> list[str]:
         return [str(resolve_mesh_path(self.path))]
-
-
-def file_sha256(path: Path) -> str:
-    """Hex sha256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray]:
@@ -136,7 +127,7 @@ def load_mesh(params: LoadParams) -> Mesh:
     return Mesh(
         vertices=vertices * MM_PER_UNIT[params.units],
         faces=faces,
-        source=f"{source_name} sha256:{file_sha256(path)}",
+        source=f"{source_name} sha256:{file_sha256(str(path))}",
         repairs=repairs,
     )
 

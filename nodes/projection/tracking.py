@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..data.types import Mesh
-from ..geometry.triangles import corners, normals
+from ..geometry.triangles import corners, cross_products, normals
 from .camera import DeviceIntrinsics, invert_pose, normalised_coordinates, transform_points
 from .depth_frames import DepthFrame
 from .smoothing import PoseSmoother
@@ -91,7 +91,7 @@ def support_plane_mask(
         return none
     sub = points[rng.choice(len(points), min(len(points), 2000), replace=False)]
     tri = sub[rng.integers(0, len(sub), (64, 3))]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = cross_products(tri)
     length = np.linalg.norm(normals, axis=1)
     good = length > 1e-6
     if not good.any():
