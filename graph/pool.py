@@ -91,5 +91,8 @@ def _kill(pool: ProcessPoolExecutor) -> list[int]:
             process.kill()
     for process in processes:
         process.join(timeout=5)
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it
     pool.shutdown(wait=False, cancel_futures=True)
+    if manager is not None:  # it closes its wake-up pipe; interpreter exit must not write to it meanwhile
+        manager.join(timeout=5)
     return sorted(p.pid for p in processes)
