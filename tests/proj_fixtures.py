@@ -2,6 +2,7 @@
 
 * :func:`bunny_mm` -- pymeshlab's bunny, 170 mm bounding-box diagonal, centred, +z up (the
   plane-section layouts of ``fab_layouts`` take meridians about the z axis).
+* :func:`bunny_regions` -- its base and resting pose, as ``regions.detect`` finds them.
 * :func:`demo_rig` -- a plausible projector-camera rig (the truth of synthetic runs).
 * :class:`BoardCaptureSimulator` -- what the camera sees when the projector lights a checkerboard.
 * :func:`board_poses` -- checkerboard poses in front of a rig's camera where the projector lights them.
@@ -20,10 +21,11 @@ from scipy.spatial.transform import Rotation
 
 from curves_fixture import load_scaled, sample_mesh_path
 from fab_layouts import section_layout
-from retrotouch.nodes.data.types import Layout, Mesh
+from retrotouch.nodes.data.types import Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.projection.calibration import BoardCapture, ProCamCalibration, calibrate_procam
 from retrotouch.nodes.projection.camera import DeviceIntrinsics, distort_normalised, invert_pose
 from retrotouch.nodes.projection.structured_light import BoardSpec, gray_code_patterns
+from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 BOARD = BoardSpec(cols=9, rows=7, square_mm=15.0)
 
@@ -34,6 +36,10 @@ def bunny_mm(target_vertices: int = 5000) -> Mesh:
     v = m.vertices - (m.vertices.max(axis=0) + m.vertices.min(axis=0)) / 2
     up = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # (x, y, z) -> (x, -z, y): y-up becomes z-up
     return Mesh(v @ up.T, m.faces, "builtin:bunny")
+
+
+def bunny_regions(mesh: Mesh) -> SurfaceRegions:
+    return detect_regions(RegionParams(), mesh)
 
 
 def bunny_layout(mesh: Mesh, n_tx: int = 12, n_rx: int = 8) -> Layout:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jsonschema
 import numpy as np
 import pytest
 import trimesh
@@ -19,6 +20,7 @@ from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 REPO = Path(__file__).resolve().parents[1]
+METRICS_SCHEMA = json.loads((REPO / "nodes" / "data" / "metrics.schema.json").read_text())
 KEEP_UP_TO = "sensing_map"
 """The last node kept from the default pipeline (what follows it are sinks that need no class test)."""
 VERTICES = 1500
@@ -57,6 +59,7 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     done = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     metrics = json.loads((out / "metrics.json").read_text())
+    jsonschema.validate(metrics, METRICS_SCHEMA)
     assert metrics["feasible"]
     assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
     assert metrics["voronoi_cv"] < 1.5

@@ -83,6 +83,25 @@ def test_sensing_map_matches_schema_and_mesh(run):
     assert sum(b - a for a, b in doc["sensing_faces"]) == int(regions.sensing_faces.sum())
 
 
+def test_metrics_json_follows_its_json_schema(run):
+    """nodes/data/metrics.schema.json: the written file validates (no key outside the schema), its
+    format constant is the writer's, and a file without the pose does not."""
+    jsonschema = pytest.importorskip("jsonschema")
+    from pathlib import Path
+
+    from retrotouch.nodes.data import metrics_file
+
+    schema = json.loads((Path(metrics_file.__file__).parent / "metrics.schema.json").read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    assert schema["properties"]["format"]["const"] == metrics_file.METRICS_FORMAT
+    doc = json.loads(run[3].contents["metrics.json"])
+    jsonschema.validate(doc, schema)
+    assert doc["pose"]["up"] == [0.0, 0.0, 1.0]
+    del doc["pose"]
+    with pytest.raises(jsonschema.ValidationError, match="'pose' is a required property"):
+        jsonschema.validate(doc, schema)
+
+
 def test_metrics_and_pick(run):
     _, (a, b), picked, files = run
     metrics = json.loads(files.contents["metrics.json"])

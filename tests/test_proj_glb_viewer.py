@@ -25,9 +25,9 @@ import pytest
 import trimesh
 
 from chromium import run_chromium
-from proj_fixtures import bunny_layout, bunny_mm
+from proj_fixtures import bunny_layout, bunny_mm, bunny_regions
 from retrotouch.nodes.data.ply import ply_bytes
-from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures
+from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures, standing_transform
 
 THREE = Path(__file__).resolve().parent / "glb_viewer" / "node_modules" / "three"
 VIEW_W, VIEW_H = 640, 480
@@ -51,7 +51,7 @@ try {
   const sun = new THREE.DirectionalLight(0xffffff, 2.0);
   scene.add(sun, sun.target);
   new GLTFLoader().load("model.glb", gltf => {
-    const box = new THREE.Box3().setFromObject(gltf.scene);
+    const box = new THREE.Box3().setFromObject(gltf.scene, true);  // precise, world space: the node matrix applied
     const size = box.getSize(new THREE.Vector3()), centre = box.getCenter(new THREE.Vector3());
     const radius = size.length() / 2;
     const camera = new THREE.PerspectiveCamera(40, __W__ / __H__, radius / 50, radius * 50);
@@ -66,7 +66,7 @@ try {
     gltf.scene.traverse(o => { if (o.isMesh) mesh = o; });
     const m = mesh.material;
     report({
-      size: size.toArray(), metalness: m.metalness, roughness: m.roughness, color: m.color.toArray(),
+      size: size.toArray(), min: box.min.toArray(), max: box.max.toArray(), metalness: m.metalness, roughness: m.roughness, color: m.color.toArray(),
       map: m.map ? [m.map.image.width, m.map.image.height] : null,
       triangles: mesh.geometry.index.count / 3, normals: !!mesh.geometry.attributes.normal,
       units: gltf.asset.extras ? gltf.asset.extras.units : null});
@@ -79,8 +79,16 @@ try {
 @pytest.fixture(scope="module")
 def baked():
     mesh = bunny_mm(3000)
-    files = projection_textures(TextureParams(texture_px=1024), mesh, bunny_layout(mesh, 8, 6))
-    return mesh, files.contents
+    regions = bunny_regions(mesh)
+    files = projection_textures(TextureParams(texture_px=1024), mesh, regions, bunny_layout(mesh, 8, 6))
+    return mesh, files.contents, regions.up
+
+
+def _standing_m(vertices_mm: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Vertices (m) as a viewer places them: the standing transform applied."""
+    v = vertices_mm / 1000.0
+    T = standing_transform(v, up)
+    return v @ T[:3, :3].T + T[:3, 3]
 
 
 def _glb_json(glb: bytes) -> dict:
@@ -89,7 +97,7 @@ def _glb_json(glb: bytes) -> dict:
 
 
 def test_glb_is_metres_with_a_matte_material_and_the_texture_embedded(baked):
-    mesh, contents = baked
+    mesh, contents, _ = baked
     glb = contents["projection/bunny_layout.glb"]
     tree = _glb_json(glb)
     assert tree["asset"]["extras"] == {"units": "m", "face_order": "mesh.ply"}
@@ -99,20 +107,21 @@ def test_glb_is_metres_with_a_matte_material_and_the_texture_embedded(baked):
     assert pbr["baseColorFactor"] == [1.0, 1.0, 1.0, 1.0]
     (image,) = tree["images"]
     assert image["mimeType"] == "image/png" and "bufferView" in image and "uri" not in image  # embedded
-    loaded = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
+    (geometry,) = trimesh.load(io.BytesIO(glb), file_type="glb", force="scene", process=False).geometry.values()
     extent_m = np.ptp(mesh.vertices, axis=0) / 1000.0
-    np.testing.assert_allclose(np.ptp(loaded.vertices, axis=0), extent_m, rtol=1e-6)
+    np.testing.assert_allclose(np.ptp(geometry.vertices, axis=0), extent_m, rtol=1e-6)  # the mesh's frame, in m
     assert "NORMAL" in tree["meshes"][0]["primitives"][0]["attributes"]
 
 
 def test_obj_and_glb_face_order_is_mesh_ply_face_order(baked, tmp_path):
     """Face k of the OBJ and of the GLB has the corners of face k of mesh.ply, in the same order."""
-    mesh, contents = baked
+    mesh, contents, _ = baked
     (tmp_path / "mesh.ply").write_bytes(ply_bytes(mesh.vertices, mesh.faces))
     ply = trimesh.load(tmp_path / "mesh.ply", process=False)
     ply_corners = ply.vertices[ply.faces]
     np.testing.assert_array_equal(ply.faces, mesh.faces)
-    glb = trimesh.load(io.BytesIO(contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh", process=False)
+    glb_scene = trimesh.load(io.BytesIO(contents["projection/bunny_layout.glb"]), file_type="glb", force="scene", process=False)
+    (glb,) = glb_scene.geometry.values()  # untransformed: the node matrix only stands it up
     np.testing.assert_allclose(glb.vertices[glb.faces] * 1000.0, ply_corners, atol=1e-4)
     for rel, data in contents.items():
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -175,17 +184,20 @@ def served(baked, tmp_path):
         server.server_close()
 
 
-def test_three_js_sees_the_object_in_metres_and_renders_it_lit(baked, served, tmp_path):
-    mesh, _ = baked
+def test_three_js_sees_the_object_in_metres_standing_and_renders_it_lit(baked, served, tmp_path):
+    mesh, _, up = baked
     url, reports, reported = served
     shot = tmp_path / "view.png"
     run_chromium([f"--window-size={VIEW_W},{VIEW_H}", "--virtual-time-budget=5000", f"--screenshot={shot}", url],
               tmp_path / "profile")
     assert reported.is_set() and reports and reports[0].startswith("{"), reports
     report = json.loads(reports[0])
-    extent_m = np.ptp(mesh.vertices, axis=0) / 1000.0
-    # three.js's bounding box is the object's size in metres (within 1 % of its diagonal)
+    standing = _standing_m(mesh.vertices, up)
+    extent_m = np.ptp(standing, axis=0)
+    # three.js's bounding box is the standing object's size in metres (within 1 % of its diagonal),
+    # resting on the ground plane y = 0
     assert np.abs(np.array(report["size"]) - extent_m).max() < 0.01 * np.linalg.norm(extent_m), report
+    assert abs(report["min"][1]) < 1e-6 and report["max"][1] == pytest.approx(extent_m[1], rel=1e-4)
     assert report["metalness"] == 0.0 and report["roughness"] == pytest.approx(GLB_ROUGHNESS)
     assert report["color"] == [1, 1, 1] and report["map"] == [1024, 1024] and report["normals"]
     assert report["triangles"] == len(mesh.faces) and report["units"] == "m"
@@ -196,3 +208,23 @@ def test_three_js_sees_the_object_in_metres_and_renders_it_lit(baked, served, tm
     assert object_pixels.mean() > 0.05, "the object covers too little of the view"
     # lit like paper: the light grey texture (#d8d8d8) under the lights, not a dark metal
     assert luminance[object_pixels].mean() > 110, luminance[object_pixels].mean()
+
+
+@pytest.mark.parametrize("file_up", ["z", "y", "tilted"])
+def test_glb_stands_the_object_whatever_axis_the_file_called_up(file_up):
+    """The same object turned in the file so that its up is +z, +y or a tilted axis: the standing
+    transform puts it on the ground plane the same way (up along +Y, same height, lowest point at 0)."""
+    from scipy.spatial.transform import Rotation
+
+    mesh = bunny_mm(1500)
+    up = np.array([0.0, 0.0, 1.0])  # bunny_mm is +z up
+    turn = {"z": Rotation.identity(), "y": Rotation.from_euler("x", -90, degrees=True),
+            "tilted": Rotation.from_euler("xyz", [30, -50, 110], degrees=True)}[file_up]
+    turned_mm = turn.apply(mesh.vertices)
+    turned_up = turn.apply(up)
+    standing = _standing_m(turned_mm, turned_up)
+    reference = _standing_m(mesh.vertices, up)
+    assert standing[:, 1].min() == pytest.approx(0.0, abs=1e-9)
+    # heights above the ground do not depend on how the file was turned
+    np.testing.assert_allclose(standing[:, 1], reference[:, 1], atol=1e-9)
+    np.testing.assert_allclose(standing[:, 1], (turned_mm @ turned_up - (turned_mm @ turned_up).min()) / 1000.0, atol=1e-9)

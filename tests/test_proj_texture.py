@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from proj_fixtures import bunny_layout, bunny_mm, demo_rig
+from proj_fixtures import bunny_layout, bunny_mm, bunny_regions, demo_rig
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.scene import load_scene
 from retrotouch.nodes.projection.depth_frames import demo_trajectory
@@ -20,11 +20,23 @@ from retrotouch.nodes.projection.textures import TextureParams, layout_atlas, na
 
 
 @pytest.fixture(scope="module")
-def baked(tmp_path_factory):
+def standing_bunny():
+    """The 3000-vertex bunny (mm) and its regions."""
     mesh = bunny_mm(3000)
+    return mesh, bunny_regions(mesh)
+
+
+@pytest.fixture(scope="module")
+def regions(standing_bunny):
+    return standing_bunny[1]
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory, standing_bunny):
+    mesh, regions = standing_bunny
     layout = bunny_layout(mesh, 8, 6)
     params = TextureParams(texture_px=1024)
-    files = projection_textures(params, mesh, layout)
+    files = projection_textures(params, mesh, regions, layout)
     out = tmp_path_factory.mktemp("run")
     for rel, data in files.contents.items():
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -81,11 +93,11 @@ def test_scene_file_round_trips(baked):
     assert np.allclose(np.linalg.norm(scene.layer_normals[1], axis=1), 1.0)
 
 
-def test_layout_from_another_mesh_is_rejected(baked):
+def test_layout_from_another_mesh_is_rejected(baked, regions):
     mesh, layout, *_ = baked
     small = type(mesh)(mesh.vertices, mesh.faces[:100], mesh.source)
     with pytest.raises(UserError, match="faces"):
-        projection_textures(TextureParams(texture_px=256), small, layout)
+        projection_textures(TextureParams(texture_px=256), small, regions, layout)
 
 
 def test_name_from_source():
@@ -108,7 +120,7 @@ def test_textured_route_agrees_with_projected_polylines(baked):
     assert (textured & near_lines).sum() / textured.sum() > 0.9
 
 
-def test_layout_without_rx_curves_or_cells(baked, tmp_path):
+def test_layout_without_rx_curves_or_cells(baked, regions, tmp_path):
     """A degenerate layout (no Rx curves, no crossings) still bakes: Tx lines only."""
     mesh, layout, *_ = baked
     empty_rx = dataclasses.replace(
@@ -120,7 +132,7 @@ def test_layout_without_rx_curves_or_cells(baked, tmp_path):
                          ("curve_a", "curve_b", "seg_a", "seg_b", "arc_a", "arc_b", "points", "faces", "bary")}
     )
     bare = dataclasses.replace(layout, rx=empty_rx, cells=cells, pad=np.zeros(0, bool))
-    files = projection_textures(TextureParams(texture_px=256), mesh, bare)
+    files = projection_textures(TextureParams(texture_px=256), mesh, regions, bare)
     tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
     blue_rx = (tex[..., 0] > 150) & (tex[..., 2] < 100)
     red_tx = (tex[..., 2] > 150) & (tex[..., 0] < 100)

@@ -6,11 +6,8 @@ there); the up axis and the sensing region are what ``regions.detect`` found.
 """
 from __future__ import annotations
 
-import json
-
-import numpy as np
-
 from ...graph.node import Files, NodeParams, node
+from ..data.metrics_file import metrics_json
 from ..data.sensing_map import sensing_map_files
 from ..data.types import Layout, Mesh, SurfaceRegions
 
@@ -31,8 +28,7 @@ def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegi
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
                               cells.faces, cells.bary, layout.pad, channels, regions.sensing_faces,
                               design=layout.design_values())
-    document = {**metrics, "pose": pose_summary(regions), "ingest_repairs": list(mesh.repairs)}
-    return Files({**files, "metrics.json": json.dumps(document, indent=1, default=_json_default).encode()})
+    return Files({**files, "metrics.json": metrics_json(metrics, pose_summary(regions), mesh.repairs)})
 
 
 def pose_summary(regions: SurfaceRegions) -> dict:
@@ -40,10 +36,3 @@ def pose_summary(regions: SurfaceRegions) -> dict:
     return {"kind": regions.pose_kind, "reason": regions.pose_reason, "up": [float(v) for v in regions.up],
             "tipping_angle_deg": regions.tipping_angle_deg, "base_area_fraction": regions.base_area_fraction}
 
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"metrics value of type {type(value).__name__} is not JSON serialisable")

@@ -12,7 +12,10 @@ Files written (``<name>`` from ``Params.name`` or the mesh source):
 * ``projection/<name>_layout.glb`` -- the textured mesh for glTF viewers (three.js, Blender,
   ``<model-viewer>``): positions in metres (glTF's unit), smooth vertex normals, one matte material
   (baseColorFactor 1 times the embedded PNG texture, metallicFactor 0, roughnessFactor
-  :data:`GLB_ROUGHNESS`); ``asset.extras`` says ``{"units": "m", "face_order": "mesh.ply"}``,
+  :data:`GLB_ROUGHNESS`); ``asset.extras`` says ``{"units": "m", "face_order": "mesh.ply"}``.
+  The vertices keep the mesh's frame; the one scene node's matrix (:func:`standing_transform`)
+  stands the object in its resting pose in glTF's frame: the regions' up axis along +Y, the
+  lowest point on the ground plane y = 0, the footprint centred on the Y axis,
 * ``projection/<name>_layout.obj`` + ``.mtl`` + ``projection/<name>_texture.png`` (OBJ in mm),
 * ``projection/<name>_scene.npz`` -- the curves, normals and crossings the projector renderer and
   ``retrotouch project`` read, plus the atlas and one projector texture per layer (black
@@ -36,7 +39,7 @@ from pydantic import Field, field_validator
 from ...graph.errors import UserError
 from ...graph.node import Files, NodeParams, node
 from ..data.scene import build_scene, save_scene
-from ..data.types import CurveSet, Layout, Mesh
+from ..data.types import CurveSet, Layout, Mesh, SurfaceRegions
 from ..geometry.triangles import vertex_normals
 from .atlas import Atlas, build_atlas, face_uv_pixels, layout_band, texels_per_mm
 
@@ -165,8 +168,23 @@ def obj_text(mesh: Mesh, atlas: Atlas, mtl_file: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray) -> bytes:
-    """The GLB described in the module docstring (metres, matte material, texture embedded, mesh face order)."""
+def standing_transform(vertices_m: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform (metres) taking ``up`` to +Y, the lowest vertex to y = 0 and the
+    bounding-box centre of the footprint (x, z) to the origin."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.align_vectors([[0.0, 1.0, 0.0]], [np.asarray(up, np.float64)])[0].as_matrix()
+    turned = vertices_m @ rotation.T
+    low, high = turned.min(axis=0), turned.max(axis=0)
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = [-(low[0] + high[0]) / 2, -low[1], -(low[2] + high[2]) / 2]
+    return transform
+
+
+def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray, up: np.ndarray) -> bytes:
+    """The GLB described in the module docstring (metres, matte material, texture embedded, mesh
+    face order, standing with ``up`` along +Y)."""
     import trimesh
     from PIL import Image
 
@@ -178,8 +196,9 @@ def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray) -> bytes:
         roughnessFactor=GLB_ROUGHNESS,
     )
     normals = vertex_normals(mesh.vertices, mesh.faces)[atlas.vertex_map]
+    vertices_m = mesh.vertices[atlas.vertex_map] / MM_PER_M
     textured = trimesh.Trimesh(
-        vertices=mesh.vertices[atlas.vertex_map] / MM_PER_M,
+        vertices=vertices_m,
         faces=atlas.faces,
         vertex_normals=normals,
         visual=trimesh.visual.TextureVisuals(uv=atlas.uv, material=material),
@@ -189,7 +208,9 @@ def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray) -> bytes:
     def describe(tree: dict) -> None:
         tree["asset"]["extras"] = {"units": "m", "face_order": "mesh.ply"}
 
-    return bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(textured), include_normals=True, tree_postprocessor=describe))
+    scene = trimesh.Scene()
+    scene.add_geometry(textured, node_name="object", geom_name="layout", transform=standing_transform(vertices_m, up))
+    return bytes(trimesh.exchange.gltf.export_glb(scene, include_normals=True, tree_postprocessor=describe))
 
 
 def mtl_text(texture_file: str) -> str:
@@ -217,8 +238,8 @@ def check_layout_on_mesh(mesh: Mesh, layout: Layout) -> None:
             raise UserError(f"layout {what} refers to face {int(faces.max())} but the mesh has {m} faces: pass the mesh the layout was made on")
 
 
-@node("projection.textures", params=TextureParams, inputs=("mesh", "layout"), outputs=("files",), sink=True)
-def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Files:
+@node("projection.textures", params=TextureParams, inputs=("mesh", "regions", "layout"), outputs=("files",), sink=True)
+def projection_textures(params: TextureParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout) -> Files:
     """Bake the selected curves (per-layer colour), crossings and pads into a UV texture; write GLB, OBJ+MTL+PNG and the projection scene."""
     import cv2
 
@@ -239,7 +260,7 @@ def projection_textures(params: TextureParams, mesh: Mesh, layout: Layout) -> Fi
     )
     return Files(
         {
-            f"{base}_layout.glb": glb_bytes(mesh, atlas, texture),
+            f"{base}_layout.glb": glb_bytes(mesh, atlas, texture, regions.up),
             f"{base}_layout.obj": obj_text(mesh, atlas, f"{stem}_layout.mtl").encode(),
             f"{base}_layout.mtl": mtl_text(f"{stem}_texture.png").encode(),
             f"{base}_texture.png": png.tobytes(),
