@@ -1,12 +1,14 @@
-"""The projection GLB in a real glTF viewer: three.js's GLTFLoader in headless Chromium.
+"""The projection GLB in real glTF viewers in headless Chromium: three.js's GLTFLoader and
+Google's ``<model-viewer>``.
 
-three.js comes from npm (``npm ci --prefix tests/glb_viewer``, pinned in
-``tests/glb_viewer/package.json``, MIT); Chromium is Debian's. Without either the viewer test
-skips and says which is missing. The page loads the GLB, renders it under a hemisphere +
-directional light (the lights a three.js scene is typically set up with) and posts three.js's
-bounding box and material to the test's server; an image the server answers only after that post
-holds the page's load event, so Chromium's screenshot is taken after the frame was drawn. The
-screenshot must show a lit, not a black, object.
+Both come from npm (``npm ci --prefix tests/glb_viewer`` and ``--prefix tests/model_viewer``,
+pinned in their ``package.json``, MIT and Apache-2.0); Chromium is Debian's. Without them the
+viewer tests skip and say what is missing. Each page loads the GLB with the viewer's defaults (for
+three.js: a hemisphere + directional light, the lights a three.js scene is typically set up with;
+``<model-viewer>``: its own neutral environment and framing, nothing set) and posts the viewer's
+bounding box to the test's server; an image the server answers only after that post holds the
+page's load event, so Chromium's screenshot is taken after the frame was drawn. The screenshot must
+show a lit, not a black, object, standing as it rests on a table.
 """
 from __future__ import annotations
 
@@ -30,6 +32,8 @@ from retrotouch.nodes.data.ply import ply_bytes
 from retrotouch.nodes.projection.textures import GLB_ROUGHNESS, TextureParams, projection_textures, standing_transform
 
 THREE = Path(__file__).resolve().parent / "glb_viewer" / "node_modules" / "three"
+MODEL_VIEWER_JS = (Path(__file__).resolve().parent / "model_viewer" / "node_modules" / "@google" / "model-viewer" / "dist"
+                   / "model-viewer-umd.min.js")
 VIEW_W, VIEW_H = 640, 480
 
 PAGE = """<!DOCTYPE html>
@@ -72,6 +76,27 @@ try {
       units: gltf.asset.extras ? gltf.asset.extras.units : null});
   }, undefined, err => report("error " + err));
 } catch (err) { report("error " + err); }
+</script><img src="wait.png" alt="" style="display:none"></body></html>
+"""
+
+
+MODEL_VIEWER_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><style>body{margin:0;background:#000}
+model-viewer{width:__W__px;height:__H__px;background:#000;--poster-color:transparent}</style>
+<script src="model-viewer-umd.min.js"></script>
+</head><body>
+<model-viewer id="mv" src="model.glb" interaction-prompt="none"></model-viewer>
+<script>
+const report = body => fetch("result", {method: "POST", body: typeof body === "string" ? body : JSON.stringify(body)});
+const mv = document.getElementById("mv");
+mv.addEventListener("error", e => report("error " + JSON.stringify(e.detail)));
+mv.addEventListener("load", () => {
+  // two frames after the load: the model is drawn
+  requestAnimationFrame(() => requestAnimationFrame(() => {
+    const size = mv.getDimensions();
+    report({size: [size.x, size.y, size.z]});
+  }));
+});
 </script><img src="wait.png" alt="" style="display:none"></body></html>
 """
 
@@ -159,29 +184,55 @@ class _ViewerSite(http.server.SimpleHTTPRequestHandler):
         pass
 
 
-@pytest.fixture
-def served(baked, tmp_path):
-    """The GLB, the page and three.js on 127.0.0.1 (a random port): yields (url, reports, event)."""
+def _serve(glb: bytes, site: Path, page: str, library: tuple[str, Path]):
+    """The GLB, the page and the viewer library in ``site`` on 127.0.0.1 (a random port): a
+    context yielding (url, reports, event)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def serving():
+        site.mkdir()
+        (site / library[0]).symlink_to(library[1])
+        (site / "model.glb").write_bytes(glb)
+        (site / "index.html").write_text(page.replace("__W__", str(VIEW_W)).replace("__H__", str(VIEW_H)))
+        reported, reports = threading.Event(), []
+        handler = type("Site", (_ViewerSite,), {"reported": reported, "report": reports})
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(site)))
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            yield f"http://127.0.0.1:{server.server_address[1]}/index.html", reports, reported
+        finally:
+            reported.set()
+            server.shutdown()
+            server.server_close()
+
+    return serving()
+
+
+def _need_chromium() -> None:
     if shutil.which("chromium") is None:
         pytest.skip("chromium is not installed (apt-get install -y chromium): the GLB is not checked in a viewer")
+
+
+@pytest.fixture
+def served(baked, tmp_path):
+    """The GLB and the three.js page served: yields (url, reports, event)."""
+    _need_chromium()
     if not (THREE / "build" / "three.module.js").is_file():
-        pytest.skip("three.js is not installed (npm ci --prefix tests/glb_viewer): the GLB is not checked in a viewer")
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "three").symlink_to(THREE, target_is_directory=True)
-    (site / "model.glb").write_bytes(baked[1]["projection/bunny_layout.glb"])
-    (site / "index.html").write_text(PAGE.replace("__W__", str(VIEW_W)).replace("__H__", str(VIEW_H)))
-    reported, reports = threading.Event(), []
-    handler = type("Site", (_ViewerSite,), {"reported": reported, "report": reports})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(site)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}/index.html", reports, reported
-    finally:
-        reported.set()
-        server.shutdown()
-        server.server_close()
+        pytest.skip("three.js is not installed (npm ci --prefix tests/glb_viewer): the GLB is not checked in three.js")
+    with _serve(baked[1]["projection/bunny_layout.glb"], tmp_path / "site", PAGE, ("three", THREE)) as site:
+        yield site
+
+
+def _lit_object_pixels(shot: Path) -> np.ndarray:
+    """Luminance (0-255) of the screenshot's object pixels (the background is black)."""
+    image = cv2.imread(str(shot))
+    assert image is not None and image.shape[:2] == (VIEW_H, VIEW_W)
+    luminance = image.astype(float) @ np.array([0.114, 0.587, 0.299])  # BGR
+    object_pixels = luminance > 8
+    assert object_pixels.mean() > 0.05, "the object covers too little of the view"
+    return luminance[object_pixels]
 
 
 def test_three_js_sees_the_object_in_metres_standing_and_renders_it_lit(baked, served, tmp_path):
@@ -201,13 +252,27 @@ def test_three_js_sees_the_object_in_metres_standing_and_renders_it_lit(baked, s
     assert report["metalness"] == 0.0 and report["roughness"] == pytest.approx(GLB_ROUGHNESS)
     assert report["color"] == [1, 1, 1] and report["map"] == [1024, 1024] and report["normals"]
     assert report["triangles"] == len(mesh.faces) and report["units"] == "m"
-    image = cv2.imread(str(shot))
-    assert image is not None and image.shape[:2] == (VIEW_H, VIEW_W)
-    luminance = image.astype(float) @ np.array([0.114, 0.587, 0.299])  # BGR
-    object_pixels = luminance > 8  # the background is cleared to black
-    assert object_pixels.mean() > 0.05, "the object covers too little of the view"
-    # lit like paper: the light grey texture (#d8d8d8) under the lights, not a dark metal
-    assert luminance[object_pixels].mean() > 110, luminance[object_pixels].mean()
+    lit = _lit_object_pixels(shot)
+    assert lit.mean() > 110, lit.mean()
+
+
+def test_model_viewer_frames_the_standing_object_in_metres_and_renders_it_lit(baked, tmp_path):
+    """``<model-viewer>`` with nothing set: its dimensions are the standing object's size in metres
+    (the height along its up axis, within 1 % of the diagonal) and its default lighting shows it lit."""
+    _need_chromium()
+    if not MODEL_VIEWER_JS.is_file():
+        pytest.skip("model-viewer is not installed (npm ci --prefix tests/model_viewer): the GLB is not checked in it")
+    mesh, contents, up = baked
+    glb = contents["projection/bunny_layout.glb"]
+    with _serve(glb, tmp_path / "site", MODEL_VIEWER_PAGE, ("model-viewer-umd.min.js", MODEL_VIEWER_JS)) as (url, reports, reported):
+        shot = tmp_path / "view.png"
+        run_chromium([f"--window-size={VIEW_W},{VIEW_H}", "--virtual-time-budget=10000", f"--screenshot={shot}", url],
+                     tmp_path / "profile")
+    assert reported.is_set() and reports and reports[0].startswith("{"), reports
+    extent_m = np.ptp(_standing_m(mesh.vertices, up), axis=0)
+    size = np.array(json.loads(reports[0])["size"])
+    assert np.abs(size - extent_m).max() < 0.01 * np.linalg.norm(extent_m), (size, extent_m)
+    assert _lit_object_pixels(shot).mean() > 80
 
 
 @pytest.mark.parametrize("file_up", ["z", "y", "tilted"])
