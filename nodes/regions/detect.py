@@ -38,7 +38,7 @@ from ..data.types import Mesh, SurfaceRegions
 from ..geometry.triangles import corners, normals
 from .base import Base, find_base
 from .faces import FaceGraph
-from .pose import candidate_floors, centre_of_mass, ranked_floors, tipping_angle_deg
+from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 
 CANDIDATE_POSES = 6
 """Automatic pose: how many of the best floors (at least angle_threshold_deg apart) are tried."""
@@ -125,9 +125,12 @@ def automatic_pose(
     floors = candidate_floors(
         vertices, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
     )
-    ranked = ranked_floors(floors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
+    mirrors = mirror_planes(vertices, graph.faces)
+    ranked = ranked_floors(floors, mirrors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
     stable = sum(f.tipping_deg >= params.min_tipping_deg for f in floors)
     why = f"the stable pose with the most flat contact of {stable} stable hull planes"
+    if len(mirrors):
+        why += f", keeping the most of its {len(mirrors)} mirror plane(s) upright"
     first = None
     for rank, floor in enumerate(ranked):
         base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
