@@ -25,8 +25,6 @@ Then, with heat-method geodesic distances (potpourri3d):
 """
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import potpourri3d as pp3d
 import trimesh
@@ -201,7 +199,12 @@ def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.
     return np.array([centre, int(neighbours[np.argmax(from_boundary[neighbours])])], dtype=np.int64)
 
 
-@node("regions.detect", params=RegionParams, inputs=("mesh",), outputs=("regions",))
+def pose_note(regions: SurfaceRegions) -> str:
+    """The run summary's line: the resting pose, its kind and why it was chosen."""
+    return f"resting pose {regions.pose_kind}: {regions.pose_reason}"
+
+
+@node("regions.detect", params=RegionParams, inputs=("mesh",), outputs=("regions",), note=pose_note)
 def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     """Find the resting pose and base, the two exclusion regions and the singularity anchors."""
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
@@ -240,7 +243,6 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
 
     halfedge_face = np.arange(len(graph.halfedges)) // 3
     toward_base = sensing[halfedge_face] & blocked[graph.opposite // 3]
-    print(f"regions.detect: resting pose {base.kind}: {reason}", file=sys.stderr)  # the run summary's line
     return SurfaceRegions(
         base_faces=base.faces,
         exclusion_base=exclusion_base,

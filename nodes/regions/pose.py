@@ -18,9 +18,9 @@ mirror planes upright, not on its flank or its back: a floor keeps a mirror plan
 (:func:`mirror_planes`) upright when its up direction lies within ``MIRROR_UPRIGHT_DEG`` of the
 plane, and only the stable floors (tipping angle at least ``min_tipping_deg``) that keep the most
 mirror planes upright are candidates (a sword or a spoon, whose stable floors all lie on one of its
-planes, keeps one). Among these, the pose is the one with the largest contact area: a flat bottom or a foot ring however small,
-the soles of all the feet together, and on a round object (nothing flat anywhere) its flattest
-side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
+planes, keeps one). Among these, the pose is the one with the largest contact area: a flat bottom
+or a foot ring however small, the soles of all the feet together, and on a round object (nothing
+flat anywhere) its flattest side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
 or a cup upside down on its rim) is passed over for the next (``regions.detect``). If no
 candidate is stable the most stable one is taken.
 """
