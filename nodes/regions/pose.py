@@ -20,9 +20,9 @@ plane, and only the stable floors (tipping angle at least ``min_tipping_deg``) t
 mirror planes upright are candidates (a sword or a spoon, whose stable floors all lie on one of its
 planes, keeps one). Among these, the pose is the one with the largest contact area: a flat bottom
 or a foot ring however small, the soles of all the feet together, and on a round object (nothing
-flat anywhere) its flattest side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
-or a cup upside down on its rim) is passed over for the next (``regions.detect``). If no
-candidate is stable the most stable one is taken.
+flat anywhere) its flattest side, which is also its widest support. A pose whose contact ring
+encloses a deep cavity (a bowl or a cup upside down on its rim) is passed over for the next
+(``regions.detect``). If no candidate is stable the most stable one is taken.
 """
 from __future__ import annotations
 
