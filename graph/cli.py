@@ -74,6 +74,8 @@ def run(
     if result.status:
         display.print_table(["node", "branch", "cached/ran", "seconds"],
                             display.instance_rows(result.plan, result.status))
+    for line in display.note_lines(result.plan, result.status):
+        print(line)
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 

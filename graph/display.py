@@ -12,7 +12,7 @@ import sys
 import time
 from typing import Any, Callable, Iterator, TextIO
 
-SUMMARY_FORMAT_VERSION = 1
+SUMMARY_FORMAT_VERSION = 2
 
 
 class RunningNodes:
@@ -90,6 +90,18 @@ def instance_rows(plan: Any, status: dict[int, dict[str, Any]]) -> list[list[str
             for i in plan.instances if id(i) in status]
 
 
+def note_of(inst: Any, status: dict[int, dict[str, Any]]) -> str | None:
+    """The one-line note (``note=`` of ``graph.node.node``) of an instance's output, ran or cached, or None."""
+    if id(inst) in status:
+        return status[id(inst)].get("note")
+    return inst.cached.note if inst.cached is not None else None
+
+
+def note_lines(plan: Any, status: dict[int, dict[str, Any]]) -> list[str]:
+    """``id: note`` of every instance whose output carries a note, in plan order."""
+    return [f"{inst.id}: {note}" for inst in plan.instances if (note := note_of(inst, status))]
+
+
 def run_summary(app_name: str, result: Any) -> dict[str, Any]:
     """The machine-readable summary of a run (``run --json``)."""
     nodes = []
@@ -97,7 +109,7 @@ def run_summary(app_name: str, result: Any) -> dict[str, Any]:
         s = result.status.get(id(inst), {})
         nodes.append({"id": inst.id, "node": inst.node, "branch": inst.label, "type": inst.type_name,
                       "key": inst.key, "status": s.get("status", "cached" if inst.cached else "skipped"),
-                      "seconds": round(s.get("seconds", 0.0), 6)})
+                      "seconds": round(s.get("seconds", 0.0), 6), "note": note_of(inst, result.status)})
     ran = len(result.ran())
     return {"format": f"{app_name}.run-summary/{SUMMARY_FORMAT_VERSION}", "pipeline": os.path.abspath(result.plan.file),
             "out_dir": result.out_dir, "manifest": os.path.join(result.out_dir, "manifest.json"), "seconds": round(result.seconds, 6),

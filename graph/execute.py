@@ -118,7 +118,7 @@ def _compute(spec: TaskSpec, store: Store, refs: tuple[ArtifactRef, ...]) -> Tas
         raise UserError(f"node {spec.instance_id}: {exc}") from None
     seconds = time.perf_counter() - start
     _check_output(node.name, node.outputs, node.sink, value)
-    info = {"node": spec.instance_id, "type": spec.node_type, "seconds": seconds}
+    info = {"node": spec.instance_id, "type": spec.node_type, "seconds": seconds, "note": node.note_of(value)}
     if spec.cache_mode == "disable":
         ref = store.write(spec.key, value, info=info, scratch_run=spec.run_id)
     elif spec.cache_mode == "recompute":

@@ -19,6 +19,9 @@ Conventions (the engine relies on them):
   ``None``/bool/int/float/str, lists/tuples/dicts of those, numpy arrays (non-object dtype), numpy
   scalars, frozen dataclasses defined in the app's node packages whose fields are such values, and
   :class:`Files` (what sink nodes return).
+* ``note=f`` makes ``f(output value)`` (a one-line string, or None) the node's note on what it
+  decided: the engine stores it with the cached value and shows it in the run summary (table and
+  ``--json``) and in ``manifest.json`` whether the node ran or was a cache hit.
 * Sink nodes (``sink=True``) return :class:`Files`; the engine writes them into the run's output
   folder atomically and lists them in ``manifest.json``.
 * The code version is the sha256 of the AST-normalised source (docstrings and comments dropped) of
@@ -72,6 +75,14 @@ class NodeSpec:
     version: str | None
     sink: bool
     doc: str
+    note: Callable[[Any], str | None] | None = None
+
+    def note_of(self, value: Any) -> str | None:
+        """The node's one-line note on its output ``value`` (``note=`` of :func:`node`), or None."""
+        text = self.note(value) if self.note else None
+        if text is not None and (not isinstance(text, str) or "\n" in text):
+            raise TypeError(f"node {self.name}: note must be a one-line string or None, got {text!r}")
+        return text
 
 
 REGISTRY: dict[str, NodeSpec] = {}
@@ -89,8 +100,10 @@ def node(
     outputs: tuple[str, ...] = ("out",),
     version: str | None = None,
     sink: bool = False,
+    note: Callable[[Any], str | None] | None = None,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Register ``func`` as node type ``name`` (dotted, e.g. ``"mesh.load"``); returns it unchanged."""
+    """Register ``func`` as node type ``name`` (dotted, e.g. ``"mesh.load"``); returns it unchanged.
+    ``note(output value)`` gives the run summary's one-line note (module docstring)."""
 
     def register(func: Callable[..., Any]) -> Callable[..., Any]:
         if name in REGISTRY and REGISTRY[name].func.__qualname__ != func.__qualname__:
@@ -106,6 +119,7 @@ def node(
             version=version,
             sink=sink,
             doc=(func.__doc__ or "").strip(),
+            note=note,
         )
         return func
 

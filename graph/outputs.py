@@ -28,7 +28,7 @@ from .node import Files
 from .store import DISK_ERRNOS, ArtifactRef, check_room, disk_problem
 
 MANIFEST = "manifest.json"
-MANIFEST_FORMAT_VERSION = 1
+MANIFEST_FORMAT_VERSION = 2
 """Bump with graph/schemas/manifest.schema.json when the manifest's fields change."""
 ENGINE_VERSIONED = ("numpy", "pydantic", "dask", "distributed", "pyyaml")
 """Distributions the engine itself runs on; the app adds its own (:attr:`.app.App.versioned`)."""
@@ -178,6 +178,7 @@ def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], ru
             "type": inst.type_name, "params": inst.params_dump, "key": inst.key,
             "code_version": inst.code_version, "status": status.get("status", "cached"),
             "seconds": status.get("seconds", 0.0), "content_sha256": ref.content_sha256 if ref else None,
+            "note": ref.note if ref else None,
         })
     return {
         "format": f"{current().name}.manifest/{MANIFEST_FORMAT_VERSION}",

@@ -132,7 +132,8 @@ def _execute_and_write(plan: Any, scheduler: str, out_dir: str, status: dict[str
         with bar as events:
             def on_done(name: str, result: Any) -> None:
                 inst = by_task[name]
-                status[inst.id] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds}
+                status[inst.id] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds,
+                                   "note": result.ref.note}
                 if events is not None:
                     events.done(inst.id)
 

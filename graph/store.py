@@ -98,6 +98,7 @@ class ArtifactRef:
     path: str  # the entry folder
     content_sha256: str
     seconds: float  # how long the node took when it was computed
+    note: str | None = None  # the node's one-line note on this output (``note=`` of graph.node.node)
 
 
 class CorruptEntry(Exception):
@@ -170,7 +171,7 @@ class Store:
         except CorruptEntry:
             self.discard(folder)
             return None
-        return ArtifactRef(key, folder, meta["content_sha256"], meta.get("seconds", 0.0))
+        return ArtifactRef(key, folder, meta["content_sha256"], meta.get("seconds", 0.0), meta.get("note"))
 
     def verify(self, folder: str, key: str) -> dict[str, Any]:
         """meta.json of an entry after the full check: :meth:`read_meta` and every file's sha256."""
@@ -237,7 +238,7 @@ class Store:
                 os.fsync(f.fileno())
             final = self.scratch_dir(scratch_run, key) if scratch_run else self.entry_dir(key)
             self._commit(tmp, final, key)
-            return ArtifactRef(key, final, meta["content_sha256"], info.get("seconds", 0.0))
+            return ArtifactRef(key, final, meta["content_sha256"], info.get("seconds", 0.0), info.get("note"))
         finally:
             if os.path.exists(tmp):
                 shutil.rmtree(tmp, ignore_errors=True)

@@ -165,8 +165,8 @@ def test_json_run_summary_and_manifest_follow_their_schemas(tmp_path, cli, test_
     jsonschema.Draft202012Validator.check_schema(schema)
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     jsonschema.validate(manifest, schema)
-    assert manifest["format"] == "retrotouch.manifest/1"
-    broken = [{**manifest, "format": "retrotouch.manifest/2"}, {k: v for k, v in manifest.items() if k != "files"},
+    assert manifest["format"] == "retrotouch.manifest/2"
+    broken = [{**manifest, "format": "retrotouch.manifest/1"}, {k: v for k, v in manifest.items() if k != "files"},
               {**manifest, "files": {"value.json": {**manifest["files"]["value.json"], "sha256": "abc"}}},
               {**manifest, "files": {"../escape": manifest["files"]["value.json"]}}]
     for bad in broken:

@@ -12,7 +12,10 @@ import trimesh
 
 from retrotouch.nodes.data.types import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.preview.render import PreviewParams, render_layout_preview, render_preview
-from retrotouch.nodes.preview.views import CROSSING_RGB, RX_RGB, TX_RGB, camera, face_colours, render_view, segments
+from retrotouch.nodes.preview.views import (
+    CAPTION_LINE_PX, CAPTION_SCALE, CROSSING_RGB, RX_RGB, TABLE_RGB, TX_RGB, UP_RGB, camera, caption_lines, face_colours,
+    render_view, segments,
+)
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 RADIUS = 40.0
@@ -78,7 +81,7 @@ def test_png_has_expected_size_and_both_layers(sphere: Mesh, regions: SurfaceReg
     files = render_preview(PreviewParams(view_px=200), sphere, regions, tx, rx)
     assert set(files.contents) == {"preview.png", "preview.html"}
     image = cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR)
-    assert image.shape == (400, 400, 3)
+    assert image.shape[1] == 400 and image.shape[0] > 400  # the pose caption below the 2 x 2 views
     rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     assert colour_pixels(rgb, TX_RGB) > 200 and colour_pixels(rgb, RX_RGB) > 100
 
@@ -127,3 +130,28 @@ def test_html_is_self_contained_and_embeds_the_data(sphere: Mesh, regions: Surfa
     tx_lines = np.frombuffer(base64.b64decode(data["tx"]["lines"]), "<f4").reshape(-1, 3)
     assert len(tx_lines) == 2 * (len(tx.points) - tx.count) and data["tx"]["count"] == 2
     assert np.abs(np.linalg.norm(tx_lines, axis=1) - RADIUS).max() < 1.5  # on (just above) the surface
+
+
+def test_png_draws_the_resting_pose(sphere: Mesh, regions: SurfaceRegions, layers) -> None:
+    """The table plane (brown) lies below the object, the up arrow (green) points up in a view
+    looking down, and the caption under the four views names the pose kind and its reason."""
+    tx, rx = layers
+    png = render_preview(PreviewParams(view_px=200), sphere, regions, tx, rx).contents["preview.png"]
+    image = cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert image.shape[1] == 400 and image.shape[0] > 400 + CAPTION_LINE_PX
+    caption = image[400:]
+    assert (caption.min(axis=2) < 100).sum() > 200  # dark caption text on white
+    front_left = image[:200, :200]
+    table_rows = np.flatnonzero((front_left == TABLE_RGB).all(axis=2).any(axis=1))
+    arrow_rows = np.flatnonzero((front_left == UP_RGB).all(axis=2).any(axis=1))
+    assert len(table_rows) > 20 and len(arrow_rows) > 20
+    sphere_rows = np.flatnonzero((np.abs(front_left.astype(int) - 255).sum(axis=2) > 60).any(axis=1))
+    assert np.median(table_rows) > np.median(sphere_rows)  # the table is drawn under the sphere
+    assert arrow_rows.min() < table_rows.min()  # the arrow rises above the table
+
+
+def test_caption_wraps_within_the_width() -> None:
+    text = "rests on a flat bottom (12.0% of the surface), tips over at 40 deg; the stable pose " * 3
+    lines = caption_lines(text, 300)
+    assert len(lines) > 3 and " ".join(lines) == " ".join(text.split())
+    assert max(cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, CAPTION_SCALE, 1)[0][0] for line in lines) <= 300 - 16

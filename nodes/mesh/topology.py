@@ -99,11 +99,18 @@ class CheckTopologyParams(NodeParams):
     expected_genus: int | None = Field(0, ge=0, description="required genus (null: any)")
 
 
+def ingest_note(outputs: dict[str, object]) -> str:
+    """The run summary's line: every repair ingest made to the mesh (``Mesh.repairs``), or none."""
+    repairs = outputs["mesh"].repairs  # type: ignore[attr-defined]
+    return "ingest repairs: " + "; ".join(repairs) if repairs else "ingest repairs: none"
+
+
 @node(
     "mesh.check_topology",
     params=CheckTopologyParams,
     inputs=("mesh",),
     outputs=("mesh", "report"),
+    note=ingest_note,
 )
 def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]:
     """Pass the mesh through unchanged when it is one closed, manifold, outward genus-0 surface.

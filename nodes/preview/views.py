@@ -1,8 +1,10 @@
-"""The preview PNG: four headless views of the object with both curve layers, depth-tested.
+"""The preview PNG: four headless views of the object as it rests, with both curve layers, depth-tested.
 
 The mesh is flat-shaded with OpenCV's triangle rasterizer (base region dark blue-grey, exclusion
 regions mid grey, sensing surface light grey); Tx curves in ``TX_RGB`` and Rx curves in ``RX_RGB``
-are drawn only where they pass a depth test against the mesh's z-buffer.
+are drawn only where they pass a depth test against the mesh's z-buffer, and so are the resting
+pose's guides (:func:`pose_guides`): the table plane under the object in ``TABLE_RGB`` and an up
+arrow beside it in ``UP_RGB``. A caption under the views names the pose kind and its reason.
 
 Camera convention: views orbit the bounding-box centre; elevation is measured from the plane
 normal to ``regions.up`` (positive = looking down on the object), azimuth about ``up``; lengths mm.
@@ -22,6 +24,13 @@ BACKGROUND_RGB = (255, 255, 255)
 SENSING_RGB = (0.86, 0.85, 0.82)
 EXCLUSION_RGB = (0.66, 0.66, 0.66)
 BASE_RGB = (0.42, 0.47, 0.60)
+TABLE_RGB = (150, 105, 60)
+UP_RGB = (20, 150, 60)
+TABLE_GRID_LINES = 5
+"""Lines across the table square in each direction (edges included)."""
+CAPTION_LINE_PX = 18
+CAPTION_SCALE = 0.45
+"""Caption text: line height (px) and OpenCV font scale."""
 VIEWS = (("front left", 35.0, 20.0), ("back right", 215.0, 20.0), ("top", 125.0, 70.0), ("below", 300.0, -55.0))
 """(label, azimuth deg, elevation deg) of the PNG's four views."""
 FOV_Y = np.radians(30.0)
@@ -86,8 +95,10 @@ def render_view(
     world_to_camera: np.ndarray,
     size: int,
     line_px: int,
+    guides: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int]]] = (),
 ) -> np.ndarray:
-    """One RGB uint8 view: shaded mesh, then curves that pass the depth test, then crossings."""
+    """One RGB uint8 view: shaded mesh, then the ``guides`` segments (:func:`pose_guides`) and the
+    curves where they pass the depth test, then crossings."""
     vertices, faces = mesh.vertices, mesh.faces
     corners = vertices[faces]
     face_normals, _ = normals(corners)
@@ -120,6 +131,9 @@ def render_view(
     image = np.clip(colour * 255.0 + 0.5, 0, 255).astype(np.uint8)
     pixel_mm = 2 * distance * np.tan(FOV_Y / 2) / size
     kernel = np.ones((line_px, line_px), dtype=np.uint8)
+    for starts, ends, rgb in guides:
+        shown = visible_segments_mask(starts, ends, world_to_camera, depth, size, 4 * pixel_mm)
+        image[cv2.dilate(shown, kernel) > 0] = rgb
     for curves, rgb in layers:
         visible = visible_curve_mask(curves, world_to_camera, depth, size, tolerance=4 * pixel_mm)
         image[cv2.dilate(visible, kernel) > 0] = rgb
@@ -132,19 +146,77 @@ def render_view(
     return image
 
 
+def pose_guides(mesh: Mesh, up: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, tuple[int, int, int]]]:
+    """``(starts, ends, rgb)`` segments (mm) of the table plane (a grid square 2.5 times the
+    object's horizontal reach, at its lowest point along ``up``) and of the up arrow (beside the
+    object on the table, 0.6 times its height long)."""
+    heights = mesh.vertices @ up
+    centre = 0.5 * (mesh.vertices.max(0) + mesh.vertices.min(0))
+    floor_centre = centre - (centre @ up - heights.min()) * up
+    helper = np.eye(3)[int(np.argmin(np.abs(up)))]
+    across = np.cross(up, helper)
+    across /= np.linalg.norm(across)
+    along = np.cross(up, across)
+    offsets = mesh.vertices - centre
+    reach = float(np.linalg.norm(offsets - np.outer(offsets @ up, up), axis=1).max())
+    half = 1.25 * reach
+    ticks = np.linspace(-half, half, TABLE_GRID_LINES)
+    lines = [(floor_centre + t * across, half * along) for t in ticks]
+    lines += [(floor_centre + t * along, half * across) for t in ticks]
+    starts = [middle - reach_along for middle, reach_along in lines]
+    ends = [middle + reach_along for middle, reach_along in lines]
+    length = 0.6 * float(np.ptp(heights))
+    foot = floor_centre + 1.1 * reach * across
+    tip = foot + length * up
+    head = [tip - 0.2 * length * (up + side) for side in (0.5 * across, -0.5 * across)]
+    return [
+        (np.asarray(starts), np.asarray(ends), TABLE_RGB),
+        (np.asarray([foot, tip, tip]), np.asarray([tip, head[0], head[1]]), UP_RGB),
+    ]
+
+
+def caption_lines(text: str, width_px: int) -> list[str]:
+    """``text`` wrapped at word boundaries into lines that fit ``width_px`` (8 px margins)."""
+    lines: list[str] = []
+    for word in text.split():
+        wider = f"{lines[-1]} {word}" if lines else word
+        if lines and cv2.getTextSize(wider, cv2.FONT_HERSHEY_SIMPLEX, CAPTION_SCALE, 1)[0][0] <= width_px - 16:
+            lines[-1] += " " + word
+        else:
+            lines.append(word)
+    return lines
+
+
+def with_caption(image: np.ndarray, text: str) -> np.ndarray:
+    """``image`` with a white strip below it holding ``text`` wrapped to its width."""
+    lines = caption_lines(text, image.shape[1])
+    strip = np.full((CAPTION_LINE_PX * len(lines) + 8, image.shape[1], 3), 255, dtype=np.uint8)
+    for index, line in enumerate(lines):
+        baseline = CAPTION_LINE_PX * (index + 1)
+        cv2.putText(strip, line, (8, baseline), cv2.FONT_HERSHEY_SIMPLEX, CAPTION_SCALE, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([image, strip])
+
+
 def visible_curve_mask(
     curves: CurveSet, world_to_camera: np.ndarray, depth: np.ndarray, size: int, tolerance: float
 ) -> np.ndarray:
     """uint8 mask of pixels where the curves are in front of (or on) the rendered surface."""
-    mask = np.zeros((size, size), dtype=np.uint8)
     start, end = segments(curves)
-    if len(start) == 0:
+    return visible_segments_mask(curves.points[start], curves.points[end], world_to_camera, depth, size, tolerance)
+
+
+def visible_segments_mask(
+    a: np.ndarray, b: np.ndarray, world_to_camera: np.ndarray, depth: np.ndarray, size: int, tolerance: float
+) -> np.ndarray:
+    """uint8 mask of pixels where the segments ``a[i]-b[i]`` (mm) are in front of (or on) the
+    rendered surface."""
+    mask = np.zeros((size, size), dtype=np.uint8)
+    if len(a) == 0:
         return mask
-    a, b = curves.points[start], curves.points[end]
     col_a, row_a, _ = project(a, world_to_camera, size)
     col_b, row_b, _ = project(b, world_to_camera, size)
     steps = np.ceil(2 * np.hypot(col_b - col_a, row_b - row_a)).clip(1, 4 * size).astype(np.int64)
-    owner = np.repeat(np.arange(len(start)), steps + 1)
+    owner = np.repeat(np.arange(len(a)), steps + 1)
     first = np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
     t = (np.arange(len(owner)) - first) / steps[owner]
     samples = a[owner] + t[:, None] * (b[owner] - a[owner])
@@ -168,20 +240,28 @@ def render_png(
     view_px: int,
     line_px: int,
 ) -> bytes:
-    """PNG bytes of the 2 x 2 grid of views (size ``2 view_px`` square)."""
+    """PNG bytes of the 2 x 2 grid of views (``2 view_px`` wide; with ``regions``, the pose caption
+    below them makes it taller)."""
     up = np.asarray(regions.up, dtype=np.float64) if regions is not None else np.array([0.0, 0.0, 1.0])
     centre = 0.5 * (mesh.vertices.max(0) + mesh.vertices.min(0))
     radius = float(np.linalg.norm(mesh.vertices.max(0) - mesh.vertices.min(0))) / 2
     colours = face_colours(len(mesh.faces), regions)
+    guides = pose_guides(mesh, up) if regions is not None else []
     tiles = []
     for label, azimuth, elevation in VIEWS:
-        world_to_camera = camera(centre, radius, up, np.radians(azimuth), np.radians(elevation))
-        tile = render_view(mesh, colours, [(rx, RX_RGB), (tx, TX_RGB)], crossings, world_to_camera, view_px, line_px)
+        world_to_camera = camera(centre, 1.3 * radius, up, np.radians(azimuth), np.radians(elevation))
+        tile = render_view(
+            mesh, colours, [(rx, RX_RGB), (tx, TX_RGB)], crossings, world_to_camera, view_px, line_px, guides
+        )
         cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
         tiles.append(tile)
     grid = np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
     legend = f"Tx: {tx.count} curves   Rx: {rx.count} curves   base: dark   exclusions: grey"
     cv2.putText(grid, legend, (8, 2 * view_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    if regions is not None:
+        grid = with_caption(
+            grid, f"resting pose: {regions.pose_kind} (table brown, up arrow green): {regions.pose_reason}"
+        )
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("PNG encoding failed")

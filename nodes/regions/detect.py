@@ -25,8 +25,6 @@ Then, with heat-method geodesic distances (potpourri3d):
 """
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import potpourri3d as pp3d
 import trimesh
@@ -38,7 +36,7 @@ from ..data.types import Mesh, SurfaceRegions
 from ..geometry.triangles import corners, normals
 from .base import Base, find_base
 from .faces import FaceGraph
-from .pose import candidate_floors, centre_of_mass, ranked_floors, tipping_angle_deg
+from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 
 CANDIDATE_POSES = 6
 """Automatic pose: how many of the best floors (at least angle_threshold_deg apart) are tried."""
@@ -125,9 +123,12 @@ def automatic_pose(
     floors = candidate_floors(
         vertices, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
     )
-    ranked = ranked_floors(floors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
+    mirrors = mirror_planes(vertices, graph.faces)
+    ranked = ranked_floors(floors, mirrors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
     stable = sum(f.tipping_deg >= params.min_tipping_deg for f in floors)
     why = f"the stable pose with the most flat contact of {stable} stable hull planes"
+    if len(mirrors):
+        why += f", keeping the most of its {len(mirrors)} mirror plane(s) upright"
     first = None
     for rank, floor in enumerate(ranked):
         base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
@@ -198,7 +199,12 @@ def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.
     return np.array([centre, int(neighbours[np.argmax(from_boundary[neighbours])])], dtype=np.int64)
 
 
-@node("regions.detect", params=RegionParams, inputs=("mesh",), outputs=("regions",))
+def pose_note(regions: SurfaceRegions) -> str:
+    """The run summary's line: the resting pose, its kind and why it was chosen."""
+    return f"resting pose {regions.pose_kind}: {regions.pose_reason}"
+
+
+@node("regions.detect", params=RegionParams, inputs=("mesh",), outputs=("regions",), note=pose_note)
 def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     """Find the resting pose and base, the two exclusion regions and the singularity anchors."""
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
@@ -237,7 +243,6 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
 
     halfedge_face = np.arange(len(graph.halfedges)) // 3
     toward_base = sensing[halfedge_face] & blocked[graph.opposite // 3]
-    print(f"regions.detect: resting pose {base.kind}: {reason}", file=sys.stderr)  # the run summary's line
     return SurfaceRegions(
         base_faces=base.faces,
         exclusion_base=exclusion_base,

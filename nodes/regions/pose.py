@@ -13,12 +13,16 @@ hull triangle). Each candidate gets
   (negative outside: the object falls over) and ``height`` the centre of mass's height. It is the
   smallest tilt that topples the object.
 
-The pose a person would set the object down in is the stable candidate (tipping angle at least
-``min_tipping_deg``) with the largest contact area: a flat bottom or a foot ring however small,
-the soles of all the feet together, and on a round object (nothing flat anywhere) its flattest
-side, which is also its widest support. A pose whose contact ring encloses a deep cavity (a bowl
-or a cup upside down on its rim) is passed over for the next (``regions.detect``). If no
-candidate is stable the most stable one is taken.
+A person sets a mirror-symmetric object (an animal, a figure, a boat, a teddy) down with its
+mirror planes upright, not on its flank or its back: a floor keeps a mirror plane
+(:func:`mirror_planes`) upright when its up direction lies within ``MIRROR_UPRIGHT_DEG`` of the
+plane, and only the stable floors (tipping angle at least ``min_tipping_deg``) that keep the most
+mirror planes upright are candidates (a sword or a spoon, whose stable floors all lie on one of its
+planes, keeps one). Among these, the pose is the one with the largest contact area: a flat bottom
+or a foot ring however small, the soles of all the feet together, and on a round object (nothing
+flat anywhere) its flattest side, which is also its widest support. A pose whose contact ring
+encloses a deep cavity (a bowl or a cup upside down on its rim) is passed over for the next
+(``regions.detect``). If no candidate is stable the most stable one is taken.
 """
 from __future__ import annotations
 
@@ -29,6 +33,15 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..geometry.triangles import corners, normals
+
+
+MIRROR_SAMPLES = 3000
+"""Surface samples of the mirror-symmetry test."""
+MIRROR_TOLERANCE = 1.5
+"""A plane is a mirror plane when the reflected samples lie on average within this many mean
+sample spacings of the surface."""
+MIRROR_UPRIGHT_DEG = 20.0
+"""A floor keeps a mirror plane upright when its up direction is within this angle of the plane."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +65,28 @@ def fibonacci_directions(count: int) -> np.ndarray:
 def centre_of_mass(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Centre of mass (mm) of the solid of uniform density bounded by a closed outward mesh."""
     return np.asarray(trimesh.Trimesh(vertices, faces, process=False).center_mass, dtype=np.float64)
+
+
+def mirror_planes(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(k, 3)`` unit normals of the object's mirror planes (k = 0 to 3). A mirror plane of a solid
+    passes through its centre of mass with a principal axis of inertia as normal, so the three
+    principal planes are tested: reflected surface samples must land on the surface
+    (``MIRROR_TOLERANCE``)."""
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    centre = np.asarray(mesh.center_mass, dtype=np.float64)
+    axes = np.linalg.eigh(mesh.moment_inertia)[1].T
+    samples = np.asarray(trimesh.sample.sample_surface_even(mesh, MIRROR_SAMPLES, seed=0)[0])
+    tree = cKDTree(samples)
+    spacing = float(tree.query(samples, k=2)[0][:, 1].mean())
+    reflected = [samples - 2.0 * ((samples - centre) @ n)[:, None] * n for n in axes]
+    keep = [float(tree.query(points)[0].mean()) < MIRROR_TOLERANCE * spacing for points in reflected]
+    return axes[np.asarray(keep, dtype=bool)].reshape(-1, 3)
+
+
+def upright_mirrors(floor: "Floor", mirrors: np.ndarray) -> int:
+    """How many mirror planes (unit normals ``mirrors``) ``floor``'s up direction lies within
+    ``MIRROR_UPRIGHT_DEG`` of."""
+    return int(np.count_nonzero(np.abs(mirrors @ floor.down) < np.sin(np.radians(MIRROR_UPRIGHT_DEG))))
 
 
 def plane_basis(down: np.ndarray) -> np.ndarray:
@@ -108,12 +143,16 @@ def candidate_floors(
     ]
 
 
-def ranked_floors(floors: list[Floor], min_tipping_deg: float, separation_deg: float, count: int) -> list[Floor]:
-    """Up to ``count`` floors at least ``separation_deg`` apart, best first: the stable ones by
-    contact area, then (if none is stable) the most stable one."""
+def ranked_floors(
+    floors: list[Floor], mirrors: np.ndarray, min_tipping_deg: float, separation_deg: float, count: int
+) -> list[Floor]:
+    """Up to ``count`` floors at least ``separation_deg`` apart, best first: the stable ones that
+    keep the most mirror planes (``mirrors``, unit normals) upright, by contact area, then (if none
+    is stable) the most stable one."""
+    stable = [f for f in floors if f.tipping_deg >= min_tipping_deg and f.contact_mm2 > 0.0]
+    most = max((upright_mirrors(f, mirrors) for f in stable), default=0)
     stable = sorted(
-        (f for f in floors if f.tipping_deg >= min_tipping_deg and f.contact_mm2 > 0.0),
-        key=lambda f: (-f.contact_mm2, -f.tipping_deg),
+        (f for f in stable if upright_mirrors(f, mirrors) == most), key=lambda f: (-f.contact_mm2, -f.tipping_deg)
     )
     cos_limit = np.cos(np.radians(separation_deg))
     picked: list[Floor] = []

@@ -1,0 +1,106 @@
+"""The automatic resting pose is the one a person would choose: on every generated class and on
+each shared mesh with an obvious upright (decided by looking at renders of the file, one line of
+reason each), the chosen up direction is within ``TOLERANCE_DEG`` of an expected one. Poses are
+found on the file's mesh scaled to a 170 mm diagonal (generated shapes at their own size), without
+remeshing: the pose is a property of the hull."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import shapes
+from retrotouch.nodes.geometry.triangles import corners, normals
+from retrotouch.nodes.regions.detect import RegionParams, resting_base
+from retrotouch.nodes.regions.faces import FaceGraph
+
+SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+TOLERANCE_DEG = 20.0
+DIAGONAL_MM = 170.0
+
+X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+NEG_X, NEG_Z = (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0)
+
+SHARED_UPRIGHT: dict[str, tuple[tuple[tuple[float, float, float], ...], str]] = {
+    "airplane_oded": ((Z,), "landing gear below the fuselage at -z"),
+    "blub_fish": ((Y,), "belly down, dorsal fin at +y"),
+    "boat_oded": ((Y,), "keel down, deck open toward +y (a V hull may lean on its chine)"),
+    "cat_lowres_oded": ((Y,), "paws at -y, tail up"),
+    "duck_gao": ((Z,), "flat-ish bottom at -z, head at +z"),
+    "goathead_oded": (((-0.34, 0.94, 0.0),), "sits on its neck cut, which faces -y tilted 20 deg toward +x"),
+    "human_man_oded": ((Y,), "standing on the feet at -y"),
+    "pear_gao": ((Y,), "stem at +y"),
+    "penguin_oded": ((Y,), "feet at -y"),
+    "scorpion_lowres_oded": ((Y,), "eight legs at -y, tail curled up"),
+    "spoon_pfc": ((Z, NEG_Z), "lies flat: thinnest extent along z"),
+    "spot_crane": ((Y,), "a cow: four legs at -y"),
+    "sword_oded": ((X, NEG_X), "lies flat: blade faces normal to x"),
+    "teddy1_gao": ((Y,), "sits on its bottom, ears at +y"),
+}
+"""Shared mesh stem -> (acceptable up directions, reason). Left out: hand_closed_oded (a hand with
+a capped wrist may stand on the cap or lie on its palm or back)."""
+
+KNOWN_WRONG = {
+    "spot_crane": "its four rounded hooves give almost no flat contact; it is set on its snout and rump",
+    "blub_fish": "upright it tips at 4 deg; it is set rolled 34 deg onto a pectoral fin",
+}
+"""Shared meshes whose chosen pose a person would still disagree with (strict xfail: a fix shows)."""
+
+GENERATED_UPRIGHT = {
+    "plate": (Z,),
+    "bowl_foot_ring": (Z,),
+    "four_legged_figurine": (Z,),
+    "lying_spoon": (Z, NEG_Z),
+    "bust_cut_base": (Z,),
+    "box": (Z, NEG_Z),
+}
+"""Generated class -> acceptable up directions (the builders model +z up; the spoon and the box lie
+on either broad side). The point-cloud scan is the bust's surface: its pose is the bust's, checked
+end to end in ``test_corpus_classes.py``."""
+
+
+def chosen_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The up direction ``regions.detect`` picks with no overrides."""
+    graph = FaceGraph(faces, len(vertices))
+    face_normals, areas = normals(corners(vertices, faces))
+    down = resting_base(vertices, graph, face_normals, areas, RegionParams())[1]
+    return -down
+
+
+def angle_to_nearest_deg(up: np.ndarray, expected: tuple[tuple[float, float, float], ...]) -> float:
+    """Angle (deg) between ``up`` and the nearest expected direction."""
+    directions = np.asarray(expected, dtype=np.float64)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return float(np.degrees(np.arccos(np.clip((directions @ up).max(), -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("name", sorted(GENERATED_UPRIGHT))
+def test_generated_class_rests_upright(name: str) -> None:
+    mesh = shapes.CLASSES[name]()
+    up = chosen_up(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64))
+    assert angle_to_nearest_deg(up, GENERATED_UPRIGHT[name]) <= TOLERANCE_DEG, f"{name}: up {np.round(up, 2)}"
+
+
+def shared_cases() -> list:
+    return [
+        pytest.param(stem, marks=pytest.mark.xfail(reason=KNOWN_WRONG[stem], strict=True))
+        if stem in KNOWN_WRONG else stem
+        for stem in sorted(SHARED_UPRIGHT)
+    ]
+
+
+@pytest.mark.parametrize("stem", shared_cases())
+def test_shared_mesh_rests_upright(stem: str) -> None:
+    path = SHARED_MESHES / f"{stem}.ply"
+    if not path.exists():
+        pytest.skip(f"no shared mesh {path}")
+    mesh = trimesh.load(str(path), process=False)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    vertices = (vertices - (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0) * (
+        DIAGONAL_MM / np.linalg.norm(np.ptp(vertices, axis=0))
+    )
+    up = chosen_up(vertices, np.asarray(mesh.faces, dtype=np.int64))
+    expected, reason = SHARED_UPRIGHT[stem]
+    assert angle_to_nearest_deg(up, expected) <= TOLERANCE_DEG, f"{stem} ({reason}): up {np.round(up, 2)}"
