@@ -11,17 +11,19 @@ Usage::
                       15 x 10 SNR / localization protocol, one JSON report; a hardware recording
                       without labels needs --locations or --protocol)
 
+    retrotouch sense --probe /dev/ttyACM0 [--baud 115200] [--json]         # what is on the port
+
 Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
-gestures from :mod:`retrotouch.nodes.sensing.gestures`); the same lines go to every ``--udp`` target as
-datagrams and to every client of ``--websocket``. Diagnostics go to stderr.
+gestures from :mod:`retrotouch.nodes.sensing.gestures`, ``status`` lines about the board and the
+baseline), each with ``"format": "retrotouch.events/1"`` and specified by
+``nodes/data/events.schema.json``; the same lines go to every ``--udp`` target as datagrams and to
+every client of ``--websocket``. Diagnostics go to stderr.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-import socket
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -31,6 +33,7 @@ import typer
 
 from ...graph.app import current
 from ...graph.errors import UserError
+from .sinks import EventSinks, status_event
 
 
 def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
@@ -42,81 +45,19 @@ def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
         raise UserError(f"{option} takes channel numbers separated by commas, e.g. {option} 3,7") from None
 
 
-def _udp_target(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        raise UserError(f"--udp {text!r}: give HOST:PORT, e.g. --udp 127.0.0.1:9000")
-    return host, int(port)
-
-
-class EventSinks:
-    """Fans each event out to stdout, UDP targets and websocket clients."""
-
-    def __init__(self, stdout: bool = True, udp: Iterable[str] = (), websocket_port: int | None = None):
-        self.stdout = stdout
-        self.udp_targets = [_udp_target(target) for target in udp]
-        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if self.udp_targets else None
-        self.websocket_server = None
-        self._clients: set[Any] = set()
-        self._lock = threading.Lock()
-        if websocket_port is not None:
-            self._start_websocket(websocket_port)
-
-    def _start_websocket(self, port: int) -> None:
-        from websockets.exceptions import ConnectionClosed
-        from websockets.sync.server import serve
-
-        def handler(connection) -> None:
-            with self._lock:
-                self._clients.add(connection)
-            try:
-                for _ in connection:  # clients only listen; drain until they leave
-                    pass
-            except ConnectionClosed:
-                pass
-            finally:
-                with self._lock:
-                    self._clients.discard(connection)
-
-        try:
-            self.websocket_server = serve(handler, "127.0.0.1", port)
-        except OSError as exc:
-            raise UserError(f"--websocket {port}: cannot listen ({exc.strerror}): pick another port") from None
-        threading.Thread(target=self.websocket_server.serve_forever, name="websocket", daemon=True).start()
-        print(f"websocket events on ws://127.0.0.1:{self.websocket_server.socket.getsockname()[1]}/", file=sys.stderr)
-
-    def emit(self, event: dict[str, Any]) -> None:
-        line = json.dumps(event, separators=(",", ":"))
-        if self.stdout:
-            sys.stdout.write(line + "\n")
-            sys.stdout.flush()
-        if self.udp is not None:
-            for target in self.udp_targets:
-                self.udp.sendto(line.encode(), target)
-        with self._lock:
-            clients = list(self._clients)
-        for client in clients:
-            try:
-                client.send(line)
-            except Exception:  # noqa: BLE001 - a client that went away is dropped on its own thread
-                pass
-
-    def close(self) -> None:
-        if self.websocket_server is not None:
-            self.websocket_server.shutdown()
-        if self.udp is not None:
-            self.udp.close()
-
-
 def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
                 duration_s: float | None = None, on_frame: Callable[[Any], None] | None = None) -> int:
     """Process frames until they end (or ``duration_s`` of frame time); returns the frame count."""
     count = 0
     start = None
+    calibrated = False
     for frame in frames:
         start = frame.t if start is None else start
         t = frame.t - start
         result = processor.process(frame.values, t)
+        if result.calibrated and not calibrated:
+            calibrated = True
+            sinks.emit(status_event("baseline", f"baseline ready after {count + 1} frames: touch now", t))
         gestures = recognizer.feed(result)
         for event in (*result.events, *gestures):
             sinks.emit(event)
@@ -148,7 +89,8 @@ def sense(
     replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
     speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
     record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
-    frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii or binary."),
+    frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii, binary (Muca_Raw_Basic) or "
+                                     "handshake (SYNC, then one frame per request); --probe tells which."),
     baudrate: int = typer.Option(115200, "--baud", help="Serial baud rate."),
     flip_tx: bool = typer.Option(False, "--flip-tx", help="The firmware reverses TX (Muca master)."),
     flip_rx: bool = typer.Option(False, "--flip-rx", help="The firmware reverses RX (Muca 2020 library)."),
@@ -165,6 +107,10 @@ def sense(
     locations: Optional[str] = typer.Option(None, "--locations", help="With --evaluate: JSON list of the touched points "
                                             "[[x, y, z], ...] (mm on the object; a --replay touched them 10 times "
                                             "round by round); default: 15 spread over the sensing surface."),
+    probe: Optional[str] = typer.Option(None, "--probe", help="Listen to serial port PORT and say what is on it "
+                                        "(format, frame rate, channels, the sense command to use)."),
+    probe_seconds: float = typer.Option(3.0, "--probe-seconds", help="How long --probe listens (s)."),
+    as_json: bool = typer.Option(False, "--json", help="With --probe: print the finding as one JSON object."),
     protocol: Optional[str] = typer.Option(None, "--protocol", help="With --evaluate --replay of an unlabelled "
                                            "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
                                            "round by round."),
@@ -181,10 +127,19 @@ def sense(
 
 def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, coupling, replay, speed, record, frame_format,
            baudrate, flip_tx, flip_rx, skip_tx, skip_rx, skip_lines, udp, websocket, view, view_port, duration,
-           evaluate, locations, protocol) -> None:
+           evaluate, locations, probe, probe_seconds, as_json, protocol) -> None:
     """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
 
+    if probe:
+        if port or simulate or replay or evaluate:
+            raise UserError("--probe PORT only listens: leave out --port, --simulate, --replay and --evaluate")
+        from .probe import run_probe
+
+        run_probe(probe, baudrate, probe_seconds, as_json)
+        return
+    if as_json:
+        raise UserError("--json goes with --probe (events are JSON lines already)")
     _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
     if locations and not evaluate:
         raise UserError("--locations goes with --evaluate (the points touched in the protocol)")
@@ -224,8 +179,10 @@ def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, co
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
     if coupling not in (None, "gaussian", "disc"):
         raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
-    if frame_format not in ("ascii", "binary"):
-        raise UserError(f"--format {frame_format!r}: use ascii or binary")
+    from .frames import FRAME_FORMATS
+
+    if frame_format not in FRAME_FORMATS:
+        raise UserError(f"--format {frame_format!r}: use {', '.join(FRAME_FORMATS)} (--probe PORT tells which)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,7 +223,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
 
             reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
                                 options=source.options, skip_first_lines=source.skip_lines, record=source.record,
-                                on_status=lambda line: print(line, file=sys.stderr, flush=True))
+                                on_status=lambda line: _board_status(sinks, line))
             frames = reader.frames()
         elif source.replay:
             from .recording import replay_frames
@@ -276,7 +233,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
                                    speed=source.speed)
         else:
             frames = _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
-                                source.frame_format, source.record)
+                                source.frame_format, source.record, lambda line: _board_status(sinks, line))
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
         if live is not None:
@@ -292,6 +249,12 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
         if live is not None:
             live.stop()
         sinks.close()
+
+
+def _board_status(sinks: EventSinks, line: str) -> None:
+    """A board status line: on stderr for the operator and as a status event for applications."""
+    print(line, file=sys.stderr, flush=True)
+    sinks.emit(status_event("board", line))
 
 
 def _live_view(processor, port: int):
@@ -320,14 +283,15 @@ def _steps(script: Optional[str]) -> list[dict[str, Any]]:
     return DEMO_SCRIPT if script is None else load_script(script)
 
 
-def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> Iterator[Any]:
+def _simulated(sensing_map, steps, params, fast, loop, frame_format, record, on_status) -> Iterator[Any]:
     from .pty_board import frames_through_pty
     from .scripts import ScriptBuilder
     from .virtual_board import VirtualBoard
 
     board = VirtualBoard(sensing_map, params)
     built = ScriptBuilder(sensing_map, params, params.seed).build(steps)
-    return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
+    return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop,
+                              on_status=on_status)
 
 
 def _board(board: Optional[str], snr: Optional[float], seed: Optional[int], coupling: Optional[str]):
