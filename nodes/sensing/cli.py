@@ -12,6 +12,9 @@ Usage::
                       without labels needs --locations or --protocol)
 
     retrotouch sense --probe /dev/ttyACM0 [--baud 115200] [--json]         # what is on the port
+    retrotouch sense --port ... --calibrate --calibration cal.json          # guided touches on every crossing
+    retrotouch sense --port ... --calibration cal.json                      # ... used by the processing
+    ... --simulate --evaluate --calibrate          (calibrate the virtual board, then evaluate with it)
 
 Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
 gestures from :mod:`retrotouch.nodes.sensing.gestures`, ``status`` lines about the board and the
@@ -107,6 +110,11 @@ def sense(
     locations: Optional[str] = typer.Option(None, "--locations", help="With --evaluate: JSON list of the touched points "
                                             "[[x, y, z], ...] (mm on the object; a --replay touched them 10 times "
                                             "round by round); default: 15 spread over the sensing surface."),
+    calibrate: bool = typer.Option(False, "--calibrate", help="Guide the operator through touching every crossing "
+                                   "and write the measured gains and finger coupling to --calibration FILE (with "
+                                   "--simulate --evaluate: calibrate the virtual board first, then evaluate)."),
+    calibration: Optional[str] = typer.Option(None, "--calibration", help="Calibration file: written by --calibrate "
+                                              "(default calibration.json), else loaded for the processing."),
     probe: Optional[str] = typer.Option(None, "--probe", help="Listen to serial port PORT and say what is on it "
                                         "(format, frame rate, channels, the sense command to use)."),
     probe_seconds: float = typer.Option(3.0, "--probe-seconds", help="How long --probe listens (s)."),
@@ -127,7 +135,7 @@ def sense(
 
 def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, coupling, replay, speed, record, frame_format,
            baudrate, flip_tx, flip_rx, skip_tx, skip_rx, skip_lines, udp, websocket, view, view_port, duration,
-           evaluate, locations, probe, probe_seconds, as_json, protocol) -> None:
+           evaluate, locations, calibrate, calibration, probe, probe_seconds, as_json, protocol) -> None:
     """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
 
@@ -149,9 +157,14 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     if layout is None and not simulate:
         raise UserError("--layout is required: pass the run folder or its sensing_map.json")
     layout_path = _default_layout() if layout is None else resolve_sensing_map_path(layout)
+    loaded = None
+    if calibration and not calibrate:
+        from .calibration import load_calibration
+
+        loaded = load_calibration(calibration)
     if evaluate:
         _evaluate(layout_path, replay, board_params, record, protocol or (locations if replay else None),
-                  None if replay else locations)
+                  None if replay else locations, loaded, calibrate, calibration)
         return
     from .frames import FrameOptions
 
@@ -161,7 +174,12 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
                     record=record, replay=replay, replay_options=flip_tx or flip_rx or bool(skip_tx or skip_rx),
                     speed=speed, steps=None if not simulate else _steps(script), board_params=board_params,
                     fast=fast, loop=loop)
-    _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration)
+    if calibrate:
+        from .calibration_cli import run_calibration
+
+        run_calibration(layout_path, source, Path(calibration or "calibration.json"), _open_frames)
+        return
+    _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration, loaded)
 
 
 def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format) -> None:
@@ -204,36 +222,41 @@ class Source:
     loop: bool
 
 
+def _open_frames(source: Source, sensing_map, sinks: EventSinks) -> tuple[Iterator[Any], Any]:
+    """Frames from ``source`` and the serial reader to close (None unless a board)."""
+    if source.port:
+        from .muca_serial import MucaReader
+
+        reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
+                            options=source.options, skip_first_lines=source.skip_lines, record=source.record,
+                            on_status=lambda line: _board_status(sinks, line))
+        return reader.frames(), reader
+    if source.replay:
+        from .recording import replay_frames
+
+        # A recording's header holds the board's orientation unless the options override it.
+        return replay_frames(source.replay, options=source.options if source.replay_options else None,
+                             speed=source.speed), None
+    return _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
+                      source.frame_format, source.record, lambda line: _board_status(sinks, line)), None
+
+
 def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Optional[int],
-            view_port: Optional[int], duration: Optional[float]) -> None:
-    """Process frames from ``source`` into events until they end (or Ctrl-C)."""
+            view_port: Optional[int], duration: Optional[float], calibration=None) -> None:
+    """Process frames from ``source`` into events until they end (or Ctrl-C), with ``calibration``
+    (:mod:`.calibration`) if given."""
     from ..data.sensing_map import load_sensing_map
     from .gestures import GestureRecognizer
     from .processing import TouchProcessor
 
     sensing_map = load_sensing_map(layout_path)
-    processor = TouchProcessor(sensing_map)
+    processor = TouchProcessor(sensing_map) if calibration is None else calibration.processor(sensing_map)
     sinks = EventSinks(udp=udp, websocket_port=websocket)
     live = reader = frames = None
     try:
         if view_port is not None:
             live = _live_view(processor, view_port)
-        if source.port:
-            from .muca_serial import MucaReader
-
-            reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
-                                options=source.options, skip_first_lines=source.skip_lines, record=source.record,
-                                on_status=lambda line: _board_status(sinks, line))
-            frames = reader.frames()
-        elif source.replay:
-            from .recording import replay_frames
-
-            # A recording's header holds the board's orientation unless the options override it.
-            frames = replay_frames(source.replay, options=source.options if source.replay_options else None,
-                                   speed=source.speed)
-        else:
-            frames = _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
-                                source.frame_format, source.record, lambda line: _board_status(sinks, line))
+        frames, reader = _open_frames(source, sensing_map, sinks)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
         if live is not None:
@@ -310,17 +333,29 @@ def _board(board: Optional[str], snr: Optional[float], seed: Optional[int], coup
 
 
 def _evaluate(layout_path: Path, replay: Optional[str], board_params, record: Optional[str],
-              protocol: Optional[str], locations: Optional[str]) -> None:
-    from .evaluation import EvalParams, evaluate_recording, evaluate_simulator
+              protocol: Optional[str], locations: Optional[str], calibration, calibrate: bool,
+              calibration_path: Optional[str]) -> None:
+    """The evaluation report (one JSON object); with ``calibrate`` the virtual board is calibrated
+    first (the operator's touches on its crossings) and the processing uses the result."""
+    from ..data.sensing_map import load_sensing_map
+    from .evaluation import EvalParams, calibrate_simulator, evaluate_recording, evaluate_simulator
 
     started = time.perf_counter()
+    session = None
+    if calibrate:
+        if replay:
+            raise UserError("--evaluate --calibrate calibrates the virtual board: use it with --simulate")
+        calibration, session = calibrate_simulator(load_sensing_map(layout_path), board_params, seed=board_params.seed)
+        if calibration_path:
+            calibration.save(calibration_path)
     if replay:
-        report = evaluate_recording(replay, layout_path, protocol=protocol)
+        report = evaluate_recording(replay, layout_path, protocol=protocol, calibration=calibration)
     else:
         report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record,
-                                    locations=locations)
+                                    locations=locations, calibration=calibration)
     print(json.dumps({**report.summary(), "per_location": list(report.locations),
                       "board": board_params.model_dump(mode="json") if not replay else None,
+                      "calibration": None if calibration is None else {**calibration.summary(), **(session or {})},
                       "seconds": round(time.perf_counter() - started, 2)}))
 
 
