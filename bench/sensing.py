@@ -17,7 +17,9 @@ is unlike the processing's assumptions (``virtual_board.REALISTIC_BOARD``), repo
 ``spread_mismatched_board`` with the same keys as ``sense --simulate --evaluate``; then, for
 comparison with earlier figures, on the processing's twin board (``BoardParams()``): locations
 where crossings surround the finger (rule "surrounded", the flat keys), anywhere near a crossing
-(rule "near") and with a disc coupling profile.
+(rule "near") and with a disc coupling profile. ``spread_mismatched_board_calibrated``: the
+spread protocol on the mismatched board after ``sense --calibrate`` there (a simulated operator
+touching each crossing twice; :func:`..evaluation.calibrate_simulator`).
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ from retrotouch.nodes.sensing.pty_board import frames_through_pty
 from retrotouch.nodes.sensing.scripts import DEMO_SCRIPT, ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import default_sensing_map_path
 from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD, BoardParams, VirtualBoard
-from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+from retrotouch.nodes.sensing.evaluation import EvalParams, calibrate_simulator, evaluate_simulator
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -133,8 +135,14 @@ def main() -> None:
     links = {fmt: throughput(sensing_map, args.frames, args.snr, fmt) for fmt in ("binary", "handshake")}
     link_only = {fmt: link_rate(sensing_map, args.frames, fmt) for fmt in ("ascii", "binary", "handshake")}
     started = time.perf_counter()
-    spread = evaluate_simulator(path, REALISTIC_BOARD.model_copy(update={"snr": args.snr}), EvalParams()).summary()
+    mismatched = REALISTIC_BOARD.model_copy(update={"snr": args.snr})
+    spread = evaluate_simulator(path, mismatched, EvalParams()).summary()
     spread_s = time.perf_counter() - started
+    # The same protocol after `sense --calibrate` on that board (touches on its crossings, 2 rounds).
+    started = time.perf_counter()
+    calibration, session = calibrate_simulator(sensing_map, mismatched)
+    spread_calibrated = evaluate_simulator(path, mismatched, EvalParams(), calibration=calibration).summary()
+    calibrated_s = time.perf_counter() - started
     started = time.perf_counter()
     surrounded = EvalParams(location_rule="surrounded")
     report = evaluate_simulator(path, BoardParams(snr=args.snr), surrounded).summary()
@@ -154,6 +162,12 @@ def main() -> None:
          f"{spread['presses_without_one_touch_down']} / {spread['ghost_touches']}",
          f"of {spread['presses']} presses; false at rest {spread['false_touches_at_rest']}; SNR {spread['snr_mean']:.1f}; "
          f"eval {spread_s:.1f} s"),
+        ("  after --calibrate", f"{spread_calibrated['localization_error_mm_mean']:.3f} / "
+         f"{spread_calibrated['localization_error_mm_max']:.3f} mm", f"median {spread_calibrated['localization_error_mm_median']:.3f}; "
+         f"missed / not one / ghosts {spread_calibrated['missed_presses']} / "
+         f"{spread_calibrated['presses_without_one_touch_down']} / {spread_calibrated['ghost_touches']}, false at rest "
+         f"{spread_calibrated['false_touches_at_rest']}; {session['accepted']} of {session['targets']} touches, "
+         f"width {calibration.coupling_sigma_mm:.2f} mm, no-pad gain {calibration.no_pad_gain:.2f}; {calibrated_s:.1f} s"),
         ("throughput (pty, fast mode)", f"{speed['frames_per_s']:.0f} frames/s", f"{speed['frames']} frames, "
          f"{100 * speed['touched_fraction']:.0f} % touched"),
         *((f"  {fmt} format (pty, fast mode)", f"{link['frames_per_s']:.0f} frames/s",
@@ -220,6 +234,11 @@ def main() -> None:
             "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
             "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",
             "snr_mean", "snr_p2p_mean", "nearest_crossing_mm_max", "presses")}},
+        "spread_mismatched_board_calibrated": {**{key: spread_calibrated.get(key) for key in (
+            "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
+            "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",
+            "false_touches_at_rest", "snr_mean", "snr_p2p_mean", "presses")},
+            "calibration": {**calibration.summary(), **session}},
     }))
 
 
