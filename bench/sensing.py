@@ -5,7 +5,8 @@ touches at rest, all measured through the pseudo-terminal simulator (the real se
 
 Layout: ``--layout`` (a sensing_map.json or its run folder), else the default pipeline's output
 ``out/retrofit/sensing_map.json`` when present, else the synthetic bunny map (the output says which).
-Prints a table, then as its LAST line one JSON object. ``frames_per_s`` is end to end through the
+Prints a table, then as its LAST line one JSON object. ``frames_per_s`` (ASCII format; the
+``_binary`` and ``_handshake`` keys for the other formats the board speaks) is end to end through the
 pty (board process -> pty -> reader -> parser -> processing -> gestures) in wall time, so other load
 on the machine lowers it: ``frames_per_cpu_s`` (the reading thread's CPU time) and the load average
 are printed next to it.
@@ -16,7 +17,9 @@ is unlike the processing's assumptions (``virtual_board.REALISTIC_BOARD``), repo
 ``spread_mismatched_board`` with the same keys as ``sense --simulate --evaluate``; then, for
 comparison with earlier figures, on the processing's twin board (``BoardParams()``): locations
 where crossings surround the finger (rule "surrounded", the flat keys), anywhere near a crossing
-(rule "near") and with a disc coupling profile.
+(rule "near") and with a disc coupling profile. ``spread_mismatched_board_calibrated``: the
+spread protocol on the mismatched board after ``sense --calibrate`` there (a simulated operator
+touching each crossing twice; :func:`..evaluation.calibrate_simulator`).
 """
 from __future__ import annotations
 
@@ -36,15 +39,19 @@ from retrotouch.nodes.sensing.pty_board import frames_through_pty
 from retrotouch.nodes.sensing.scripts import DEMO_SCRIPT, ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import default_sensing_map_path
 from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD, BoardParams, VirtualBoard
-from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+from retrotouch.nodes.sensing.evaluation import EvalParams, calibrate_simulator, evaluate_simulator
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def throughput(sensing_map, frames: int, snr: float) -> dict:
-    """Gestures (taps, presses, swipes, pinches) looped through the pty in fast mode; per-frame
-    latency is parse-to-result time of the processing (processor + gestures)."""
-    params = BoardParams(snr=snr, seed=1)
+def throughput(sensing_map, frames: int, snr: float, frame_format: str = "ascii") -> dict:
+    """Gestures (taps, presses, swipes, pinches) looped through the pty in fast mode, the board
+    speaking ``frame_format`` (a handshake board sends each frame only when the reader asks for it);
+    per-frame latency is parse-to-result time of the processing (processor + gestures). The binary
+    format carries ``value - min`` in one byte (wrapping above 255, as the firmware does), so its
+    board keeps baselines and signal within 255 counts of the frame's minimum."""
+    narrow = {"baseline_low": 9980.0, "baseline_high": 10100.0, "signal_counts": 120.0} if frame_format == "binary" else {}
+    params = BoardParams(snr=snr, seed=1, **narrow)
     board = VirtualBoard(sensing_map, params)
     script = ScriptBuilder(sensing_map, params, seed=1).build(DEMO_SCRIPT * (1 + frames // 60))  # ~80 frames each
     processor = TouchProcessor(sensing_map)
@@ -53,7 +60,7 @@ def throughput(sensing_map, frames: int, snr: float) -> dict:
     started = cpu_started = None
     # The board (own process) synthesizes every frame first; the clock starts at the first frame read.
     for frame in frames_through_pty(board, script, fast=True, frames=frames + 1, separate_process=True,
-                                    prerender=True):
+                                    prerender=True, frame_format=frame_format):
         if started is None:
             started, cpu_started = time.perf_counter(), time.thread_time()
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -78,6 +85,18 @@ def throughput(sensing_map, frames: int, snr: float) -> dict:
             "latency_touch_ms_p50": float(np.median(latency_ms[touched_arr])) if touched_arr.any() else None,
             "latency_touch_ms_p99": float(np.percentile(latency_ms[touched_arr], 99)) if touched_arr.any() else None,
             "touched_fraction": float(touched_arr.mean())}
+
+
+def link_rate(sensing_map, frames: int, frame_format: str) -> float:
+    """Frames/s the serial path alone delivers (board process -> pty -> reader -> parser, no
+    processing), the board prerendering its frames."""
+    board = VirtualBoard(sensing_map, BoardParams(seed=3, baseline_low=9980.0, baseline_high=10100.0))
+    started, count = None, 0
+    for _ in frames_through_pty(board, None, fast=True, frames=frames + 1, separate_process=True, prerender=True,
+                                frame_format=frame_format):
+        started = time.perf_counter() if started is None else started
+        count += 1
+    return (count - 1) / (time.perf_counter() - started)
 
 
 def rest(sensing_map, minutes: float, board: BoardParams = BoardParams()) -> dict:
@@ -113,9 +132,17 @@ def main() -> None:
     print(f"layout: {layout_note}; {sensing_map.cell_count} cells, pitch {sensing_map.pitch_mm():.1f} mm; "
           f"cores: {os.cpu_count()}, load average at start {os.getloadavg()[0]:.1f}")
     speed = throughput(sensing_map, args.frames, args.snr)
+    links = {fmt: throughput(sensing_map, args.frames, args.snr, fmt) for fmt in ("binary", "handshake")}
+    link_only = {fmt: link_rate(sensing_map, args.frames, fmt) for fmt in ("ascii", "binary", "handshake")}
     started = time.perf_counter()
-    spread = evaluate_simulator(path, REALISTIC_BOARD.model_copy(update={"snr": args.snr}), EvalParams()).summary()
+    mismatched = REALISTIC_BOARD.model_copy(update={"snr": args.snr})
+    spread = evaluate_simulator(path, mismatched, EvalParams()).summary()
     spread_s = time.perf_counter() - started
+    # The same protocol after `sense --calibrate` on that board (touches on its crossings, 2 rounds).
+    started = time.perf_counter()
+    calibration, session = calibrate_simulator(sensing_map, mismatched)
+    spread_calibrated = evaluate_simulator(path, mismatched, EvalParams(), calibration=calibration).summary()
+    calibrated_s = time.perf_counter() - started
     started = time.perf_counter()
     surrounded = EvalParams(location_rule="surrounded")
     report = evaluate_simulator(path, BoardParams(snr=args.snr), surrounded).summary()
@@ -135,8 +162,19 @@ def main() -> None:
          f"{spread['presses_without_one_touch_down']} / {spread['ghost_touches']}",
          f"of {spread['presses']} presses; false at rest {spread['false_touches_at_rest']}; SNR {spread['snr_mean']:.1f}; "
          f"eval {spread_s:.1f} s"),
+        ("  after --calibrate", f"{spread_calibrated['localization_error_mm_mean']:.3f} / "
+         f"{spread_calibrated['localization_error_mm_max']:.3f} mm", f"median {spread_calibrated['localization_error_mm_median']:.3f}; "
+         f"missed / not one / ghosts {spread_calibrated['missed_presses']} / "
+         f"{spread_calibrated['presses_without_one_touch_down']} / {spread_calibrated['ghost_touches']}, false at rest "
+         f"{spread_calibrated['false_touches_at_rest']}; {session['accepted']} of {session['targets']} touches, "
+         f"width {calibration.coupling_sigma_mm:.2f} mm, no-pad gain {calibration.no_pad_gain:.2f}; {calibrated_s:.1f} s"),
         ("throughput (pty, fast mode)", f"{speed['frames_per_s']:.0f} frames/s", f"{speed['frames']} frames, "
          f"{100 * speed['touched_fraction']:.0f} % touched"),
+        *((f"  {fmt} format (pty, fast mode)", f"{link['frames_per_s']:.0f} frames/s",
+           f"latency p50 / p99 {link['latency_ms_p50']:.3f} / {link['latency_ms_p99']:.3f} ms, "
+           f"{100 * link['touched_fraction']:.0f} % touched") for fmt, link in links.items()),
+        ("serial path alone ascii / binary / handshake", " / ".join(f"{rate:.0f}" for rate in link_only.values()),
+         "frames/s, no processing"),
         ("throughput per CPU second", f"{speed['frames_per_cpu_s']:.0f} frames/s", "read + parse + process thread"),
         ("processing throughput", f"{speed['processing_frames_per_s']:.0f} frames/s", "1 / mean processing wall time"),
         ("latency per frame p50 / p99", f"{speed['latency_ms_p50']:.3f} / {speed['latency_ms_p99']:.3f} ms", "all frames, wall"),
@@ -172,6 +210,9 @@ def main() -> None:
         "layout_source": "synthetic" if "synthetic" in layout_note else ("given" if args.layout else "pipeline"),
         "frames_per_s": round(speed["frames_per_s"], 1), "latency_ms_p50": round(speed["latency_ms_p50"], 4),
         "latency_ms_p99": round(speed["latency_ms_p99"], 4),
+        **{f"{key}_{fmt}": round(link[key], 4) for fmt, link in links.items()
+           for key in ("frames_per_s", "latency_ms_p50", "latency_ms_p99")},
+        **{f"link_frames_per_s_{fmt}": round(rate, 1) for fmt, rate in link_only.items()},
         "latency_touch_ms_p50": round(speed["latency_touch_ms_p50"], 4),
         "frames_per_cpu_s": round(speed["frames_per_cpu_s"], 1),
         "processing_frames_per_s": round(speed["processing_frames_per_s"], 1), "latency_cpu_ms_p50": round(speed["latency_cpu_ms_p50"], 4),
@@ -193,6 +234,11 @@ def main() -> None:
             "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
             "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",
             "snr_mean", "snr_p2p_mean", "nearest_crossing_mm_max", "presses")}},
+        "spread_mismatched_board_calibrated": {**{key: spread_calibrated.get(key) for key in (
+            "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
+            "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",
+            "false_touches_at_rest", "snr_mean", "snr_p2p_mean", "presses")},
+            "calibration": {**calibration.summary(), **session}},
     }))
 
 

@@ -28,7 +28,8 @@ from retrotouch.nodes.sensing.pty_board import PtyBoard, frames_through_pty
 from retrotouch.nodes.sensing.scripts import ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
 from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
-from retrotouch.nodes.sensing.cli import EventSinks, register
+from retrotouch.nodes.sensing.cli import register
+from retrotouch.nodes.sensing.sinks import EventSinks
 
 GESTURES = ["tap", "tap", "tap", "double_tap", "long_press", "swipe", "pinch", "spread"]
 
@@ -54,7 +55,9 @@ def invoke(app, *args):
 
 
 def events_of(output: str) -> list[dict]:
-    return [json.loads(line) for line in output.splitlines() if line.startswith("{")]
+    """The touch and gesture events of a stream (status events left out)."""
+    return [event for event in map(json.loads, (line for line in output.splitlines() if line.startswith("{")))
+            if event["type"] != "status"]
 
 
 def test_simulate_streams_json_lines_with_every_gesture(app, layout, tmp_path):
@@ -110,9 +113,11 @@ def test_udp_receives_the_same_lines(app, layout, tmp_path):
     script.write_text(json.dumps([{"gesture": "tap", "at": {"cell": 12}}]))
     port = receiver.getsockname()[1]
     stdout = invoke(app, "--simulate", script, "--fast", "--layout", layout, "--udp", f"127.0.0.1:{port}").stdout
-    received = [json.loads(receiver.recv(65536)) for _ in events_of(stdout)]
+    lines = [json.loads(line) for line in stdout.splitlines()]
+    received = [json.loads(receiver.recv(65536)) for _ in lines]
     receiver.close()
-    assert received == events_of(stdout)
+    assert received == lines
+    received = [event for event in received if event["type"] != "status"]
     assert [e["type"] for e in received] == ["touch_down", "touch_move", "touch_up", "tap"]  # 150 ms: 2 frames
 
 
@@ -127,7 +132,8 @@ def test_websocket_clients_get_events():
             while not sinks._clients and time.monotonic() < deadline:
                 time.sleep(0.01)
             sinks.emit({"type": "tap", "t": 1.0, "id": 3, "point": [1, 2, 3]})
-            assert json.loads(client.recv(timeout=5)) == {"type": "tap", "t": 1.0, "id": 3, "point": [1, 2, 3]}
+            assert json.loads(client.recv(timeout=5)) == {"format": "retrotouch.events/1", "type": "tap", "t": 1.0,
+                                                          "id": 3, "point": [1, 2, 3]}
     finally:
         sinks.close()
 

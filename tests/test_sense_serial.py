@@ -14,7 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.sensing.frames import AsciiFrameParser, BinaryFrameParser, encode_ascii_frame, encode_binary_frame, FrameOptions
+from retrotouch.nodes.sensing.binary_frames import BinaryFrameParser
+from retrotouch.nodes.sensing.frames import AsciiFrameParser, encode_ascii_frame, encode_binary_frame, FrameOptions
 from retrotouch.nodes.sensing.muca_serial import MucaReader
 from retrotouch.nodes.sensing.recording import Recorder, replay_frames
 from sense_helpers import parse_stream
@@ -125,15 +126,17 @@ def test_fuzz_random_bytes_never_crash_either_parser(chunks):
             assert frame.shape == (21, 12) and frame.max() <= 65535
 
 
-def test_binary_round_trip_and_resync():
+def test_binary_round_trip_and_resync_after_a_pause():
     frames = [grid(9, 9500, 9700), grid(10, 9500, 9700)]
     parser = BinaryFrameParser()
     data = b"[Muca] Initialized\r\n[Muca] Set TEST mode\r\n" + b"".join(encode_binary_frame(f) for f in frames)
-    out = parse_stream([data[:100], data[100:]], parser)
+    out = parse_stream([data[:100], data[100:]], parser)  # the last frame waits for the next header
+    out += parser.flush()  # ... or a pause in the stream
     assert len(out) == 2 and all(np.array_equal(a, b) for a, b in zip(out, frames))
     parser.feed(b"\x01\x02\x03")  # a partial frame, then a pause
-    parser.resync()
-    (again,) = parser.feed(encode_binary_frame(frames[0]))
+    assert parser.flush() == [] and parser.stats.dropped_bytes == 3
+    parser.feed(encode_binary_frame(frames[0]))
+    (again,) = parser.flush()
     assert np.array_equal(again, frames[0])
 
 

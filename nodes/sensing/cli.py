@@ -11,17 +11,22 @@ Usage::
                       15 x 10 SNR / localization protocol, one JSON report; a hardware recording
                       without labels needs --locations or --protocol)
 
+    retrotouch sense --probe /dev/ttyACM0 [--baud 115200] [--json]         # what is on the port
+    retrotouch sense --port ... --calibrate --calibration cal.json          # guided touches on every crossing
+    retrotouch sense --port ... --calibration cal.json                      # ... used by the processing
+    ... --simulate --evaluate --calibrate          (calibrate the virtual board, then evaluate with it)
+
 Events are JSON lines on stdout (``touch_down``/``touch_move``/``touch_up`` from the processing,
-gestures from :mod:`retrotouch.nodes.sensing.gestures`); the same lines go to every ``--udp`` target as
-datagrams and to every client of ``--websocket``. Diagnostics go to stderr.
+gestures from :mod:`retrotouch.nodes.sensing.gestures`, ``status`` lines about the board and the
+baseline), each with ``"format": "retrotouch.events/1"`` and specified by
+``nodes/data/events.schema.json``; the same lines go to every ``--udp`` target as datagrams and to
+every client of ``--websocket``. Diagnostics go to stderr.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-import socket
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -31,6 +36,7 @@ import typer
 
 from ...graph.app import current
 from ...graph.errors import UserError
+from .sinks import EventSinks, status_event
 
 
 def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
@@ -42,81 +48,19 @@ def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
         raise UserError(f"{option} takes channel numbers separated by commas, e.g. {option} 3,7") from None
 
 
-def _udp_target(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        raise UserError(f"--udp {text!r}: give HOST:PORT, e.g. --udp 127.0.0.1:9000")
-    return host, int(port)
-
-
-class EventSinks:
-    """Fans each event out to stdout, UDP targets and websocket clients."""
-
-    def __init__(self, stdout: bool = True, udp: Iterable[str] = (), websocket_port: int | None = None):
-        self.stdout = stdout
-        self.udp_targets = [_udp_target(target) for target in udp]
-        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if self.udp_targets else None
-        self.websocket_server = None
-        self._clients: set[Any] = set()
-        self._lock = threading.Lock()
-        if websocket_port is not None:
-            self._start_websocket(websocket_port)
-
-    def _start_websocket(self, port: int) -> None:
-        from websockets.exceptions import ConnectionClosed
-        from websockets.sync.server import serve
-
-        def handler(connection) -> None:
-            with self._lock:
-                self._clients.add(connection)
-            try:
-                for _ in connection:  # clients only listen; drain until they leave
-                    pass
-            except ConnectionClosed:
-                pass
-            finally:
-                with self._lock:
-                    self._clients.discard(connection)
-
-        try:
-            self.websocket_server = serve(handler, "127.0.0.1", port)
-        except OSError as exc:
-            raise UserError(f"--websocket {port}: cannot listen ({exc.strerror}): pick another port") from None
-        threading.Thread(target=self.websocket_server.serve_forever, name="websocket", daemon=True).start()
-        print(f"websocket events on ws://127.0.0.1:{self.websocket_server.socket.getsockname()[1]}/", file=sys.stderr)
-
-    def emit(self, event: dict[str, Any]) -> None:
-        line = json.dumps(event, separators=(",", ":"))
-        if self.stdout:
-            sys.stdout.write(line + "\n")
-            sys.stdout.flush()
-        if self.udp is not None:
-            for target in self.udp_targets:
-                self.udp.sendto(line.encode(), target)
-        with self._lock:
-            clients = list(self._clients)
-        for client in clients:
-            try:
-                client.send(line)
-            except Exception:  # noqa: BLE001 - a client that went away is dropped on its own thread
-                pass
-
-    def close(self) -> None:
-        if self.websocket_server is not None:
-            self.websocket_server.shutdown()
-        if self.udp is not None:
-            self.udp.close()
-
-
 def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
                 duration_s: float | None = None, on_frame: Callable[[Any], None] | None = None) -> int:
     """Process frames until they end (or ``duration_s`` of frame time); returns the frame count."""
     count = 0
     start = None
+    calibrated = False
     for frame in frames:
         start = frame.t if start is None else start
         t = frame.t - start
         result = processor.process(frame.values, t)
+        if result.calibrated and not calibrated:
+            calibrated = True
+            sinks.emit(status_event("baseline", f"baseline ready after {count + 1} frames: touch now", t))
         gestures = recognizer.feed(result)
         for event in (*result.events, *gestures):
             sinks.emit(event)
@@ -148,7 +92,8 @@ def sense(
     replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
     speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
     record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
-    frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii or binary."),
+    frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii, binary (Muca_Raw_Basic) or "
+                                     "handshake (SYNC, then one frame per request); --probe tells which."),
     baudrate: int = typer.Option(115200, "--baud", help="Serial baud rate."),
     flip_tx: bool = typer.Option(False, "--flip-tx", help="The firmware reverses TX (Muca master)."),
     flip_rx: bool = typer.Option(False, "--flip-rx", help="The firmware reverses RX (Muca 2020 library)."),
@@ -165,6 +110,15 @@ def sense(
     locations: Optional[str] = typer.Option(None, "--locations", help="With --evaluate: JSON list of the touched points "
                                             "[[x, y, z], ...] (mm on the object; a --replay touched them 10 times "
                                             "round by round); default: 15 spread over the sensing surface."),
+    calibrate: bool = typer.Option(False, "--calibrate", help="Guide the operator through touching every crossing "
+                                   "and write the measured gains and finger coupling to --calibration FILE (with "
+                                   "--simulate --evaluate: calibrate the virtual board first, then evaluate)."),
+    calibration: Optional[str] = typer.Option(None, "--calibration", help="Calibration file: written by --calibrate "
+                                              "(default calibration.json), else loaded for the processing."),
+    probe: Optional[str] = typer.Option(None, "--probe", help="Listen to serial port PORT and say what is on it "
+                                        "(format, frame rate, channels, the sense command to use)."),
+    probe_seconds: float = typer.Option(3.0, "--probe-seconds", help="How long --probe listens (s)."),
+    as_json: bool = typer.Option(False, "--json", help="With --probe: print the finding as one JSON object."),
     protocol: Optional[str] = typer.Option(None, "--protocol", help="With --evaluate --replay of an unlabelled "
                                            "hardware session: JSON {points: [[x,y,z],...], repetitions: n} touched "
                                            "round by round."),
@@ -181,10 +135,19 @@ def sense(
 
 def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, coupling, replay, speed, record, frame_format,
            baudrate, flip_tx, flip_rx, skip_tx, skip_rx, skip_lines, udp, websocket, view, view_port, duration,
-           evaluate, locations, protocol) -> None:
+           evaluate, locations, calibrate, calibration, probe, probe_seconds, as_json, protocol) -> None:
     """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
 
+    if probe:
+        if port or simulate or replay or evaluate:
+            raise UserError("--probe PORT only listens: leave out --port, --simulate, --replay and --evaluate")
+        from .probe import run_probe
+
+        run_probe(probe, baudrate, probe_seconds, as_json)
+        return
+    if as_json:
+        raise UserError("--json goes with --probe (events are JSON lines already)")
     _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
     if locations and not evaluate:
         raise UserError("--locations goes with --evaluate (the points touched in the protocol)")
@@ -194,9 +157,14 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     if layout is None and not simulate:
         raise UserError("--layout is required: pass the run folder or its sensing_map.json")
     layout_path = _default_layout() if layout is None else resolve_sensing_map_path(layout)
+    loaded = None
+    if calibration and not calibrate:
+        from .calibration import load_calibration
+
+        loaded = load_calibration(calibration)
     if evaluate:
         _evaluate(layout_path, replay, board_params, record, protocol or (locations if replay else None),
-                  None if replay else locations)
+                  None if replay else locations, loaded, calibrate, calibration)
         return
     from .frames import FrameOptions
 
@@ -206,7 +174,12 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
                     record=record, replay=replay, replay_options=flip_tx or flip_rx or bool(skip_tx or skip_rx),
                     speed=speed, steps=None if not simulate else _steps(script), board_params=board_params,
                     fast=fast, loop=loop)
-    _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration)
+    if calibrate:
+        from .calibration_cli import run_calibration
+
+        run_calibration(layout_path, source, Path(calibration or "calibration.json"), _open_frames)
+        return
+    _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration, loaded)
 
 
 def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format) -> None:
@@ -224,8 +197,10 @@ def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, co
         raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
     if coupling not in (None, "gaussian", "disc"):
         raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
-    if frame_format not in ("ascii", "binary"):
-        raise UserError(f"--format {frame_format!r}: use ascii or binary")
+    from .frames import FRAME_FORMATS
+
+    if frame_format not in FRAME_FORMATS:
+        raise UserError(f"--format {frame_format!r}: use {', '.join(FRAME_FORMATS)} (--probe PORT tells which)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,36 +222,41 @@ class Source:
     loop: bool
 
 
+def _open_frames(source: Source, sensing_map, sinks: EventSinks) -> tuple[Iterator[Any], Any]:
+    """Frames from ``source`` and the serial reader to close (None unless a board)."""
+    if source.port:
+        from .muca_serial import MucaReader
+
+        reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
+                            options=source.options, skip_first_lines=source.skip_lines, record=source.record,
+                            on_status=lambda line: _board_status(sinks, line))
+        return reader.frames(), reader
+    if source.replay:
+        from .recording import replay_frames
+
+        # A recording's header holds the board's orientation unless the options override it.
+        return replay_frames(source.replay, options=source.options if source.replay_options else None,
+                             speed=source.speed), None
+    return _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
+                      source.frame_format, source.record, lambda line: _board_status(sinks, line)), None
+
+
 def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Optional[int],
-            view_port: Optional[int], duration: Optional[float]) -> None:
-    """Process frames from ``source`` into events until they end (or Ctrl-C)."""
+            view_port: Optional[int], duration: Optional[float], calibration=None) -> None:
+    """Process frames from ``source`` into events until they end (or Ctrl-C), with ``calibration``
+    (:mod:`.calibration`) if given."""
     from ..data.sensing_map import load_sensing_map
     from .gestures import GestureRecognizer
     from .processing import TouchProcessor
 
     sensing_map = load_sensing_map(layout_path)
-    processor = TouchProcessor(sensing_map)
+    processor = TouchProcessor(sensing_map) if calibration is None else calibration.processor(sensing_map)
     sinks = EventSinks(udp=udp, websocket_port=websocket)
     live = reader = frames = None
     try:
         if view_port is not None:
             live = _live_view(processor, view_port)
-        if source.port:
-            from .muca_serial import MucaReader
-
-            reader = MucaReader(source.port, baudrate=source.baudrate, frame_format=source.frame_format,
-                                options=source.options, skip_first_lines=source.skip_lines, record=source.record,
-                                on_status=lambda line: print(line, file=sys.stderr, flush=True))
-            frames = reader.frames()
-        elif source.replay:
-            from .recording import replay_frames
-
-            # A recording's header holds the board's orientation unless the options override it.
-            frames = replay_frames(source.replay, options=source.options if source.replay_options else None,
-                                   speed=source.speed)
-        else:
-            frames = _simulated(sensing_map, source.steps, source.board_params, source.fast, source.loop,
-                                source.frame_format, source.record)
+        frames, reader = _open_frames(source, sensing_map, sinks)
         count = run_session(frames, processor, GestureRecognizer(), sinks, live, duration)
         print(f"{count} frames processed", file=sys.stderr)
         if live is not None:
@@ -292,6 +272,12 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
         if live is not None:
             live.stop()
         sinks.close()
+
+
+def _board_status(sinks: EventSinks, line: str) -> None:
+    """A board status line: on stderr for the operator and as a status event for applications."""
+    print(line, file=sys.stderr, flush=True)
+    sinks.emit(status_event("board", line))
 
 
 def _live_view(processor, port: int):
@@ -320,14 +306,15 @@ def _steps(script: Optional[str]) -> list[dict[str, Any]]:
     return DEMO_SCRIPT if script is None else load_script(script)
 
 
-def _simulated(sensing_map, steps, params, fast, loop, frame_format, record) -> Iterator[Any]:
+def _simulated(sensing_map, steps, params, fast, loop, frame_format, record, on_status) -> Iterator[Any]:
     from .pty_board import frames_through_pty
     from .scripts import ScriptBuilder
     from .virtual_board import VirtualBoard
 
     board = VirtualBoard(sensing_map, params)
     built = ScriptBuilder(sensing_map, params, params.seed).build(steps)
-    return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop)
+    return frames_through_pty(board, built, fast=fast, frame_format=frame_format, record=record, loop=loop,
+                              on_status=on_status)
 
 
 def _board(board: Optional[str], snr: Optional[float], seed: Optional[int], coupling: Optional[str]):
@@ -346,17 +333,29 @@ def _board(board: Optional[str], snr: Optional[float], seed: Optional[int], coup
 
 
 def _evaluate(layout_path: Path, replay: Optional[str], board_params, record: Optional[str],
-              protocol: Optional[str], locations: Optional[str]) -> None:
-    from .evaluation import EvalParams, evaluate_recording, evaluate_simulator
+              protocol: Optional[str], locations: Optional[str], calibration, calibrate: bool,
+              calibration_path: Optional[str]) -> None:
+    """The evaluation report (one JSON object); with ``calibrate`` the virtual board is calibrated
+    first (the operator's touches on its crossings) and the processing uses the result."""
+    from ..data.sensing_map import load_sensing_map
+    from .evaluation import EvalParams, calibrate_simulator, evaluate_recording, evaluate_simulator
 
     started = time.perf_counter()
+    session = None
+    if calibrate:
+        if replay:
+            raise UserError("--evaluate --calibrate calibrates the virtual board: use it with --simulate")
+        calibration, session = calibrate_simulator(load_sensing_map(layout_path), board_params, seed=board_params.seed)
+        if calibration_path:
+            calibration.save(calibration_path)
     if replay:
-        report = evaluate_recording(replay, layout_path, protocol=protocol)
+        report = evaluate_recording(replay, layout_path, protocol=protocol, calibration=calibration)
     else:
         report = evaluate_simulator(layout_path, board_params, EvalParams(seed=board_params.seed), record=record,
-                                    locations=locations)
+                                    locations=locations, calibration=calibration)
     print(json.dumps({**report.summary(), "per_location": list(report.locations),
                       "board": board_params.model_dump(mode="json") if not replay else None,
+                      "calibration": None if calibration is None else {**calibration.summary(), **(session or {})},
                       "seconds": round(time.perf_counter() - started, 2)}))
 
 

@@ -34,7 +34,8 @@ from pydantic import Field
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams
-from ..data.sensing_map import load_sensing_map
+from ..data.sensing_map import SensingMap, load_sensing_map
+from .calibration import CalibParams, Calibration, calibrate, calibration_targets
 from .frames import Frame
 from .locations import crossing_locations, load_locations, nearest_crossing_mm, spread_locations
 from .processing import ProcessingParams, TouchProcessor
@@ -201,6 +202,25 @@ def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarr
     return tuple(out)
 
 
+def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, params: CalibParams = CalibParams(),
+                        seed: int = 0, prompt=lambda text: None) -> tuple[Calibration, dict[str, Any]]:
+    """``sense --calibrate`` on the virtual board: a simulated operator touches each prompted crossing
+    where it really is on the board (the crossings of a hand-laid sensor sit off the map) with an aim
+    error of up to 1.5 mm, 0.9 s per touch and 0.6 s between touches, in the order prompted."""
+    board = VirtualBoard(sensing_map, board_params)
+    rng = np.random.default_rng([seed, 7])
+    steps = []
+    for k, cell in enumerate(calibration_targets(sensing_map, params.rounds).tolist()):
+        normal = sensing_map.cell_normals[cell]
+        aim = rng.normal(size=3)
+        aim -= aim @ normal * normal
+        aim *= 1.5 * np.sqrt(rng.random()) / np.linalg.norm(aim)
+        steps.append({"gesture": "press", "at": (board.cell_points[cell] + aim).tolist(), "ms": 900, "gap_ms": 600,
+                      "calibration_touch": k})
+    script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
+    return calibrate(frames_through_pty(board, script, fast=True), sensing_map, params, prompt)
+
+
 def evaluate_simulator(
     sensing_map_path: str | Path,
     board_params: BoardParams = BoardParams(),
@@ -209,10 +229,12 @@ def evaluate_simulator(
     through_pty: bool = True,
     record: str | Path | None = None,
     locations: str | Path | None = None,
+    calibration: Calibration | None = None,
 ) -> EvalReport:
     """The protocol on the virtual board, read back through a pseudo-terminal in fast mode (or fed to
     the processor directly when ``through_pty`` is False); ``locations`` a user's JSON list of points
-    (:func:`.locations.load_locations`) instead of ``eval_params.location_rule``'s."""
+    (:func:`.locations.load_locations`) instead of ``eval_params.location_rule``'s; ``calibration``
+    (:mod:`.calibration`) replaces the processing's default assumptions."""
     sensing_map = load_sensing_map(sensing_map_path)
     board = VirtualBoard(sensing_map, board_params)
     if locations is not None:
@@ -223,7 +245,8 @@ def evaluate_simulator(
         points, choice = crossing_locations(sensing_map, eval_params.locations, eval_params.location_rule,
                                             eval_params.seed, board_params)
     script = ScriptBuilder(sensing_map, board_params, eval_params.seed).build(press_steps(points, eval_params))
-    processor = TouchProcessor(sensing_map, processing_params)
+    processor = (TouchProcessor(sensing_map, processing_params) if calibration is None
+                 else calibration.processor(sensing_map, processing_params))
     if through_pty:
         frames: Iterable[Frame] = frames_through_pty(board, script, fast=True, record=record)
     else:
@@ -277,12 +300,14 @@ def labels_from_presses(frames: list[Frame], processor: TouchProcessor, points: 
 def evaluate_recording(recording: str | Path, sensing_map_path: str | Path,
                        eval_params: EvalParams = EvalParams(),
                        processing_params: ProcessingParams = ProcessingParams(),
-                       protocol: str | Path | None = None) -> EvalReport:
+                       protocol: str | Path | None = None, calibration: Calibration | None = None) -> EvalReport:
     """The protocol scored on a recording: its press labels (simulator recordings carry them), or,
     with ``protocol`` (see :func:`load_protocol`), presses detected in an unlabelled hardware session.
     With detected presses, ``missed_presses`` is 0 by construction (a miss shows as a count error)."""
     labels: list[tuple[float, dict[str, Any]]] = []
-    processor = TouchProcessor(load_sensing_map(sensing_map_path), processing_params)
+    sensing_map = load_sensing_map(sensing_map_path)
+    processor = (TouchProcessor(sensing_map, processing_params) if calibration is None
+                 else calibration.processor(sensing_map, processing_params))
     frames = list(replay_frames(recording, on_label=lambda t, label: labels.append((t, label))))
     if protocol is not None:
         points, repetitions = load_protocol(protocol)

@@ -16,11 +16,10 @@ Frame conventions (stated once here, used by the simulator and the touch process
   decimals, hex) is skipped and counted; a frame behind status text glued on without a newline
   (the 2020 library prints ``i2c write failed`` without one) is salvaged.
 * Binary format (Muca_Raw_Basic.ino SendRawByte): ``2 + num_tx * num_rx`` bytes per frame,
-  ``[min_hi, min_lo, uint8(value - min) ...]``, no sync marker. Frames are cut every
-  ``2 + cells`` bytes from the start of the stream (after any status lines); the reader drops a
-  partial frame after a read timeout without a byte (a pause between frames), which re-aligns the
-  stream. A board that streams without pauses stays aligned only while no byte is lost: prefer
-  the ASCII format when the link is unreliable.
+  ``[min_hi, min_lo, uint8(value - min) ...]``, no sync marker; parsed with self-alignment by
+  :mod:`.binary_frames`.
+* Handshake variant: the board repeats ``RX:<n>:TX:<m>:SYNC`` until the host answers, then sends
+  one ASCII frame per host request byte (:mod:`.handshake`).
 """
 from __future__ import annotations
 
@@ -32,6 +31,7 @@ import numpy as np
 from ...graph.errors import UserError
 from ..data.board import MAX_COUNT, NUM_RX, NUM_TX
 
+FRAME_FORMATS = ("ascii", "handshake", "binary")
 STATUS_PREFIXES = (b"[Muca]", b"Calibration performed", b"i2c write failed", b"RX:")
 
 
@@ -74,6 +74,7 @@ class ParserStats:
     rejected_lines: int = 0
     salvaged_lines: int = 0
     dropped_bytes: int = 0
+    resyncs: int = 0  # binary: times the frame alignment was lost and searched again
 
 
 class AsciiFrameParser:
@@ -163,56 +164,16 @@ class AsciiFrameParser:
         return values
 
 
-class BinaryFrameParser:
-    """Incremental parser for the binary format (``[min_hi, min_lo, 252 x uint8]`` per frame)."""
-
-    def __init__(self, options: FrameOptions = FrameOptions()):
-        self.options = options
-        self.stats = ParserStats()
-        self.frame_bytes = 2 + options.cells
-        self._pending = bytearray()
-
-    def feed(self, data: bytes) -> list[np.ndarray]:
-        self._pending += data
-        frames = []
-        while True:
-            self._drop_status_line()
-            if len(self._pending) < self.frame_bytes:
-                return frames
-            chunk = bytes(self._pending[: self.frame_bytes])
-            del self._pending[: self.frame_bytes]
-            base = (chunk[0] << 8) | chunk[1]
-            values = base + np.frombuffer(chunk, dtype=np.uint8, offset=2).astype(np.int64)
-            if values.max() > MAX_COUNT:
-                self.stats.rejected_lines += 1
-                continue
-            self.stats.frames += 1
-            frames.append(self.options.orient(values))
-
-    def _drop_status_line(self) -> None:
-        """ASCII status lines printed before streaming starts are not frame bytes."""
-        while self._pending.startswith(STATUS_PREFIXES):
-            end = self._pending.find(b"\n")
-            if end < 0:
-                return
-            self.stats.status_lines += 1
-            del self._pending[: end + 1]
-
-    def resync(self) -> None:
-        """Drop a partial frame; called after a pause in the byte stream (frames come in bursts)."""
-        self.stats.dropped_bytes += len(self._pending)
-        self._pending.clear()
-
-    reset = resync
-
-
 def make_parser(frame_format: str, options: FrameOptions, skip_first_lines: int = 0):
-    """``"ascii"`` or ``"binary"`` -> a fresh parser."""
-    if frame_format == "ascii":
+    """A fresh parser for ``frame_format``: ``"ascii"``, ``"handshake"`` (ASCII frames, one per
+    host request: :mod:`.handshake`) or ``"binary"`` (:mod:`.binary_frames`)."""
+    if frame_format in ("ascii", "handshake"):
         return AsciiFrameParser(options, skip_first_lines)
     if frame_format == "binary":
+        from .binary_frames import BinaryFrameParser
+
         return BinaryFrameParser(options)
-    raise UserError(f"unknown frame format {frame_format!r}: use 'ascii' or 'binary'")
+    raise UserError(f"unknown frame format {frame_format!r}: use {', '.join(FRAME_FORMATS)}")
 
 
 def encode_ascii_frame(grid: np.ndarray) -> bytes:

@@ -11,14 +11,18 @@ from typing import Any
 import serial
 
 from ...graph.errors import UserError
-from .frames import BinaryFrameParser, Frame, FrameOptions, make_parser
+from .frames import Frame, FrameOptions, make_parser
+from .handshake import REQUEST, SyncWatch
 from .recording import Recorder
 
 
 class MucaReader:
     """Frames from a Muca board on ``port`` (a device path or any pyserial URL).
 
-    Tolerant: garbage never raises; after an unplug (read error) the port is closed and reopened
+    ``frame_format`` is ``"ascii"``, ``"binary"`` (self-aligning, :mod:`.binary_frames`) or
+    ``"handshake"`` (the reader answers the board's SYNC and requests every frame,
+    :mod:`.handshake`). Tolerant: garbage never raises (``on_status`` gets one line, at most every
+    ``status_interval_s``, when lines are rejected or the binary alignment is searched again); after an unplug (read error) the port is closed and reopened
     every ``reconnect_interval_s`` until it is back (or ``reconnect_timeout_s`` passes). A port that
     cannot be opened at start is a one-line :class:`UserError`. ``on_status`` (if given) receives one
     line when the board goes away, one every ``status_interval_s`` while the reader waits for it
@@ -56,6 +60,9 @@ class MucaReader:
         self._serial: serial.SerialBase | None = None
         self._closed = False
         self._seq = 0
+        self._sync = SyncWatch() if frame_format == "handshake" else None
+        self._garbled_reported = 1  # joining mid-line (or mid-frame) costs one rejection: not garble
+        self._next_garble_status = 0.0
         if open_port is None and "://" not in port and not os.path.exists(port):
             raise UserError(f"serial port {port} not found: plug in the board and check --port")
         try:
@@ -80,6 +87,10 @@ class MucaReader:
                 data = self._serial.read(max(1, self._serial.in_waiting or 1))
                 if data and self._serial.in_waiting:
                     data += self._serial.read(self._serial.in_waiting)
+                if not data and self._sync is not None:
+                    self._serial.write(REQUEST)  # a lost request, or a board answered before
+                elif self._sync is not None and self._sync.feed(data):
+                    self._serial.write(REQUEST + REQUEST)  # answer the SYNC, request the first frame
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 # TypeError/AttributeError: pyserial's posix backend after the fd went away.
                 if self._closed:
@@ -90,16 +101,38 @@ class MucaReader:
                 continue
             now = time.monotonic()
             if not data:
-                idle = True  # a whole read timeout without a byte: the board is between frames
-                continue
-            if idle and isinstance(self.parser, BinaryFrameParser):
-                self.parser.resync()
-            idle = False
-            if self.recorder is not None:
-                self.recorder.bytes(data)
-            for values in self.parser.feed(data):
+                # A whole read timeout without a byte: the board is between frames.
+                found = [] if idle or not hasattr(self.parser, "flush") else self.parser.flush()
+                idle = True
+            else:
+                idle = False
+                if self.recorder is not None:
+                    self.recorder.bytes(data)
+                found = self.parser.feed(data)
+                self._report_garble(now)
+            for values in found:
+                if self._sync is not None:
+                    self._request()
                 yield Frame(values, now, self._seq)
                 self._seq += 1
+
+    def _request(self) -> None:
+        """Ask a handshake board for its next frame (a failed write shows at the next read)."""
+        try:
+            self._serial.write(REQUEST)
+        except (serial.SerialException, OSError, TypeError, AttributeError):
+            pass
+
+    def _report_garble(self, now: float) -> None:
+        """One status line (at most every ``status_interval_s``) when input was rejected."""
+        stats = self.parser.stats
+        garbled = stats.rejected_lines
+        if garbled > self._garbled_reported and now >= self._next_garble_status:
+            what = "lost frame alignments" if self.frame_format == "binary" else "unparsable lines"
+            self._status(f"board on {self.port}: {garbled - self._garbled_reported} {what} at {_clock()}, "
+                         f"resynced ({stats.frames} frames so far)")
+            self._garbled_reported = garbled
+            self._next_garble_status = now + self.status_interval_s
 
     def _drop_port(self) -> None:
         try:
@@ -117,6 +150,7 @@ class MucaReader:
             try:
                 self._serial = self._open_port()
                 self.reconnects += 1
+                self._garbled_reported = self.parser.stats.rejected_lines + 1
                 self._status(f"board on {self.port} is back at {_clock()} after {time.monotonic() - started:.1f} s")
                 return True
             except (serial.SerialException, OSError, ValueError):

@@ -19,7 +19,8 @@ Per frame (``TouchProcessor.process``):
    of each part, projected on the surface, is the coarse touch point, and the part's area above half
    of its peak intensity is the contact area.
 4. **Sub-cell refinement** (``refine``; :mod:`.coupling_fit`, :mod:`.plane_fit`): the coupling model ``delta_i = g_i A K(|p - x_i|)``
-   (``g_i`` = 1 with a pad, ``no_pad_gain`` without; ``K`` the radial coupling profile,
+   (``g_i`` = 1 with a pad, ``no_pad_gain`` without, or per crossing as ``sense --calibrate`` measured
+   them, :mod:`.calibration`; ``K`` the radial coupling profile,
    :mod:`.coupling_profile`) fitted by maximum likelihood (Levenberg-Marquardt on
    the deltas of every crossing near the peak, dark ones included) with the finger kept on the
    surface; weak priors (offset ~ N(0, pitch^2), amplitude learned from well-posed touches) keep
@@ -114,7 +115,9 @@ class FrameResult:
 class TouchProcessor:
     """Stateful frame -> touches processing for one sensing map (see the module docstring)."""
 
-    def __init__(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()):
+    def __init__(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams(),
+                 cell_gain: np.ndarray | None = None):
+        """``cell_gain`` (K,): measured per-cell gains (:mod:`.calibration`) instead of pad ? 1 : no_pad_gain."""
         self.map = sensing_map
         self.params = params
         self.pitch = sensing_map.pitch_mm()
@@ -122,7 +125,8 @@ class TouchProcessor:
         self.peak_radius = params.peak_radius_mm or 1.5 * self.pitch
         cells = sensing_map.cell_points
         self.frame_index = sensing_map.frame_index
-        self.cell_gain = np.where(sensing_map.cell_pad, 1.0, params.no_pad_gain)
+        self.cell_gain = (np.where(sensing_map.cell_pad, 1.0, params.no_pad_gain) if cell_gain is None
+                          else np.asarray(cell_gain, dtype=np.float64))
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance)

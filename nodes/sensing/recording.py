@@ -92,7 +92,7 @@ def replay_frames(
     parser = make_parser(header.get("frame_format", "ascii"), options)
     board_rate = float(header["rate_hz"]) if header.get("timebase") == "board" else None
     start = time.monotonic()
-    seq = 0
+    seq, t = 0, 0.0
     for record in records:
         t = float(record["t"])
         if "label" in record:
@@ -110,3 +110,7 @@ def replay_frames(
         for values in parser.feed(data):
             yield Frame(values, t if board_rate is None else seq / board_rate, seq)
             seq += 1
+    # The end of the recording releases a binary frame still waiting for the next frame's header.
+    for values in parser.flush() if hasattr(parser, "flush") else ():
+        yield Frame(values, t if board_rate is None else seq / board_rate, seq)
+        seq += 1

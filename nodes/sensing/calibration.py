@@ -1,0 +1,237 @@
+"""Calibration a user runs on the real board: ``retrotouch sense --calibrate`` prompts the operator to
+touch every crossing of the layout (in Tx/Rx order, ``CalibParams.rounds`` rounds), and from the
+touches estimates what the processing otherwise assumes:
+
+* **per-cell gains** ``g_i``: the mean delta of crossing ``i`` while the finger rests on it, relative
+  to the median over padded crossings (a padded crossing's gain is 1 in the coupling model);
+  touch-to-touch strength varies, so the rounds are averaged;
+* **the no-pad gain**: the median gain of the crossings without a pad (for crossings not measured);
+* **the finger coupling width** ``s``: from each touch, the gain-normalised delta of crossings
+  ``0.5..2.5`` pitches away relative to the touched one's, ``r = K(d)``, gives
+  ``s = d / sqrt(-2 ln r)`` for a Gaussian ``K``; the median over all pairs is the width the
+  processing starts from (it learns the profile's shape from touches afterwards), and the finger
+  radius follows from ``s = sqrt(r_f^2 + (pitch/2)^2)``.
+
+The operator touches the crossings as they are on the object (where the traces cross), never the
+evaluation's locations. A touch counts for the crossing it is prompted for when the processing puts
+it within ``0.6`` pitch of that crossing (or of one of the next three: the operator skipped some)
+and it stays down for ``min_frames`` frames after ``settle_ms``. The result is a versioned JSON
+file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams
+from ..data.board import default_coupling_width_mm
+from ..data.sensing_map import SensingMap
+from .processing import FrameResult, ProcessingParams, TouchProcessor
+
+CALIBRATION_FORMAT = "retrotouch.sensing_calibration/1"
+SKIP_AHEAD = 3  # a touch may count for one of the next crossings this many targets ahead
+
+
+class CalibParams(NodeParams):
+    """Calibration protocol settings (ms, pitches)."""
+
+    rounds: int = Field(2, ge=1, description="touches per crossing")
+    settle_ms: float = Field(150.0, ge=0, description="frames this soon after a touch-down are not used")
+    min_frames: int = Field(3, ge=1, description="frames a touch must last after settling to count")
+    reach_pitch: float = Field(0.6, gt=0, description="a touch counts for a crossing within this many pitches")
+    width_snr: float = Field(6.0, gt=0, description="a neighbour enters the width estimate above this many noise sigmas")
+
+
+def layout_key(sensing_map: SensingMap) -> str:
+    """sha256 of the crossings (channels, points to 0.01 mm): a calibration belongs to one layout."""
+    digest = hashlib.sha256()
+    for array in (sensing_map.cell_tx, sensing_map.cell_rx, np.round(sensing_map.cell_points, 2)):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """What a calibration measured (gains relative to a padded crossing, mm)."""
+
+    cell_gain: np.ndarray  # (K,)
+    measured: np.ndarray  # (K,) bool, crossings whose gain was measured (the others: pad ? 1 : no_pad_gain)
+    no_pad_gain: float
+    coupling_sigma_mm: float
+    finger_radius_mm: float
+    touches: int
+    layout: str  # layout_key of the sensing map
+
+    def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
+        """A touch processor that uses this calibration instead of the default assumptions."""
+        if layout_key(sensing_map) != self.layout:
+            raise UserError(f"the calibration was made for another layout than {sensing_map.source}: "
+                            "run `retrotouch sense --calibrate` on this layout")
+        tuned = params.model_copy(update={"no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
+                                          "finger_radius_mm": self.finger_radius_mm})
+        return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
+
+    def summary(self) -> dict[str, Any]:
+        gains = self.cell_gain[self.measured]
+        return {"touches": self.touches, "crossings_measured": int(self.measured.sum()),
+                "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
+                "finger_radius_mm": round(self.finger_radius_mm, 3),
+                "cell_gain_spread": round(float(np.std(np.log(gains))), 4) if len(gains) > 1 else None}
+
+    def save(self, path: str | Path) -> None:
+        doc = {"format": CALIBRATION_FORMAT, "layout": self.layout, "units": "mm", **self.summary(),
+               "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist()}
+        Path(path).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """A calibration file -> :class:`Calibration`; one-line UserError when missing or foreign."""
+    path = Path(path)
+    fix = "write one with `retrotouch sense --calibrate --calibration FILE`"
+    if not path.is_file():
+        raise UserError(f"calibration file {path} not found: {fix}")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        if doc.get("format") != CALIBRATION_FORMAT:
+            raise UserError(f"calibration file {path} has format {doc.get('format')!r}, expected "
+                            f"{CALIBRATION_FORMAT!r}: {fix}")
+        gains, measured = np.array(doc["cell_gain"], dtype=np.float64), np.array(doc["measured"], dtype=bool)
+        if gains.shape != measured.shape or not np.all(np.isfinite(gains) & (gains > 0)):
+            raise ValueError("cell_gain")
+        return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
+                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]))
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
+
+
+def calibration_targets(sensing_map: SensingMap, rounds: int) -> np.ndarray:
+    """The crossings the operator is asked to touch, in order: every crossing by Tx then Rx channel,
+    ``rounds`` times."""
+    order = np.lexsort((sensing_map.cell_rx, sensing_map.cell_tx))
+    return np.tile(order, rounds)
+
+
+def describe_target(sensing_map: SensingMap, cell: int) -> str:
+    """How the operator finds a crossing: its channels and position (mm)."""
+    point = ", ".join(f"{x:.1f}" for x in sensing_map.cell_points[cell])
+    return f"crossing Tx{int(sensing_map.cell_tx[cell]):02d} x Rx{int(sensing_map.cell_rx[cell]):02d} at ({point}) mm"
+
+
+class CalibrationSession:
+    """Follows the operator through the targets: feed it every frame's result; it prompts (through
+    ``prompt``) for the next crossing and keeps, per accepted touch, the crossing and its mean deltas."""
+
+    def __init__(self, sensing_map: SensingMap, params: CalibParams = CalibParams(),
+                 prompt: Callable[[str], None] = lambda text: None):
+        self.map, self.params, self.prompt = sensing_map, params, prompt
+        self.targets = calibration_targets(sensing_map, params.rounds)
+        self.reach = params.reach_pitch * sensing_map.pitch_mm()
+        self.records: list[tuple[int, np.ndarray]] = []  # (crossing, mean delta (K,) counts)
+        self.next = 0  # index into targets
+        self.skipped = 0
+        self._touch: tuple[int, int, float] | None = None  # (target index, touch id, touch-down t)
+        self._sum, self._frames = np.zeros(sensing_map.cell_count), 0
+        self._prompt_next()
+
+    @property
+    def done(self) -> bool:
+        return self.next >= len(self.targets)
+
+    def _prompt_next(self) -> None:
+        if not self.done:
+            cell = int(self.targets[self.next])
+            self.prompt(f"touch {describe_target(self.map, cell)} ({self.next + 1} of {len(self.targets)}), "
+                        "hold it for a second, lift")
+
+    def feed(self, result: FrameResult) -> None:
+        if self.done or not result.calibrated:
+            return
+        if self._touch is None:
+            self._start(result)
+            return
+        index, touch_id, t_down = self._touch
+        if any(touch.id == touch_id for touch in result.touches):
+            if result.t - t_down >= self.params.settle_ms / 1000:
+                self._sum += result.delta
+                self._frames += 1
+            return
+        if self._frames >= self.params.min_frames:
+            self.records.append((int(self.targets[index]), self._sum / self._frames))
+            self.skipped += index - self.next
+            self.next = index + 1
+            self._prompt_next()
+        else:
+            self.prompt("that touch was too short: touch the same crossing again and hold it")
+        self._touch, self._sum, self._frames = None, np.zeros(self.map.cell_count), 0
+
+    def _start(self, result: FrameResult) -> None:
+        """A touch-down near the prompted crossing (or one of the next few) starts a calibration touch."""
+        ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
+        for event in result.events:
+            if event["type"] != "touch_down":
+                continue
+            distance = np.linalg.norm(self.map.cell_points[ahead] - np.array(event["point"]), axis=1)
+            if distance.min() <= self.reach:
+                self._touch = (self.next + int(np.argmin(distance)), event["id"], result.t)
+                return
+
+
+def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
+             params: CalibParams = CalibParams(), defaults: ProcessingParams = ProcessingParams()) -> Calibration:
+    """Gains, no-pad gain and coupling width from the accepted touches (see the module docstring);
+    ``sigma`` (K,) the noise sigma per crossing (counts)."""
+    if not records:
+        raise UserError("no calibration touch was recognised: touch each prompted crossing and hold it for a second")
+    k, pad = sensing_map.cell_count, sensing_map.cell_pad
+    sums, counts = np.zeros(k), np.zeros(k)
+    for cell, delta in records:
+        sums[cell] += max(delta[cell], 1e-9)
+        counts[cell] += 1
+    measured = counts > 0
+    raw = np.where(measured, sums / np.maximum(counts, 1), np.nan)
+    reference = raw[measured & pad] if np.any(measured & pad) else raw[measured]
+    gain = raw / float(np.median(reference))
+    no_pad = float(np.median(gain[measured & ~pad])) if np.any(measured & ~pad) else defaults.no_pad_gain
+    gain = np.where(measured, gain, np.where(pad, 1.0, no_pad))
+    pitch = sensing_map.pitch_mm()
+    widths = []
+    for cell, delta in records:
+        distance = np.linalg.norm(sensing_map.cell_points - sensing_map.cell_points[cell], axis=1)
+        ratio = (delta / gain) / (delta[cell] / gain[cell])
+        use = ((distance >= 0.5 * pitch) & (distance <= 2.5 * pitch) & (delta > params.width_snr * sigma)
+               & (ratio > 0.02) & (ratio < 0.98))
+        widths.extend((distance[use] / np.sqrt(-2.0 * np.log(ratio[use]))).tolist())
+    if widths:
+        width = float(np.median(widths))
+        radius = float(np.sqrt(max(width**2 - (pitch / 2) ** 2, (0.3 * pitch) ** 2)))
+    else:
+        width, radius = None, defaults.finger_radius_mm
+    width = width or default_coupling_width_mm(radius, pitch)
+    return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map))
+
+
+def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),
+              prompt: Callable[[str], None] = lambda text: None) -> tuple[Calibration, dict[str, Any]]:
+    """Run a guided session over ``frames`` (until every target is touched or the frames end) with
+    the default processing, then estimate; returns the calibration and what the session saw."""
+    processor = TouchProcessor(sensing_map)
+    session = CalibrationSession(sensing_map, params, prompt)
+    count = 0
+    start = None
+    for frame in frames:
+        start = frame.t if start is None else start
+        session.feed(processor.process(frame.values, frame.t - start))
+        count += 1
+        if session.done:
+            break
+    calibration = estimate(sensing_map, session.records, processor.sigma(), params)
+    return calibration, {"frames": count, "targets": len(session.targets), "accepted": len(session.records),
+                         "skipped": session.skipped}

@@ -1,0 +1,45 @@
+"""``retrotouch sense --calibrate``: the guided calibration session on a board, a recording or the
+virtual board (a simulated operator follows the prompts), written to a calibration file."""
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .sinks import EventSinks, status_event
+
+
+def run_calibration(layout_path: Path, source: Any, out: Path, open_frames: Callable) -> None:
+    """Prompt (stderr and ``calibration`` status events on stdout), collect, estimate, write ``out``."""
+    from ..data.sensing_map import load_sensing_map
+    from .calibration import calibrate
+    from .evaluation import calibrate_simulator
+
+    sensing_map = load_sensing_map(layout_path)
+    sinks = EventSinks()
+
+    def prompt(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+        sinks.emit(status_event("calibration", text))
+
+    frames = reader = None
+    try:
+        if source.steps is not None:  # --simulate: the operator is simulated too
+            calibration, session = calibrate_simulator(sensing_map, source.board_params, seed=source.board_params.seed,
+                                                       prompt=prompt)
+        else:
+            frames, reader = open_frames(source, sensing_map, sinks)
+            calibration, session = calibrate(frames, sensing_map, prompt=prompt)
+    finally:
+        if hasattr(frames, "close"):
+            frames.close()
+        if reader is not None:
+            reader.close()
+    calibration.save(out)
+    summary = calibration.summary()
+    line = (f"calibration written to {out}: {session['accepted']} of {session['targets']} touches "
+            f"({summary['crossings_measured']} crossings), no-pad gain {summary['no_pad_gain']:.2f}, coupling width "
+            f"{summary['coupling_sigma_mm']:.2f} mm (finger radius {summary['finger_radius_mm']:.2f} mm)")
+    print(line, file=sys.stderr, flush=True)
+    sinks.emit(status_event("calibration", line))

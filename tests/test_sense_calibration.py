@@ -1,0 +1,129 @@
+"""`sense --calibrate` (issue 14 item 3): the operator touches every crossing; the estimate recovers
+per-cell gains, the no-pad gain and the coupling width; on the mismatched virtual board the
+calibrated processing localizes the spread locations better; the file round-trips and is tied to
+its layout."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.data.sensing_map import load_sensing_map
+from retrotouch.nodes.sensing.calibration import CalibParams, estimate, load_calibration
+from retrotouch.nodes.sensing.cli import register
+from retrotouch.nodes.sensing.evaluation import EvalParams, calibrate_simulator, evaluate_simulator
+from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
+from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD, VirtualBoard
+
+CONTRACT = ("localization_error_mm_mean", "localization_error_mm_max", "missed_presses",
+            "presses_without_one_touch_down", "ghost_touches", "false_touches_at_rest", "snr_mean")
+
+
+@pytest.fixture(scope="module")
+def bunny(tmp_path_factory):
+    path = synthetic_bunny_map(tmp_path_factory.mktemp("bunny"), cells=120)
+    return path, load_sensing_map(path)
+
+
+@pytest.fixture(scope="module")
+def calibrated(bunny):
+    """One round over every crossing of the mismatched default board."""
+    _, sensing_map = bunny
+    prompts = []
+    calibration, session = calibrate_simulator(sensing_map, REALISTIC_BOARD, CalibParams(rounds=1),
+                                               prompt=prompts.append)
+    return calibration, session, prompts
+
+
+def test_estimate_recovers_gains_no_pad_gain_and_width_from_noise_free_touches(bunny):
+    _, sensing_map = bunny
+    rng = np.random.default_rng(3)
+    pad = rng.random(sensing_map.cell_count) < 0.7
+    sensing_map = dataclasses.replace(sensing_map, cell_pad=pad)
+    gain = np.where(pad, 1.0, 0.3) * rng.lognormal(0, 0.2, sensing_map.cell_count)
+    width = 7.0
+    points = sensing_map.cell_points
+    records = []
+    for cell in range(sensing_map.cell_count):
+        d2 = np.sum((points - points[cell]) ** 2, axis=1)
+        records.append((cell, 300.0 * gain * np.exp(-d2 / (2 * width**2))))
+    result = estimate(sensing_map, records, np.full(sensing_map.cell_count, 1.0))
+    reference = np.median(gain[pad])
+    assert np.allclose(result.cell_gain, gain / reference, rtol=1e-6)
+    assert result.no_pad_gain == pytest.approx(np.median(gain[~pad]) / reference, rel=1e-6)
+    assert result.coupling_sigma_mm == pytest.approx(width, rel=1e-3)
+    assert result.measured.all() and result.touches == sensing_map.cell_count
+
+
+def test_the_session_prompts_every_crossing_and_measures_the_boards_gains(bunny, calibrated):
+    _, sensing_map = bunny
+    calibration, session, prompts = calibrated
+    assert session["targets"] == sensing_map.cell_count and len(prompts) >= session["accepted"]
+    assert prompts[0].startswith("touch crossing Tx") and "of 120" in prompts[0]
+    assert session["accepted"] >= 0.9 * sensing_map.cell_count
+    board = VirtualBoard(sensing_map, REALISTIC_BOARD)  # the truth, read only to check the estimate
+    measured = calibration.measured
+    truth = np.log(board.gain[measured] / np.median(board.gain[measured & sensing_map.cell_pad]))
+    assert np.corrcoef(truth, np.log(calibration.cell_gain[measured]))[0, 1] > 0.8
+    assert np.sqrt(np.mean((np.log(calibration.cell_gain[measured]) - truth) ** 2)) < 0.15  # the board spreads 0.2
+    # The board's finger (5.5 mm disc) couples wider than the processing's default (4.5 mm Gaussian).
+    assert calibration.finger_radius_mm > 4.5
+
+
+def test_calibration_improves_localization_on_the_mismatched_board(bunny, calibrated):
+    path, _ = bunny
+    calibration, _, _ = calibrated
+    params = EvalParams(locations=8, repetitions=4)
+    plain = evaluate_simulator(path, REALISTIC_BOARD, params).summary()
+    tuned = evaluate_simulator(path, REALISTIC_BOARD, params, calibration=calibration).summary()
+    assert set(CONTRACT) <= set(plain) and set(CONTRACT) <= set(tuned)
+    assert tuned["localization_error_mm_mean"] < plain["localization_error_mm_mean"]
+    assert tuned["localization_error_mm_max"] < plain["localization_error_mm_max"] + 0.5
+    assert tuned["missed_presses"] == 0 and tuned["false_touches_at_rest"] == 0
+
+
+def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
+    _, sensing_map = bunny
+    calibration, _, _ = calibrated
+    path = tmp_path / "calibration.json"
+    calibration.save(path)
+    loaded = load_calibration(path)
+    assert json.loads(path.read_text())["format"] == "retrotouch.sensing_calibration/1"
+    assert np.allclose(loaded.cell_gain, calibration.cell_gain, atol=1e-5) and loaded.layout == calibration.layout
+    loaded.processor(sensing_map)
+    other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))
+    with pytest.raises(UserError, match="another layout"):
+        loaded.processor(other)
+    with pytest.raises(UserError, match="not found"):
+        load_calibration(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text('{"format": "retrotouch.sensing_calibration/1", "cell_gain": [1, -2]}')
+    with pytest.raises(UserError, match="malformed"):
+        load_calibration(tmp_path / "bad.json")
+
+
+def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_path):
+    jsonschema = pytest.importorskip("jsonschema")
+    from pathlib import Path
+
+    path, _ = bunny
+    app = typer.Typer()
+    register(app)
+    app.command("other")(lambda: None)
+    out = tmp_path / "cal.json"
+    result = CliRunner().invoke(app, ["sense", "--simulate", "--calibrate", "--calibration", str(out),
+                                      "--layout", str(path.parent)])
+    assert result.exit_code == 0, result.output
+    schema = json.loads((Path(__file__).resolve().parents[1] / "nodes/data/events.schema.json").read_text())
+    events = [json.loads(line) for line in result.stdout.splitlines()]
+    for event in events:
+        jsonschema.validate(event, schema)
+    assert {e["kind"] for e in events} == {"calibration"} and "calibration written to" in events[-1]["message"]
+    assert load_calibration(out).touches >= 200  # 2 rounds over 120 crossings, most accepted
+    missing = CliRunner().invoke(app, ["sense", "--simulate", "--fast", "--calibration", str(tmp_path / "none.json"),
+                                       "--layout", str(path.parent)])
+    assert missing.exit_code != 0 and "calibration file" in str(missing.exception)
