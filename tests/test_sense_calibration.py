@@ -127,3 +127,44 @@ def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_p
     missing = CliRunner().invoke(app, ["sense", "--simulate", "--fast", "--calibration", str(tmp_path / "none.json"),
                                        "--layout", str(path.parent)])
     assert missing.exit_code != 0 and "calibration file" in str(missing.exception)
+
+
+def test_the_live_view_shows_the_calibration_prompt_on_the_running_session(bunny):
+    """run_calibration with a live view: the page's frames carry the prompt of the session."""
+    import threading
+    import urllib.request
+    from pathlib import Path
+
+    from retrotouch.nodes.sensing.calibration_cli import run_calibration
+    from retrotouch.nodes.sensing.cli import Source
+    from retrotouch.nodes.sensing.live_view import LiveView
+
+    path, _ = bunny
+    views, prompts_seen = [], []
+
+    def live_view(processor):
+        view = LiveView(processor, port=0)
+        view.start()
+        views.append(view)
+        return view
+
+    def watch() -> None:
+        while not views:
+            threading.Event().wait(0.05)
+        with urllib.request.urlopen(views[0].url + "events", timeout=30) as stream:
+            for line in stream:
+                if line.startswith(b"data: "):
+                    prompts_seen.append(json.loads(line[6:])["prompt"])
+                    if len(prompts_seen) >= 20:
+                        return
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    source = Source(port=None, baudrate=115200, frame_format="ascii", options=None, skip_lines=0, record=None,
+                    replay=None, replay_options=False, speed=0.0, steps=[], board_params=REALISTIC_BOARD,
+                    fast=True, loop=False)
+    out = Path(path).parent / "live_cal.json"
+    run_calibration(Path(path), source, out, open_frames=None, live_view=live_view)
+    watcher.join(timeout=30)
+    assert out.is_file() and prompts_seen
+    assert all(prompt.startswith(("touch crossing Tx", "that touch was too short")) for prompt in prompts_seen)

@@ -219,16 +219,21 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),
-              prompt: Callable[[str], None] = lambda text: None) -> tuple[Calibration, dict[str, Any]]:
+              prompt: Callable[[str], None] = lambda text: None, processor: TouchProcessor | None = None,
+              on_result: Callable[[FrameResult], None] | None = None) -> tuple[Calibration, dict[str, Any]]:
     """Run a guided session over ``frames`` (until every target is touched or the frames end) with
-    the default processing, then estimate; returns the calibration and what the session saw."""
-    processor = TouchProcessor(sensing_map)
+    ``processor`` (default processing; ``on_result`` sees each frame's result, e.g. a live view), then
+    estimate; returns the calibration and what the session saw."""
+    processor = processor or TouchProcessor(sensing_map)
     session = CalibrationSession(sensing_map, params, prompt)
     count = 0
     start = None
     for frame in frames:
         start = frame.t if start is None else start
-        session.feed(processor.process(frame.values, frame.t - start))
+        result = processor.process(frame.values, frame.t - start)
+        session.feed(result)
+        if on_result is not None:
+            on_result(result)
         count += 1
         if session.done:
             break

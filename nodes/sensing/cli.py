@@ -177,7 +177,8 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     if calibrate:
         from .calibration_cli import run_calibration
 
-        run_calibration(layout_path, source, Path(calibration or "calibration.json"), _open_frames)
+        run_calibration(layout_path, source, Path(calibration or "calibration.json"), _open_frames,
+                        (lambda processor: _live_view(processor, view_port)) if view else None)
         return
     _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration, loaded)
 

@@ -203,10 +203,11 @@ def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarr
 
 
 def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, params: CalibParams = CalibParams(),
-                        seed: int = 0, prompt=lambda text: None) -> tuple[Calibration, dict[str, Any]]:
+                        seed: int = 0, prompt=lambda text: None, **session: Any) -> tuple[Calibration, dict[str, Any]]:
     """``sense --calibrate`` on the virtual board: a simulated operator touches each prompted crossing
     where it really is on the board (the crossings of a hand-laid sensor sit off the map) with an aim
-    error of up to 1.5 mm, 0.9 s per touch and 0.6 s between touches, in the order prompted."""
+    error of up to 1.5 mm, 0.9 s per touch and 0.6 s between touches, in the order prompted;
+    ``session`` goes to :func:`.calibration.calibrate` (processor, on_result)."""
     board = VirtualBoard(sensing_map, board_params)
     rng = np.random.default_rng([seed, 7])
     steps = []
@@ -218,7 +219,7 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
         steps.append({"gesture": "press", "at": (board.cell_points[cell] + aim).tolist(), "ms": 900, "gap_ms": 600,
                       "calibration_touch": k})
     script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
-    return calibrate(frames_through_pty(board, script, fast=True), sensing_map, params, prompt)
+    return calibrate(frames_through_pty(board, script, fast=True), sensing_map, params, prompt, **session)
 
 
 def evaluate_simulator(

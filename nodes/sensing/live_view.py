@@ -35,7 +35,7 @@ PAGE = """<!doctype html>
  li.touch { margin: 4px 0; } #events li { color: #8fd; }
 </style></head>
 <body><canvas id="view" width="800" height="700"></canvas>
-<aside><div id="status">connecting</div><h4>touches</h4><ul id="touches"></ul><h4>gestures</h4><ul id="events"></ul>
+<aside><div id="prompt" style="color:#fd8;font-size:15px"></div><div id="status">connecting</div><h4>touches</h4><ul id="touches"></ul><h4>gestures</h4><ul id="events"></ul>
 <p>drag to rotate</p></aside>
 <script>
 "use strict";
@@ -152,6 +152,7 @@ fetch("mesh.json").then(r => r.json()).then(m => {
     heat = frame.heat; touches = frame.touches; dirty = true;
     if (follow && touches.length) faceTowards(touches.reduce((a, b) => (b.intensity > a.intensity ? b : a)).normal);
     document.getElementById("status").textContent = `frame ${frame.seq}, t ${frame.t.toFixed(1)} s, ${touches.length} touch(es)`;
+    document.getElementById("prompt").textContent = frame.prompt || "";
     showTouches(touches); showEvents(frame.events, frame.t);
   };
   source.onerror = () => { document.getElementById("status").textContent = "disconnected"; };
@@ -177,6 +178,7 @@ class LiveView:
         }).encode()
         self._latest: bytes | None = None
         self._seq = 0
+        self.prompt = ""  # what the operator is asked to do (sense --calibrate), shown above the status
         self._changed = threading.Condition()
         self._stopping = False
         view = self
@@ -250,7 +252,7 @@ class LiveView:
             "touches": [{"id": t.id, "point": [round(float(x), 2) for x in t.point],
                          "normal": [round(float(x), 3) for x in t.normal],
                          "intensity": round(t.intensity, 1), "area_mm2": round(t.area_mm2, 1)} for t in result.touches],
-            "events": [e["type"] for e in gestures],
+            "events": [e["type"] for e in gestures], "prompt": self.prompt,
         }, separators=(",", ":")).encode()
         with self._changed:
             self._latest = payload
