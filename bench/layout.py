@@ -22,6 +22,14 @@ distance**p; ``phase1_gap_mm`` the same on the radius and the power mean in mm;
 ``phase1_gap_worst_branch`` over all branches)
 and the notes of failed or far worse branches.
 
+Solver comparison (``--solvers``, default both): phase 1 alone, per branch, through CP-SAT and HiGHS
+on the same model, the two solvers of one branch run back to back in one process (``--jobs``
+processes over the branches) so that load hits both alike. Per solver and stage: wall seconds of
+the solve (model building included), final objective, bound, gap on the model's objective and
+``global_gap`` (against the bounds valid without the trust region), median and worst over the
+branches, and how many stages ended on the same objective (then the seconds compare time to the
+same objective): ``phase1_seconds_by_solver``, ``phase1_gap_by_solver``, ``phase1_same_objective``.
+
 Prints the per-angle table; the LAST line is one JSON object. Usage:
 ``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z] [--no-ablation]``.
 """
@@ -39,7 +47,8 @@ from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.problem import candidate_crossings
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
 from retrotouch.nodes.layout.pick import PickParams, pick_best
-from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
+from retrotouch.nodes.layout.selection import select_curves
+from retrotouch.nodes.layout.sweep import OptimizeParams, optimize, selection_problem
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -82,6 +91,49 @@ def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int):
     return picked, time.perf_counter() - start, samples_s
 
 
+def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, solvers) -> dict:
+    """Phase 1 of one branch through each solver in turn: per solver, per stage seconds and report."""
+    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
+    problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end,
+                                bound, params.tx_free_start_mm)
+    out = {}
+    for solver in solvers:
+        start = time.perf_counter()
+        result = select_curves(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
+                               params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
+                               params.secondary_power, solver, params.highs_max_nodes)
+        out[solver] = {"seconds": time.perf_counter() - start, "stage_seconds": result.stage_seconds,
+                       "stages": result.report["stages"]}
+    return out
+
+
+def solver_comparison(mesh, regions, tx, branches, jobs: int, solvers: tuple[str, ...]) -> dict:
+    """Phase 1 per branch and solver (see the module docstring): per-stage tables and summaries."""
+    samples = surface_samples(SamplesParams(), mesh, regions)
+    runs = Parallel(n_jobs=jobs)(delayed(phase1_branch)(OptimizeParams(), mesh, samples, tx, *b, solvers) for b in branches)
+    stats = lambda values: {"median": float(np.median(values)), "worst": float(np.max(values))}  # noqa: E731
+    seconds, gaps, same = {}, {}, {}
+    for solver in solvers:
+        names = [st["stage"] for st in runs[0][solver]["stages"]]
+        seconds[solver] = {"phase1_total": round(sum(r[solver]["seconds"] for r in runs), 2)}
+        gaps[solver] = {}
+        for i, name in enumerate(names):
+            seconds[solver][name] = {k: round(v, 2) for k, v in stats([r[solver]["stage_seconds"][i] for r in runs]).items()}
+            gaps[solver][name] = {"gap": stats([r[solver]["stages"][i]["gap"] for r in runs]),
+                                  "global_gap": stats([r[solver]["stages"][i]["global_gap"] for r in runs]),
+                                  "statuses": sorted({r[solver]["stages"][i]["status"] for r in runs})}
+    for i, name in enumerate(st["stage"] for st in runs[0][solvers[0]]["stages"]):
+        objectives = [[r[s]["stages"][i]["objective"] for s in solvers] for r in runs]
+        same[name] = sum(1 for o in objectives if max(o) - min(o) <= 1e-9 * max(abs(o[0]), 1.0))
+    print(f"phase 1 per branch ({len(runs)} branches), seconds / objective / bound / gap per stage")
+    for b, r in zip(branches, runs):
+        cells = "  ".join(f"{s}: " + " | ".join(f"{sec:.1f}s {st['objective']:.3f}/{st['bound']:.3f} gap {st['gap']:.3f}"
+                                                  for sec, st in zip(r[s]["stage_seconds"], r[s]["stages"])) for s in solvers)
+        print(f"  {np.rad2deg(b[0].angle):+5.0f}  {cells}")
+    return {"phase1_seconds_by_solver": seconds, "phase1_gap_by_solver": gaps,
+            "phase1_same_objective": {"stages_with_same_objective": same, "branches": len(runs)}}
+
+
 def candidate_cv_reference(mesh, sensing_faces, tx, tx_rx, count: int) -> float:
     """Voronoi CV of ``count`` pads spread by farthest-point sampling over ALL single crossings of a
     branch: what the candidate curves allow at best-effort evenness, independent of the optimiser."""
@@ -104,6 +156,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="processes for the angle branches")
     parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
     parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
+    parser.add_argument("--solvers", default="cpsat,highs", help="phase-1 solvers to compare (comma list; empty: none)")
     parser.add_argument("--family", choices=("dipole", "rings"), default="dipole",
                         help="Rx candidates: dipole loops per angle (the paper) or rings around the Tx pole per corridor")
     args = parser.parse_args()
@@ -120,6 +173,8 @@ def main() -> None:
         m_off = without["metrics"]
     chosen_branch = branches[[round(float(np.rad2deg(b[0].angle))) for b in branches].index(round(m["chosen_angle_deg"]))]
     reference_cv = candidate_cv_reference(mesh, regions.sensing_faces, tx, chosen_branch[1], m["pads"])
+    solvers = tuple(s for s in args.solvers.split(",") if s)
+    comparison = solver_comparison(mesh, regions, tx, branches, args.jobs, solvers) if solvers else {}
     print(f"curves (prep) {curves_s:.1f} s; samples {samples_s:.1f} s; sweep {sweep_s:.1f} s; "
           f"sweep without secondary {sweep_off_s:.1f} s")
     print(f"chosen angle {m['chosen_angle_deg']:+.0f} deg: Voronoi CV {m['voronoi_cv']:.3f} "
@@ -146,6 +201,8 @@ def main() -> None:
         "phase1_gap": m["phase1_gap"],
         "phase1_gap_mm": m["phase1_gap_mm"],
         "phase1_gap_worst_branch": max((r["gap"] for r in m["angles"] if r["gap"] is not None), default=None),
+        "phase1_global_gap_worst_branch": max((r["global_gap"] for r in m["angles"] if r["global_gap"] is not None),
+                                              default=None),
         "branch_notes": {f"{r['angle_deg']:+.0f}": r["note"] for r in m["angles"] if r["note"]},
         "voronoi_cv_without_secondary": m_off["voronoi_cv"],
         "pads": m["pads"],
@@ -157,6 +214,10 @@ def main() -> None:
         "min_pad_spacing_mm": m["min_pad_spacing_mm"],
         "voronoi_cv_fps_all_candidates": reference_cv,
         "paper_voronoi_cv_bunny": 0.374,
+        "phase1_solver": OptimizeParams().solver,
+        "phase1_global_gap": m["phase1_global_gap"],
+        "phase1_gap_median_branch": float(np.median([r["gap"] for r in m["angles"] if r["gap"] is not None])),
+        **comparison,
     }))
 
 

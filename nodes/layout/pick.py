@@ -66,7 +66,8 @@ def _deterministic_time(metrics: dict) -> float | None:
     stages = metrics.get("phase1", {}).get("stages", [])
     if not stages:
         return None
-    return sum(st["deterministic_time"] for st in stages) + metrics.get("phase2", {}).get("deterministic_time", 0.0)
+    phase1 = sum(st.get("deterministic_time", 0.0) for st in stages)  # HiGHS stages report nodes instead
+    return phase1 + metrics.get("phase2", {}).get("deterministic_time", 0.0)
 
 
 def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> list[dict]:
@@ -91,6 +92,8 @@ def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> l
             "deterministic_time": _deterministic_time(m),
             "status": "/".join(s["status"] for s in stages) or c.message,
             "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
+            "global_gap": None if not stages or any(s.get("global_gap") is None for s in stages)
+            else max(s["global_gap"] for s in stages),
             "bound": [s.get("bound") for s in stages],
             "relaxations": len(m.get("relaxations", [])),
             "note": note,

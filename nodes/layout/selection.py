@@ -28,14 +28,11 @@ that stated intent, the p-center/p-median pair over the K uniform samples:
    selecting few crossings). Powers between the mean (p = 1) and the radius (p -> inf) weigh the
    large gaps more: p = 2 is the centroidal-Voronoi energy. The default power is ``PHASE1_POWER``.
 
-Formulation (chosen for speed over a big-M assignment model): distances are quantised to
-``resolution_mm`` and, per sample, the distinct distance levels ``l_1 < ... < l_J`` of the
-candidate crossings within its cap form a chain of "still uncovered at level j" literals ``u_kj``:
-``u_k1 + sum_{c at l_1} act_c >= 1``, ``u_kj >= u_k(j-1) - sum_{c at l_j} act_c``, the last level
-must be covered, ``u_kj => R >= l_(j+1)`` and ``dist_k = l_1 + sum_j (l_(j+1) - l_j) u_kj`` (the
-radius formulation of the p-median problem, Elloumi 2010). Stage 1 minimises ``R``; stage 2 adds
-``R <= R*`` and minimises ``sum_k dist_k^p = sum_k (l_1^p + sum_j (l_(j+1)^p - l_j^p) u_kj)``
-(exact in the level chain; levels in units of ``resolution_mm``).
+Formulation: distances are quantised to ``resolution_mm``; per sample, the distinct distance levels
+of the candidate crossings within its cap form a chain of "still uncovered at level j" columns, and
+one radius chain is shared by all samples (the p-center and p-median radius formulations; rows and
+columns in :mod:`retrotouch.nodes.layout.mip`). The model is one 0-1 linear program that either
+solver takes unchanged (``solver``: CP-SAT or HiGHS, :mod:`retrotouch.nodes.layout.solvers`).
 
 Start, caps and hints: a heuristic selection (:mod:`retrotouch.nodes.layout.heuristic`) (the better of a greedy construction and an evenly
 spread pick over the candidate order, improved by a best-improvement swap local search on
@@ -47,11 +44,17 @@ are then those of the restricted model). The start is hinted to stage 1 and, aft
 from the stage-1 solution, to stage 2. Without the secondary objective the local search scores the
 radius alone, so nothing in the ablation optimises the mean distance.
 
-CP-SAT runs with ``workers`` workers, a fixed seed and ``max_deterministic_time`` equal to the time
-limit and no wall-clock limit, so the result is a function of the problem only; every stage reports
-status, objective, bound, gap and CP-SAT's deterministic time (no wall seconds: they would make the
-report differ between runs). If CP-SAT returns no incumbent the heuristic selection is used and
-``report["source"]`` says so. Units: mm.
+Both solvers are deterministic for a fixed input (CP-SAT: deterministic time, fixed seed; HiGHS: one
+thread, fixed seed, a node limit); every stage reports status, objective, bound, gap and the solver's
+reproducible work (CP-SAT's deterministic time, HiGHS's nodes and LP iterations; no wall seconds: they
+would make the report differ between runs). Objectives are integers in the model, so a bound is
+rounded up to the next integer before the gap is taken. Beside the model's bound, each stage reports
+``global_bound`` (mm) and ``global_gap``, valid for the problem without the trust region: the model's
+bound when no trust region was needed, else for stage 1 the layer relaxation of
+:mod:`retrotouch.nodes.layout.bounds` (the radius no set of Rx, or Tx, curves alone can beat) and for
+stage 2 the power mean of each sample's distance to its nearest usable crossing.
+If the solver returns no incumbent the heuristic selection is used and ``report["source"]`` says so.
+Units: mm.
 """
 from __future__ import annotations
 
@@ -60,15 +63,17 @@ import dataclasses
 import numpy as np
 
 from .heuristic import heuristic_selection, local_search
+from .bounds import layer_radius_bound
+from .mip import LinearModel, build_model
 from .problem import (
     PHASE1_MAX_MEMBERSHIPS,
     PHASE1_POWER,
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
     SelectionProblem,
-    deterministic_solver,
     evaluate_selection,
 )
+from .solvers import HIGHS_MAX_NODES, StageSolution, solve_stage
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,25 +87,17 @@ class SelectionResult:
     coverage_radius_mm: float
     mean_distance_mm: float
     report: dict
+    stage_seconds: tuple[float, ...] = ()  # wall seconds per stage (not reproducible: not in the report)
 
 
-def _stage_report(name: str, solver, status: int, scale: float) -> dict:
-    from ortools.sat.python import cp_model
+def _gap(objective: float, bound: float) -> float:
+    return 0.0 if objective <= bound + 1e-9 else (objective - bound) / max(abs(objective), 1e-12)
 
-    has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
-    objective = solver.objective_value * scale if has else None
-    bound = solver.best_objective_bound * scale
-    gap = None
-    if has:
-        gap = 0.0 if objective <= bound + 1e-12 else (objective - bound) / max(abs(objective), 1e-12)
-    return {
-        "stage": name,
-        "status": solver.status_name(status),
-        "objective": objective,
-        "bound": bound,
-        "gap": gap,
-        "deterministic_time": solver.deterministic_time,
-    }
+
+def _stage_report(name: str, solved: StageSolution, objective: float, bound: float) -> dict:
+    """A stage's status, objective and bound (model units with the constant) and their gap."""
+    return {"stage": name, "status": solved.status, "objective": objective, "bound": bound,
+            "gap": _gap(objective, bound), **solved.work}
 
 
 def _quantised_distances(problem: SelectionProblem, resolution_mm: float) -> np.ndarray:
@@ -142,133 +139,59 @@ def _sample_caps(q: np.ndarray, q_start: np.ndarray, max_memberships: int) -> tu
     return sample_cap, slack
 
 
-class Phase1Model:
-    """The CP-SAT model of phase 1 (see the module docstring): selection literals ``x``/``y``, C1-C3,
-    the lazily created crossing literals ``act``, the radius and the per-sample level chains."""
-
-    def __init__(self, problem: SelectionProblem, n_drive: int, n_sense: int, q: np.ndarray, cap: int):
-        from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
-
-        self.problem = problem
-        self.model = model = cp_model.CpModel()
-        self.x = [model.new_bool_var(f"x{a}") for a in range(len(problem.tx_usable))]
-        self.y = [model.new_bool_var(f"y{b}") for b in range(len(problem.rx_usable))]
-        x, y = self.x, self.y
-        for a in np.flatnonzero(~problem.tx_usable):
-            model.add(x[a] == 0)
-        for b in np.flatnonzero(~problem.rx_usable):
-            model.add(y[b] == 0)
-        model.add(sum(x) <= n_drive)
-        model.add(sum(y) <= n_sense)
-        for a, b in problem.tx_conflicts:
-            model.add_bool_or([x[a].Not(), x[b].Not()])
-        for a, b in problem.rx_conflicts:
-            model.add_bool_or([y[a].Not(), y[b].Not()])
-        for a, b in problem.multi_pairs:
-            model.add_bool_or([x[a].Not(), y[b].Not()])
-        self.act: dict = {}
-        self.radius = model.new_int_var(int(q.min()), cap, "radius")
-        self.cap = cap
-        self.sample_terms: list = []
-        self.hint_u: list = []
-        self.memberships = 0
-
-    def active_var(self, c: int):
-        """The literal of candidate crossing ``c`` (``act_c <=> x_a AND y_b``), created on first use."""
-        if c not in self.act:
-            x, y = self.x[self.problem.cross_tx[c]], self.y[self.problem.cross_rx[c]]
-            v = self.model.new_bool_var(f"act{c}")
-            self.model.add_implication(v, x)
-            self.model.add_implication(v, y)
-            self.model.add_bool_or([x.Not(), y.Not(), v])
-            self.act[c] = v
-        return self.act[c]
-
-    def add_sample_chain(self, k: int, levels: np.ndarray, shells: list[np.ndarray], power: int) -> None:
-        """Covering chain of sample ``k``: distinct quantised ``levels`` and the crossings at each."""
-        model = self.model
-        model.add(self.radius >= int(levels[0]))
-        prev = None
-        terms = [int(levels[0]) ** power]
-        for j, level in enumerate(levels):
-            shell = [self.active_var(int(c)) for c in shells[j]]
-            if j == len(levels) - 1:
-                model.add(sum(shell) >= (1 if prev is None else prev))
-                break
-            u = model.new_bool_var(f"u{k}_{j}")
-            model.add(u + sum(shell) >= (1 if prev is None else prev))
-            if prev is not None:
-                model.add_implication(u, prev)
-            model.add(self.radius >= int(levels[j + 1])).only_enforce_if(u)
-            terms.append((int(levels[j + 1]) ** power - int(level) ** power) * u)
-            self.hint_u.append((u, k, int(level)))
-            prev = u
-        self.sample_terms.append(sum(terms))
-
-    def add_samples(self, q: np.ndarray, sample_cap: np.ndarray, power: int) -> None:
-        """One covering chain per sample over the crossings within its cap."""
-        order = np.argsort(q, axis=1, kind="stable")
-        for k in range(q.shape[0]):
-            within = order[k, : int(np.searchsorted(q[k, order[k]], sample_cap[k], side="right"))]
-            self.memberships += len(within)
-            levels, shell_of = np.unique(q[k, within], return_inverse=True)
-            self.add_sample_chain(k, levels, [within[shell_of == j] for j in range(len(levels))], power)
-
-    def hint(self, tx_sel: np.ndarray, rx_sel: np.ndarray, resolution_mm: float) -> None:
-        """Hint a selection with every derived literal at its tight value."""
-        problem, model = self.problem, self.model
-        model.clear_hints()
-        tx_mask = np.zeros(len(self.x), dtype=bool)
-        tx_mask[tx_sel] = True
-        rx_mask = np.zeros(len(self.y), dtype=bool)
-        rx_mask[rx_sel] = True
-        _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-        q_near = np.ceil(nearest / resolution_mm - 1e-9)
-        for a, v in enumerate(self.x):
-            model.add_hint(v, bool(tx_mask[a]))
-        for b, v in enumerate(self.y):
-            model.add_hint(v, bool(rx_mask[b]))
-        for c, v in self.act.items():
-            model.add_hint(v, bool(tx_mask[problem.cross_tx[c]] and rx_mask[problem.cross_rx[c]]))
-        for u, k, level in self.hint_u:
-            model.add_hint(u, bool(q_near[k] > level))
-        model.add_hint(self.radius, int(min(q_near.max(), self.cap)))
-
-    def selection(self, solver) -> tuple[np.ndarray, np.ndarray]:
-        """The selected Tx and Rx candidates of the solver's incumbent."""
-        tx = np.array([a for a, v in enumerate(self.x) if solver.boolean_value(v)], dtype=np.int64)
-        rx = np.array([b for b, v in enumerate(self.y) if solver.boolean_value(v)], dtype=np.int64)
-        return tx, rx
+def _nearest_levels(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float) -> np.ndarray:
+    _, nearest = evaluate_selection(problem, tx, rx)
+    return np.ceil(nearest / resolution_mm - 1e-9).astype(np.int64)
 
 
-def _power_mean_stage(m: Phase1Model, solver, start: tuple[np.ndarray, np.ndarray], settings: dict) -> tuple[dict, tuple | None]:
-    """Stage 2: with the radius fixed at stage 1's, minimise the sum of distance**power, from a local
-    search of stage 1's selection. Returns the stage report (``gap`` on the sum of level**p, the
-    model's objective; ``gap_power_mean_mm`` on the power mean in mm) and the selection."""
-    from ortools.sat.python import cp_model
+def _selection(model: LinearModel, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (np.flatnonzero(values[:model.n_tx]).astype(np.int64),
+            np.flatnonzero(values[model.n_tx:model.n_tx + model.n_rx]).astype(np.int64))
 
-    problem, power, resolution_mm = m.problem, settings["power"], settings["resolution_mm"]
-    best_radius = int(solver.value(m.radius))
-    tx_sel, rx_sel, moves = local_search(problem, *start, settings["n_drive"], settings["n_sense"], True, resolution_mm,
-                                         power=power)
-    m.hint(tx_sel, rx_sel, resolution_mm)
-    m.model.add(m.radius <= best_radius)
-    m.model.minimize(sum(m.sample_terms))
-    status = solver.solve(m.model)
-    report = _stage_report(f"power_mean_distance_p{power}", solver, status, 1.0 / len(problem.distance))
-    found = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
-    if found:
-        tx_sel, rx_sel = m.selection(solver)
+
+def _radius_stage(model: LinearModel, problem: SelectionProblem, start: tuple, settings: dict) -> tuple[dict, tuple | None, float]:
+    """Stage 1: minimise the radius from ``start``. Returns the report (mm), the selection (None
+    without an incumbent) and the solver's wall seconds."""
+    res = settings["resolution_mm"]
+    hint = model.column_values(*start, _nearest_levels(problem, *start, res))
+    solved = solve_stage(model, model.radius_objective(), hint, settings["solver"], settings)
+    bound = model.r_low + np.ceil(solved.bound - 1e-6)
+    objective = model.r_low + (solved.objective if solved.values is not None else float(hint @ model.radius_objective()))
+    report = _stage_report("coverage_radius", solved, float(objective * res), float(bound * res))
+    return report, None if solved.values is None else _selection(model, solved.values), solved.seconds
+
+
+def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tuple, settings: dict) -> tuple[dict, tuple, float]:
+    """Stage 2: with the radius fixed at stage 1's, minimise the sum of level**power from a local
+    search of stage 1's selection. The report's ``gap`` is on the mean of level**p (the model's
+    objective), ``gap_power_mean_mm`` on the power mean in mm; objective and bound are in mm."""
+    power, res = settings["power"], settings["resolution_mm"]
+    radius = int(_nearest_levels(problem, *start, res).max())
+    tx_sel, rx_sel, moves = local_search(problem, *start, settings["n_drive"], settings["n_sense"], True, res, power=power)
+    fixed = model.radius_fixed(radius)
+    cost = fixed.power_objective()
+    hint = fixed.column_values(tx_sel, rx_sel, _nearest_levels(problem, tx_sel, rx_sel, res))
+    solved = solve_stage(fixed, cost, hint, settings["solver"], settings)
+    k = len(problem.distance)
+    if solved.values is not None:
+        tx_sel, rx_sel = _selection(fixed, solved.values)
+        total = solved.objective
     else:  # keep the hinted local-search selection, scored like the model scores it
-        _, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-        report["objective"] = float(np.mean(np.ceil(nearest / resolution_mm - 1e-9) ** power))
-        report["gap"] = max(0.0, report["objective"] - report["bound"]) / max(report["objective"], 1e-12)
+        total = float(hint @ cost)
+    mean_objective = (fixed.constant_power_sum + total) / k
+    mean_bound = (fixed.constant_power_sum + float(np.ceil(solved.bound - 1e-6))) / k
+    report = _stage_report(f"power_mean_distance_p{power}", solved, mean_objective, mean_bound)
+    if solved.values is None:
         report["note"] = "no incumbent within the limit: the local search's selection is kept (objective and gap are its)"
     for key in ("objective", "bound"):  # (mean of level**p) -> power mean in mm
-        report[key] = resolution_mm * max(report[key], 0.0) ** (1.0 / power)
-    report["gap_power_mean_mm"] = max(0.0, report["objective"] - report["bound"]) / max(report["objective"], 1e-12)
+        report[key] = res * max(report[key], 0.0) ** (1.0 / power)
+    report["gap_power_mean_mm"] = _gap(report["objective"], report["bound"])
+    # a trust region's bound holds inside it only; outside, no sample gets nearer than its nearest crossing
+    global_mean = mean_bound if not settings["restricted"] else fixed.constant_power_sum / k
+    report["global_bound"] = res * max(global_mean, 0.0) ** (1.0 / power)
+    report["global_gap"] = _gap(mean_objective, global_mean)
     report["local_search_moves_before"] = moves
-    return report, (tx_sel, rx_sel)
+    return report, (tx_sel, rx_sel), solved.seconds
 
 
 def select_curves(
@@ -282,40 +205,46 @@ def select_curves(
     workers: int = 1,
     max_memberships: int = PHASE1_MAX_MEMBERSHIPS,
     power: int = PHASE1_POWER,
+    solver: str = "cpsat",
+    highs_max_nodes: int = HIGHS_MAX_NODES,
 ) -> SelectionResult:
-    """Solve phase 1 (see the module docstring) and report every stage."""
-    from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
-
+    """Solve phase 1 (see the module docstring) with ``solver`` ("cpsat" or "highs") and report every stage."""
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
-    _, h_nearest = evaluate_selection(problem, start_tx, start_rx)
-
     q = _quantised_distances(problem, resolution_mm)
-    q_start = np.ceil(h_nearest / resolution_mm - 1e-9).astype(np.int64)
-    m = Phase1Model(problem, n_drive, n_sense, q, int(q_start.max()))
+    q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
-    m.add_samples(q, sample_cap, power)
-    solver = deterministic_solver(time_limit_s, seed, workers)
-    size = {"variables": len(m.model.proto.variables), "constraints": len(m.model.proto.constraints),
+    model = build_model(problem, n_drive, n_sense, q, sample_cap, power)
+    restricted = slack < int(q_start.max())
+    size = {"columns": model.n_cols, "rows": len(model.row_lo), "nonzeros": len(model.values),
             "candidate_crossings": int((problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]).sum()),
-            "crossings_in_model": len(m.act),
-            "trust_region_slack_mm": None if slack >= m.cap else slack * resolution_mm,
-            "memberships": m.memberships}
-    m.hint(start_tx, start_rx, resolution_mm)
-    m.model.minimize(m.radius)
-    status = solver.solve(m.model)
-    stages = [_stage_report("coverage_radius", solver, status, resolution_mm)]
-    if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
-        # The greedy hint is feasible, so no incumbent means the solver could not even load it in
-        # time: keep the greedy selection and say so in the report.
-        tx_sel, rx_sel, source = start_tx, start_rx, "heuristic (CP-SAT found no incumbent)"
+            "crossings_in_model": len(model.act_crossings),
+            "trust_region_slack_mm": slack * resolution_mm if restricted else None,
+            "memberships": len(model.u_sample) + len(q)}
+    settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
+                "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
+                "highs_max_nodes": highs_max_nodes, "restricted": restricted}
+    stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
+    stage_seconds = [seconds]
+    limits = (n_drive, n_sense)
+    if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
+        low = layer_radius_bound(problem, q, limits, model.r_low, int(q_start.max()), settings)
+        stage1["global_bound"] = float(low * resolution_mm)
     else:
-        (tx_sel, rx_sel), source = m.selection(solver), "cp-sat"
+        stage1["global_bound"] = stage1["bound"]
+    stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
+    stages = [stage1]
+    if found is None:
+        # The heuristic start is feasible, so no incumbent means the solver could not even load it in
+        # time: keep the heuristic selection and say so in the report.
+        tx_sel, rx_sel, source = start_tx, start_rx, f"heuristic ({solver} found no incumbent)"
+    else:
+        (tx_sel, rx_sel), source = found, solver
         if secondary:
-            settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm}
-            report, (tx_sel, rx_sel) = _power_mean_stage(m, solver, (tx_sel, rx_sel), settings)
+            report, (tx_sel, rx_sel), seconds = _power_mean_stage(model, problem, (tx_sel, rx_sel), settings)
             stages.append(report)
+            stage_seconds.append(seconds)
     active, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-    report = {"heuristic": heuristic, "stages": stages, "model": size, "source": source,
+    report = {"heuristic": heuristic, "stages": stages, "model": size, "source": source, "solver": solver,
               "resolution_mm": resolution_mm}
     return SelectionResult(tx=tx_sel, rx=rx_sel, active=active, nearest_mm=nearest, coverage_radius_mm=float(nearest.max()),
-                           mean_distance_mm=float(nearest.mean()), report=report)
+                           mean_distance_mm=float(nearest.mean()), report=report, stage_seconds=tuple(stage_seconds))

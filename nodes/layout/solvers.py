@@ -1,0 +1,100 @@
+"""One phase-1 stage of a :class:`~retrotouch.nodes.layout.mip.LinearModel` through CP-SAT or HiGHS,
+both deterministic for a fixed input: CP-SAT with a deterministic-time limit (its work units), a fixed
+seed and no wall-clock limit; HiGHS on one thread with a fixed seed and a branch-and-bound node limit (its statuses mapped to
+CP-SAT's names: OPTIMAL, FEASIBLE, INFEASIBLE, UNKNOWN; the raw one in the work report)
+(HiGHS has no deterministic work limit; its wall-clock ``time_limit`` is only a safety net, and a stage
+it stops says so in ``status``, since that result may differ between runs). Objectives and bounds are
+in the model's integer units; the caller converts them."""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from .mip import LinearModel
+from .problem import deterministic_solver
+
+SOLVERS = ("cpsat", "highs")
+HIGHS_MAX_NODES = 100  # branch-and-bound nodes per HiGHS stage (deterministic)
+HIGHS_SAFETY_S = 20.0  # HiGHS wall-clock safety net per stage (nondeterministic when reached)
+
+
+@dataclasses.dataclass(frozen=True)
+class StageSolution:
+    """One stage's outcome: ``values`` (columns) is None without an incumbent."""
+
+    status: str
+    values: np.ndarray | None
+    objective: float | None  # model units, without the constant
+    bound: float  # model units, without the constant
+    work: dict  # solver-specific reproducible effort (deterministic time; nodes and LP iterations)
+    seconds: float  # wall seconds (not reproducible: kept out of the reports, for benchmarks)
+
+
+def solve_stage(model: LinearModel, cost: np.ndarray, hint: np.ndarray, solver: str, settings: dict) -> StageSolution:
+    """Minimise ``cost @ v`` over ``model`` from the feasible ``hint`` with ``solver`` ("cpsat" or
+    "highs"); ``settings``: ``time_limit_s`` (CP-SAT deterministic time), ``seed``, ``workers``,
+    ``highs_max_nodes``."""
+    start = time.perf_counter()
+    status, values, bound, work = (_cpsat if solver == "cpsat" else _highs)(model, cost, hint, settings)
+    objective = None if values is None else float(cost @ values)
+    return StageSolution(status, values, objective, bound, work, time.perf_counter() - start)
+
+
+def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
+    from ortools.sat.python import cp_model
+
+    cp = cp_model.CpModel()
+    v = [cp.new_bool_var(f"v{i}") if hi else cp.new_constant(0) for i, hi in enumerate(model.col_hi.tolist())]
+    for r in range(len(model.row_lo)):
+        lo_, hi_ = model.offsets[r], model.offsets[r + 1]
+        expr = cp_model.LinearExpr.weighted_sum([v[c] for c in model.columns[lo_:hi_].tolist()],
+                                                model.values[lo_:hi_].tolist())
+        lo, hi = model.row_lo[r], model.row_hi[r]
+        cp.add_linear_constraint(expr, int(lo) if np.isfinite(lo) else cp_model.INT_MIN,
+                                 int(hi) if np.isfinite(hi) else cp_model.INT_MAX)
+    used = np.flatnonzero(cost)
+    cp.minimize(cp_model.LinearExpr.weighted_sum([v[i] for i in used.tolist()], cost[used].tolist()))
+    for i in np.flatnonzero(model.col_hi).tolist():
+        cp.add_hint(v[i], bool(hint[i]))
+    solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"])
+    status = solver.solve(cp)
+    has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
+    values = np.array([solver.value(x) for x in v], dtype=np.int64) if has else None
+    return solver.status_name(status), values, solver.best_objective_bound, {"deterministic_time": solver.deterministic_time}
+
+
+def _highs(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
+    import highspy  # heavy: imported when solving, not on node discovery
+
+    h = highspy.Highs()
+    for name, value in (("output_flag", bool(settings.get("log"))), ("threads", 1), ("random_seed", int(settings["seed"]) % 2**31),
+                        ("mip_max_nodes", int(settings["highs_max_nodes"])), ("time_limit", HIGHS_SAFETY_S)):
+        h.setOptionValue(name, value)
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = model.n_cols, len(model.row_lo)
+    lp.col_cost_ = cost.astype(float)
+    lp.col_lower_ = np.zeros(model.n_cols)
+    lp.col_upper_ = model.col_hi.astype(float)
+    lp.row_lower_ = np.where(np.isfinite(model.row_lo), model.row_lo, -highspy.kHighsInf)
+    lp.row_upper_ = np.where(np.isfinite(model.row_hi), model.row_hi, highspy.kHighsInf)
+    lp.a_matrix_.format_ = highspy.MatrixFormat.kRowwise
+    lp.a_matrix_.start_ = model.offsets.astype(np.int32)
+    lp.a_matrix_.index_ = model.columns.astype(np.int32)
+    lp.a_matrix_.value_ = model.values.astype(float)
+    lp.integrality_ = [highspy.HighsVarType.kInteger] * model.n_cols
+    h.passModel(lp)
+    solution = highspy.HighsSolution()
+    solution.col_value = hint.astype(float).tolist()
+    h.setSolution(solution)
+    h.run()
+    info = h.getInfo()
+    has = info.primal_solution_status == 2  # kSolutionStatusFeasible
+    values = np.rint(np.asarray(h.getSolution().col_value)).astype(np.int64) if has else None
+    raw = h.modelStatusToString(h.getModelStatus())
+    status = "OPTIMAL" if raw == "Optimal" else "INFEASIBLE" if raw == "Infeasible" else "FEASIBLE" if has else "UNKNOWN"
+    work = {"nodes": int(info.mip_node_count), "lp_iterations": int(info.simplex_iteration_count), "highs_status": raw}
+    if raw == "Time limit reached":
+        work["note"] = f"stopped by the {HIGHS_SAFETY_S:g} s wall-clock safety net: not reproducible"
+    return status, values, float(info.mip_dual_bound), work
