@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from .problem import deterministic_solver
+from .problem import deterministic_solver, work_units
 
 PAD_TIME_LIMIT_S = 2.0  # phase-2 CP-SAT limit, deterministic seconds
 
@@ -88,6 +88,6 @@ def place_pads(
         "objective": objective,
         "bound": bound,
         "gap": None if objective is None else (bound - objective) / max(objective, 1.0),
-        "deterministic_time": solver.deterministic_time,
+        "deterministic_time": work_units(solver),
     }
     return PadResult(pad=pad, feasible=feasible, report=report)

@@ -29,6 +29,12 @@ def deterministic_solver(time_limit_s: float, seed: int, workers: int):
     return solver
 
 
+def work_units(solver) -> float:
+    """The deterministic time (CP-SAT work units) a solve used, to 1e-9 units: the last bits of
+    CP-SAT's float sum differ between identical solves in one process, the 9 decimals do not."""
+    return round(float(solver.deterministic_time), 9)
+
+
 @dataclasses.dataclass(frozen=True)
 class SelectionProblem:
     """Phase-1 input: candidate curves, their valid crossings and the C1/C2 conflicts.

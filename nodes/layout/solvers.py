@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from .mip import LinearModel
-from .problem import deterministic_solver
+from .problem import deterministic_solver, work_units
 
 SOLVERS = ("cpsat", "highs")
 HIGHS_MAX_NODES = 100  # branch-and-bound nodes per HiGHS stage (deterministic)
@@ -62,7 +62,7 @@ def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     values = np.array([solver.value(x) for x in v], dtype=np.int64) if has else None
-    return solver.status_name(status), values, solver.best_objective_bound, {"deterministic_time": solver.deterministic_time}
+    return solver.status_name(status), values, solver.best_objective_bound, {"deterministic_time": work_units(solver)}
 
 
 def _highs(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
