@@ -12,6 +12,7 @@ show a lit, not a black, object, standing as it rests on a table.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import http.server
 import io
@@ -184,30 +185,25 @@ class _ViewerSite(http.server.SimpleHTTPRequestHandler):
         pass
 
 
+@contextlib.contextmanager
 def _serve(glb: bytes, site: Path, page: str, library: tuple[str, Path]):
-    """The GLB, the page and the viewer library in ``site`` on 127.0.0.1 (a random port): a
-    context yielding (url, reports, event)."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def serving():
-        site.mkdir()
-        (site / library[0]).symlink_to(library[1])
-        (site / "model.glb").write_bytes(glb)
-        (site / "index.html").write_text(page.replace("__W__", str(VIEW_W)).replace("__H__", str(VIEW_H)))
-        reported, reports = threading.Event(), []
-        handler = type("Site", (_ViewerSite,), {"reported": reported, "report": reports})
-        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(site)))
-        thread = threading.Thread(target=server.serve_forever, daemon=True)
-        thread.start()
-        try:
-            yield f"http://127.0.0.1:{server.server_address[1]}/index.html", reports, reported
-        finally:
-            reported.set()
-            server.shutdown()
-            server.server_close()
-
-    return serving()
+    """The GLB, the page and the viewer library in ``site`` on 127.0.0.1 (a random port): yields
+    (url, reports, event)."""
+    site.mkdir()
+    (site / library[0]).symlink_to(library[1])
+    (site / "model.glb").write_bytes(glb)
+    (site / "index.html").write_text(page.replace("__W__", str(VIEW_W)).replace("__H__", str(VIEW_H)))
+    reported, reports = threading.Event(), []
+    handler = type("Site", (_ViewerSite,), {"reported": reported, "report": reports})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(handler, directory=str(site)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/index.html", reports, reported
+    finally:
+        reported.set()
+        server.shutdown()
+        server.server_close()
 
 
 def _need_chromium() -> None:

@@ -15,7 +15,6 @@ import numpy as np
 from .mip import LinearModel
 from .problem import deterministic_solver, work_units
 
-SOLVERS = ("cpsat", "highs")
 HIGHS_MAX_NODES = 100  # branch-and-bound nodes per HiGHS stage (deterministic)
 HIGHS_SAFETY_S = 20.0  # HiGHS wall-clock safety net per stage (nondeterministic when reached)
 
