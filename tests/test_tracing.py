@@ -103,9 +103,10 @@ def test_adaptive_tx_sampling_covers_the_protrusions(bunny_curves):
     assert uniform.count == adaptive.count == 100
     gap_uniform = distance_to_curves(uniform, mesh.vertices[vertices])
     gap_adaptive = distance_to_curves(adaptive, mesh.vertices[vertices])
-    # measured: uniform max 24.4 mm away from the base, p95 13.2 mm; adaptive 5.7 mm and 2.5 mm
-    assert gap_uniform[away].max() > 20.0 and np.quantile(gap_uniform, 0.95) > 10.0
-    assert gap_adaptive[away].max() < 8.0 and np.quantile(gap_adaptive, 0.95) < 3.5
+    # measured over six remeshes (RETROTOUCH_TEST_JITTER=1e-6:0..5): uniform max 12.7-28.1 mm away from
+    # the base, p95 7.1-13.9 mm; adaptive 4.7-5.7 mm and 2.3-2.7 mm
+    assert gap_adaptive[away].max() < min(8.0, 0.5 * gap_uniform[away].max())
+    assert np.quantile(gap_adaptive, 0.95) < min(3.5, 0.5 * np.quantile(gap_uniform, 0.95))
 
 
 def test_start_angles_round_trip():

@@ -97,7 +97,7 @@ def slide(
     escape state ``(face, bary at the vertex)`` and the vertex restated in the face of the last slid
     edge (the curve's end row if it stops right there); ``None`` when the curve is stuck. A slide
     that would continue along an edge between two ``base`` faces ends there instead (escape ``None``):
-    the curve has reached the base.
+    the curve has reached the base; an edge between a base face and another is recorded in the other.
     """
     a = int(tables.faces[f, (exit_corner + 1) % 3])
     b = int(tables.faces[f, (exit_corner + 2) % 3])
@@ -118,9 +118,12 @@ def slide(
         if nxt is None or nxt[0] in seen:
             return None
         w, h, k = nxt
-        if base is not None and base[h] and base[tables.opposite_face[h, (k + 2) % 3]]:
-            at_vertex = np.asarray(tables.faces[last_face] == v, dtype=np.float64)
-            return rows, None, (last_face, at_vertex)
+        across = int(tables.opposite_face[h, (k + 2) % 3])
+        if base is not None and base[h]:
+            if base[across]:
+                at_vertex = np.asarray(tables.faces[last_face] == v, dtype=np.float64)
+                return rows, None, (last_face, at_vertex)
+            h, k = across, int(np.flatnonzero(tables.faces[across] == v)[0])
         rows.append((h, np.eye(3)[k]))
         seen.add(w)
         last_face = h
