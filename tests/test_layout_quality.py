@@ -1,7 +1,7 @@
 """Bounds on layout quality over the bunny and ../shared/meshes (layouts at test size, see
 tests/layout_quality.py). The hard constraint holds everywhere; the quality bounds are the worst case
-measured over the whole set (recorded in the commit that set them) with a 10 % margin, so a change
-that makes any mesh worse than today's worst fails, and so does one that breaks the median."""
+measured over the whole set and over several remeshes of each (recorded below) with a 10 % margin, so
+a change that makes any mesh worse than today's worst fails, and so does one that breaks the median."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,14 +9,17 @@ import pytest
 from layout_quality import BUNNY, SHARED, layout_metrics
 
 MESHES = [BUNNY] + SHARED
-# Measured 2026-12-02 over the 16 meshes (bunny + 15 shared; every one has a layout), CP-SAT on
-# deterministic time only, with the mirror-plane resting pose, worst / median: cells 1 (sword_oded) / 48,
-# Voronoi CV over all crossings 1.874 (human_man_oded) / 1.07, coverage radius 98.2 mm (sword_oded) / 49.5 mm.
+# Measured 2026-12-02 over the 16 meshes (bunny + 15 shared; every one has a layout) on six remeshes of
+# each (unperturbed, RETROTOUCH_TEST_JITTER=1e-6:1..4, and CI's machine), CP-SAT on deterministic time
+# only: worst cells 1 (sword_oded), worst Voronoi CV over all crossings 1.90 (hand_closed_oded), worst
+# coverage radius 113.9 mm (scorpion_lowres_oded); the median over the set per remesh: cells 34-48,
+# radius 46.2-55.0 mm. One object's layout varies that much between remeshes (the bunny: 28-67 cells,
+# radius 38.5-76.7 mm), so the bounds are the worst remesh's with a 10 % margin.
 MIN_CELLS = 1
 MAX_CV_ALL = 2.1
-MAX_RADIUS_MM = 108.0
-MEDIAN_CELLS = 43
-MEDIAN_RADIUS_MM = 54.5
+MAX_RADIUS_MM = 125.0
+MEDIAN_CELLS = 31
+MEDIAN_RADIUS_MM = 60.5
 
 
 def name(path: str) -> str:
