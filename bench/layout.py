@@ -95,7 +95,7 @@ def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, r
     """Phase 1 of one branch through each solver in turn: per solver, per stage seconds and report."""
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
     problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end,
-                                bound, params.tx_free_start_mm)
+                                bound, params.tx_free_start_mm, params.rx_free_end_mm)
     out = {}
     for solver in solvers:
         start = time.perf_counter()

@@ -1,11 +1,13 @@
 """Same-layer clearance on centre lines: close pairs (phase-1 conflicts) and the reported profile."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from retrotouch.nodes.data.types import CurveSet
-from retrotouch.nodes.layout.clearance import clearance_profile, close_pairs, resample, start_trims, trim_starts
+from retrotouch.nodes.layout.clearance import clearance_profile, close_pairs, free_end_trims, resample, trim_free_ends
 
 
 def lines(offsets_mm: list[float], length_mm: float = 50.0, rows: int = 26, face_of_row=None) -> CurveSet:
@@ -72,15 +74,33 @@ def fan(angles_deg: list[float], length_mm: float = 40.0, rows: int = 81) -> Cur
 def test_curves_from_a_common_start_are_trimmed_where_they_have_room():
     curves = fan([-10.0, 10.0])  # 2 s sin(10 deg) apart at arc s: 2 mm at s = 5.76 mm
     assert close_pairs(curves, EVERYWHERE, 2.0).tolist() == [[0, 1]]
-    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=20.0).tolist() == []
-    first = start_trims(curves, EVERYWHERE, 2.0, free_start_mm=20.0)
-    trimmed, cut = trim_starts(curves, first)
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=20.0).tolist() == []
+    first = free_end_trims(curves, EVERYWHERE, 2.0, free_mm=20.0)
+    trimmed, cut = trim_free_ends(curves, first)
     np.testing.assert_allclose(cut, first * 0.5)  # rows every 0.5 mm
     assert cut[0] == 0.0  # the first curve in spread order reaches the pole
     assert 5.76 <= cut[1] <= 5.76 + 0.25 + 0.5 + 1e-9  # conservative by one step, then one row
     np.testing.assert_allclose(trimmed.lengths_mm, 40.0 - cut)
     assert clearance_profile(trimmed, EVERYWHERE, 2.0)["min_centre_distance_mm"] >= 2.0
     assert trimmed.offsets[-1] == len(trimmed.points) == 2 * 81 - first.sum()
+
+
+def test_curves_into_a_common_end_are_trimmed_there_and_keep_their_start():
+    """The fan reversed: the curves meet at their ends; trimming the free end keeps every row from the
+    start (its arcs and segment indices unchanged) and cuts as much as the free start does in the fan."""
+    forward = fan([-10.0, 10.0])
+    rows = np.diff(forward.offsets)[0]
+    order = np.concatenate([np.arange(forward.offsets[c + 1] - 1, forward.offsets[c] - 1, -1) for c in range(2)])
+    curves = dataclasses.replace(forward, points=forward.points[order])
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=20.0).tolist() == [[0, 1]]  # the start is not free
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=20.0, free_end="end").tolist() == []
+    drop = free_end_trims(curves, EVERYWHERE, 2.0, free_mm=20.0, free_end="end")
+    np.testing.assert_array_equal(drop, free_end_trims(forward, EVERYWHERE, 2.0, free_mm=20.0))
+    trimmed, cut = trim_free_ends(curves, drop, free_end="end")
+    assert drop[0] == 0 and drop[1] > 0 and np.all(cut == 0.0)
+    np.testing.assert_array_equal(trimmed.points[trimmed.offsets[1]:], curves.points[rows : 2 * rows - drop[1]])
+    np.testing.assert_allclose(trimmed.lengths_mm, 40.0 - drop * 0.5)
+    assert clearance_profile(trimmed, EVERYWHERE, 2.0)["min_centre_distance_mm"] >= 2.0
 
 
 def test_spread_order_covers_the_range_evenly():
@@ -97,5 +117,16 @@ def test_a_free_start_next_to_the_middle_of_another_curve_still_conflicts():
     curves = CurveSet(layer="tx", points=np.vstack([a, b]), faces=np.zeros(202, dtype=np.int64),
                       bary=np.full((202, 3), 1 / 3), offsets=np.array([0, 101, 202]), lengths_mm=np.full(2, 50.0),
                       end_reason=np.zeros(2, dtype=np.int8), angle=0.0)
-    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=20.0).tolist() == [[0, 1]]
-    assert close_pairs(curves, EVERYWHERE, 2.0, free_start_mm=60.0).tolist() == []  # both in their free starts
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=20.0).tolist() == [[0, 1]]
+    # b's last 10 mm lie in its far half, which is never free however long the free start
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=60.0).tolist() == [[0, 1]]
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=60.0, free_end="end").tolist() == [[0, 1]]
+    assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=20.0, free_end="end").tolist() == [[0, 1]]
+
+
+def test_two_short_curves_side_by_side_conflict_whatever_the_free_length():
+    """Curves shorter than the free length: only their halves at the free end are free, so two that
+    run side by side all along still conflict (a free zone never reaches the wired half)."""
+    curves = lines([0.0, 1.0], length_mm=10.0)
+    for free_end in ("start", "end"):
+        assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=60.0, free_end=free_end).tolist() == [[0, 1]]

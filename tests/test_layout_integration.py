@@ -43,22 +43,24 @@ def test_bunny_layout_respects_constraints_and_spacing(bunny_run):
     assert all(multiplicity[p] == 1 for p in multiplicity if p[0] in tx_sel and p[1] in rx_sel)  # C2
     cells = layout.cells
     # the cells are the selected pairs' crossings, but for those on the trimmed start of a Tx curve
-    cut = dict(zip(layout.tx_source.tolist(), tx.lengths_mm[layout.tx_source] - layout.tx.lengths_mm))
-    on_traces = [p[0] in tx_sel and p[1] in rx_sel and arc >= cut[p[0]] for p, arc in zip(pairs, cross["tx_rx"].arc_a)]
+    # or the trimmed end of an Rx curve
+    tx_cut = dict(zip(layout.tx_source.tolist(), tx.lengths_mm[layout.tx_source] - layout.tx.lengths_mm))
+    rx_kept = dict(zip(layout.rx_source.tolist(), layout.rx.lengths_mm))
+    tx_rx = cross["tx_rx"]
+    on_traces = [a in tx_sel and b in rx_sel and arc_a >= tx_cut[a] and arc_b <= rx_kept[b]
+                 for a, b, arc_a, arc_b in zip(tx_rx.curve_a.tolist(), tx_rx.curve_b.tolist(), tx_rx.arc_a, tx_rx.arc_b)]
     assert len(cells.curve_a) == sum(on_traces)
-    assert np.array_equal(layout.rx.lengths_mm, rx.lengths_mm[layout.rx_source])
-    for c, source in enumerate(layout.tx_source):  # Tx: at most the free start near the pole is trimmed
-        full = tx.points[tx.offsets[source] : tx.offsets[source + 1]]
-        part = layout.tx.points[layout.tx.offsets[c] : layout.tx.offsets[c + 1]]
-        assert np.array_equal(full[len(full) - len(part) :], part)
-        cut = tx.lengths_mm[source] - layout.tx.lengths_mm[c]
-        assert cut == pytest.approx(np.linalg.norm(np.diff(full[: len(full) - len(part) + 1], axis=0), axis=1).sum())
-        assert cut <= params.tx_free_start_mm + 5.0  # plus at most one segment
-    for k in range(len(cells.curve_a)):  # cells still sit on their curves' segments after trimming
-        curve = layout.tx.points[layout.tx.offsets[cells.curve_a[k]] : layout.tx.offsets[cells.curve_a[k] + 1]]
-        p, q = curve[cells.seg_a[k]], curve[cells.seg_a[k] + 1]
-        t = np.dot(cells.points[k] - p, q - p) / np.dot(q - p, q - p)
-        assert -1e-6 <= t <= 1 + 1e-6 and np.linalg.norm(p + t * (q - p) - cells.points[k]) < 1e-6
+    for c, source in enumerate(layout.rx_source):  # Rx: at most the free end is trimmed
+        full = rx.points[rx.offsets[source] : rx.offsets[source + 1]]
+        part = layout.rx.points[layout.rx.offsets[c] : layout.rx.offsets[c + 1]]
+        assert np.array_equal(full[: len(part)], part)
+        assert rx.lengths_mm[source] - layout.rx.lengths_mm[c] <= params.rx_free_end_mm + 5.0  # plus one segment
+    for curves, channel, seg in ((layout.tx, cells.curve_a, cells.seg_a), (layout.rx, cells.curve_b, cells.seg_b)):
+        for k in range(len(cells.curve_a)):  # cells still sit on their curves' segments after trimming
+            curve = curves.points[curves.offsets[channel[k]] : curves.offsets[channel[k] + 1]]
+            p, q = curve[seg[k]], curve[seg[k] + 1]
+            t = np.dot(cells.points[k] - p, q - p) / np.dot(q - p, q - p)
+            assert -1e-6 <= t <= 1 + 1e-6 and np.linalg.norm(p + t * (q - p) - cells.points[k]) < 1e-6
     pads = np.flatnonzero(layout.pad)
     D = geodesics_for(mesh).pairwise(cells.faces[pads], cells.bary[pads])
     assert D[np.triu_indices(len(pads), 1)].min() >= m["d_min_mm"] - 0.05  # heat asymmetry tolerance

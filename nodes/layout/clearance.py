@@ -11,6 +11,7 @@ beyond the bound, never miss one). Units: mm.
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from ..data.types import CurveSet
 
 CONFLICT_STEP_MM = 0.25  # resampling of candidate curves for the conflict pairs
 MEASURE_STEP_MM = 0.1  # resampling of selected traces for the reported clearance
+FreeEnd = Literal["start", "end"]  # the end of a curve that may be cut back (the other one is wired)
 
 
 def row_arcs(curves: CurveSet) -> np.ndarray:
@@ -55,12 +57,13 @@ def resample(curves: CurveSet, face_mask: np.ndarray, step_mm: float) -> tuple[n
 
 
 def close_pairs(
-    curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_start_mm: float = 0.0, step_mm: float = CONFLICT_STEP_MM
+    curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_mm: float = 0.0, free_end: FreeEnd = "start",
+    step_mm: float = CONFLICT_STEP_MM,
 ) -> np.ndarray:
     """Distinct ``(P, 2)`` curve pairs (ascending) whose centre lines come closer than ``bound_mm``
     inside ``face_mask`` (conservatively: sampled distance below ``bound_mm + step_mm``), except where
-    both points lie in the first ``free_start_mm`` of their curves (free ends, which
-    :func:`start_trims` shortens until they have room)."""
+    both points lie in their curves' free zones: within ``free_mm`` of the ``free_end`` (``"start"`` or
+    ``"end"``) and in that half of the curve, which :func:`free_end_trims` shortens until they have room."""
     from scipy.spatial import cKDTree  # heavy: imported when used, not on node discovery
 
     points, curve, _, arc = resample(curves, face_mask, step_mm)
@@ -68,10 +71,88 @@ def close_pairs(
         return np.empty((0, 2), dtype=np.int64)
     pairs = cKDTree(points).query_pairs(bound_mm + step_mm, output_type="ndarray")
     a, b = curve[pairs[:, 0]], curve[pairs[:, 1]]
-    free = (arc < free_start_mm)[pairs]
+    free = _in_free_zone(curves, curve, arc, free_mm, free_end)[pairs]
     counted = (a != b) & ~(free[:, 0] & free[:, 1])
     key = np.unique(np.minimum(a, b)[counted] * curves.count + np.maximum(a, b)[counted])
     return np.stack([key // curves.count, key % curves.count], axis=1).astype(np.int64)
+
+
+def _from_free_end(curves: CurveSet, curve: np.ndarray, arc: np.ndarray, free_end: FreeEnd) -> np.ndarray:
+    """Arc length (mm) of resampled points from their curve's ``free_end``."""
+    return arc if free_end == "start" else curves.lengths_mm[curve] - arc
+
+
+def _in_free_zone(curves: CurveSet, curve: np.ndarray, arc: np.ndarray, free_mm: float, free_end: FreeEnd) -> np.ndarray:
+    """Resampled points within ``free_mm`` of their curve's ``free_end`` and in its half on that side
+    (a curve is never cut back beyond its middle, so a short one keeps its wired half clear)."""
+    return _from_free_end(curves, curve, arc, free_end) < np.minimum(free_mm, 0.5 * curves.lengths_mm[curve])
+
+
+def spread_order(n: int) -> np.ndarray:
+    """0..n-1 in van der Corput order (0, n/2, n/4, 3n/4, ...): every prefix is spread over the range."""
+    bits = max(1, int(np.ceil(np.log2(max(n, 2)))))
+    reversed_bits = np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in range(2**bits)])
+    return reversed_bits[reversed_bits < n]
+
+
+def free_end_trims(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_mm: float, free_end: FreeEnd = "start",
+                   step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:
+    """Per curve, how many rows to drop from its ``free_end`` so that it keeps ``bound_mm`` from the
+    curves kept before it inside ``face_mask``: curves are taken in :func:`spread_order` of their index
+    (their order at the pole or along the seed line), and each is cut beyond the last point of its free
+    zone (:func:`close_pairs`) that comes closer (conservatively, below ``bound_mm + step_mm``) to an
+    earlier one, as trimmed. So one curve of each converging bundle reaches the end and the others stop
+    where they have room; 0 = untouched."""
+    from scipy.spatial import cKDTree
+
+    points, curve, length, arc = resample(curves, face_mask, step_mm)
+    from_end = _from_free_end(curves, curve, arc, free_end)
+    in_zone = _in_free_zone(curves, curve, arc, free_mm, free_end)
+    arcs = row_arcs(curves)
+    drop = np.zeros(curves.count, dtype=np.int64)
+    kept = np.zeros(len(points), dtype=bool)
+    for c in spread_order(curves.count):
+        own = curve == c
+        lo, hi = int(curves.offsets[c]), int(curves.offsets[c + 1])
+        keep_from = 0.0  # arc from the free end (mm) where the kept part begins
+        if kept.any():
+            zone = own & in_zone
+            near = cKDTree(points[kept]).query(points[zone], distance_upper_bound=bound_mm + step_mm)[0] < np.inf
+            if near.any():
+                cut = float((from_end[zone][near] + 0.5 * length[zone][near]).max())
+                if free_end == "start":
+                    drop[c] = min(int(np.searchsorted(arcs[lo:hi], cut)), hi - lo - 2)
+                    keep_from = arcs[lo + drop[c]]
+                else:
+                    last = max(int(np.searchsorted(arcs[lo:hi], curves.lengths_mm[c] - cut, side="right")) - 1, 1)
+                    drop[c] = hi - lo - 1 - last
+                    keep_from = curves.lengths_mm[c] - arcs[lo + last]
+        kept |= own & (from_end >= keep_from)
+    return drop
+
+
+def trim_free_ends(curves: CurveSet, drop: np.ndarray, free_end: FreeEnd = "start") -> tuple[CurveSet, np.ndarray]:
+    """The family without the ``drop[c]`` rows at the ``free_end`` of each curve c; returns it and the
+    arc (mm) cut from each curve's start (subtract it from crossing arcs, and ``drop`` from segments,
+    when the start is cut; nothing changes for the rows kept when the end is cut)."""
+    arcs = row_arcs(curves)
+    keep = np.ones(len(curves.faces), dtype=bool)
+    cut = np.zeros(curves.count)
+    shortened = np.zeros(curves.count)
+    for c in np.flatnonzero(drop):
+        lo, hi, k = int(curves.offsets[c]), int(curves.offsets[c + 1]), int(drop[c])
+        if free_end == "start":
+            keep[lo : lo + k] = False
+            cut[c] = shortened[c] = arcs[lo + k]
+        else:
+            keep[hi - k : hi] = False
+            shortened[c] = curves.lengths_mm[c] - arcs[hi - k - 1]
+    counts = np.bincount(np.repeat(np.arange(curves.count), np.diff(curves.offsets))[keep], minlength=curves.count)
+    trimmed = dataclasses.replace(
+        curves, points=curves.points[keep], faces=curves.faces[keep], bary=curves.bary[keep],
+        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), lengths_mm=curves.lengths_mm - shortened,
+    )
+    return trimmed, cut
 
 
 def clearance_profile(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, step_mm: float = MEASURE_STEP_MM) -> dict:
@@ -97,54 +178,3 @@ def clearance_profile(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, 
         "length_in_region_mm": total,
         "bound_mm": float(bound_mm),
     }
-
-
-def spread_order(n: int) -> np.ndarray:
-    """0..n-1 in van der Corput order (0, n/2, n/4, 3n/4, ...): every prefix is spread over the range."""
-    bits = max(1, int(np.ceil(np.log2(max(n, 2)))))
-    reversed_bits = np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in range(2**bits)])
-    return reversed_bits[reversed_bits < n]
-
-
-def start_trims(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, free_start_mm: float,
-                step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:
-    """Per curve, the row from which it keeps ``bound_mm`` from the curves kept before it inside
-    ``face_mask``: curves are taken in :func:`spread_order` of their index (their angular order at the
-    pole), and each is cut after the last point of its first ``free_start_mm`` that comes closer
-    (conservatively, below ``bound_mm + step_mm``) to an earlier one, as trimmed. So one curve of each
-    converging bundle reaches the pole and the others stop where they have room; 0 = untouched."""
-    from scipy.spatial import cKDTree
-
-    points, curve, length, arc = resample(curves, face_mask, step_mm)
-    arcs = row_arcs(curves)
-    first = np.zeros(curves.count, dtype=np.int64)
-    kept = np.zeros(len(points), dtype=bool)
-    for c in spread_order(curves.count):
-        own = curve == c
-        if kept.any():
-            zone = own & (arc < free_start_mm)
-            near = cKDTree(points[kept]).query(points[zone], distance_upper_bound=bound_mm + step_mm)[0] < np.inf
-            if near.any():
-                cut = float((arc[zone][near] + 0.5 * length[zone][near]).max())
-                lo, hi = int(curves.offsets[c]), int(curves.offsets[c + 1])
-                first[c] = min(int(np.searchsorted(arcs[lo:hi], cut)), hi - lo - 2)
-        kept |= own & (arc >= arcs[int(curves.offsets[c]) + first[c]])
-    return first
-
-
-def trim_starts(curves: CurveSet, first: np.ndarray) -> tuple[CurveSet, np.ndarray]:
-    """The family without the rows before ``first[c]`` of each curve c; returns it and the arc (mm)
-    cut from each curve's start (subtract it from crossing arcs; subtract ``first`` from segments)."""
-    arcs = row_arcs(curves)
-    keep = np.ones(len(curves.faces), dtype=bool)
-    cut = np.zeros(curves.count)
-    for c in np.flatnonzero(first):
-        lo = int(curves.offsets[c])
-        keep[lo : lo + int(first[c])] = False
-        cut[c] = arcs[lo + int(first[c])]
-    counts = np.bincount(np.repeat(np.arange(curves.count), np.diff(curves.offsets))[keep], minlength=curves.count)
-    trimmed = dataclasses.replace(
-        curves, points=curves.points[keep], faces=curves.faces[keep], bary=curves.bary[keep],
-        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), lengths_mm=curves.lengths_mm - cut,
-    )
-    return trimmed, cut

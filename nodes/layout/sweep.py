@@ -7,7 +7,9 @@ pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, 
 ``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
 ``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross;
 Tx curves may come closer within the first ``tx_free_start_mm`` of their free start near the pole,
-where the selected ones are then trimmed until they have room.
+and Rx curves (wired at their start, see ``fab.unfold``) within the last ``rx_free_end_mm`` of their
+free end; the selected ones are then trimmed there until they have room, and crossings on the cut
+parts are not cells.
 
 Relaxation ladder, applied only when phase 2 is infeasible (some selected curve cannot carry
 ``min_pads_per_curve`` pads at spacing ``d_min``): (1) smaller pads, each radius of
@@ -38,7 +40,7 @@ from .problem import (
     merge_pairs,
     same_layer_conflicts,
 )
-from .clearance import clearance_profile, close_pairs, start_trims, trim_starts
+from .clearance import clearance_profile, close_pairs, free_end_trims, trim_free_ends
 from .selection import select_curves
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
@@ -85,6 +87,10 @@ class OptimizeParams(NodeParams):
     tx_free_start_mm: float = Field(
         60.0, ge=0, description="Tx curves may come closer within this arc length of their free start (near the "
         "pole); the selected ones are trimmed there until they have room (mm)"
+    )
+    rx_free_end_mm: float = Field(
+        60.0, ge=0, description="Rx curves may come closer within this arc length of their free end (the end "
+        "not wired); the selected ones are trimmed there until they have room (mm)"
     )
     relax_pad_radii_mm: tuple[float, ...] = Field(
         (1.5, 1.0), description="smaller pad radii tried in order when phase 2 is infeasible"
@@ -144,16 +150,18 @@ def selection_problem(
     require_base_end: bool,
     clearance_bound_mm: float | None = None,
     tx_free_start_mm: float = 0.0,
+    rx_free_end_mm: float = 0.0,
 ) -> SelectionProblem:
     """Phase-1 input from the curve families: single crossings, C1/C2 conflicts, sample distances;
     with ``clearance_bound_mm``, same-layer pairs closer than it in the sensing region conflict too
-    (Tx: not counting the first ``tx_free_start_mm`` of each curve, which the selected ones may lose)."""
+    (not counting the first ``tx_free_start_mm`` of each Tx curve and the last ``rx_free_end_mm`` of
+    each Rx curve, which the selected ones may lose)."""
     rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
     tx_conflicts, rx_conflicts = same_layer_conflicts(tx_tx), same_layer_conflicts(rx_rx)
     clearance_pairs = (0, 0)
     if clearance_bound_mm is not None:
-        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm)
-        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm)
+        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm, "start")
+        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm, rx_free_end_mm, "end")
         merged_tx, merged_rx = merge_pairs(tx_conflicts, tx_close), merge_pairs(rx_conflicts, rx_close)
         clearance_pairs = (len(merged_tx) - len(tx_conflicts), len(merged_rx) - len(rx_conflicts))
         tx_conflicts, rx_conflicts = merged_tx, merged_rx
@@ -219,13 +227,15 @@ def _branch_report(params: OptimizeParams, angle_deg: float, tx: CurveSet, rx: C
 
 
 def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndarray, pad: np.ndarray,
-               design: dict, tx_first: np.ndarray) -> tuple[Layout, np.ndarray]:
+               design: dict, tx_first: np.ndarray, rx_last: np.ndarray) -> tuple[Layout, np.ndarray]:
     """The layout of the kept crossings ``cells_rows`` (rows of ``tx_rx``) and their pad flags: channels
-    are the curves with at least one kept crossing, Tx curves without their first ``tx_first`` rows,
+    are the curves with at least one kept crossing, Tx curves without their first ``tx_first`` rows and
+    Rx curves without their last ``rx_last`` rows,
     cells sorted by (Tx channel, Rx channel); ``design`` holds the Layout's design values (mm).
     Returns the layout and the order applied to ``cells_rows``."""
     tx_sel, rx_sel = np.unique(tx_rx.curve_a[cells_rows]), np.unique(tx_rx.curve_b[cells_rows])
-    tx_curves, tx_cut = trim_starts(subset_curves(tx, tx_sel), tx_first[tx_sel])
+    tx_curves, tx_cut = trim_free_ends(subset_curves(tx, tx_sel), tx_first[tx_sel], "start")
+    rx_curves, _ = trim_free_ends(subset_curves(rx, rx_sel), rx_last[rx_sel], "end")
     order = np.lexsort((np.searchsorted(rx_sel, tx_rx.curve_b[cells_rows]),
                         np.searchsorted(tx_sel, tx_rx.curve_a[cells_rows])))
     cells_rows = cells_rows[order]
@@ -238,17 +248,21 @@ def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndar
         arc_a=tx_rx.arc_a[cells_rows] - tx_cut[channel_a], arc_b=tx_rx.arc_b[cells_rows],
         points=tx_rx.points[cells_rows], faces=tx_rx.faces[cells_rows], bary=tx_rx.bary[cells_rows],
     )
-    layout = Layout(tx=tx_curves, rx=subset_curves(rx, rx_sel), cells=cells, pad=pad[order],
+    layout = Layout(tx=tx_curves, rx=rx_curves, cells=cells, pad=pad[order],
                     tx_source=tx_sel, rx_source=rx_sel, **design)
     return layout, order
 
 
-def _tx_start_trims(params: OptimizeParams, samples: SurfaceSamples, tx: CurveSet, selection, bound_mm: float) -> np.ndarray:
-    """Rows to trim from the start of each Tx candidate: the selected ones where, within their first
-    ``tx_free_start_mm``, they come closer than ``bound_mm`` to another selected one; 0 elsewhere."""
-    first = np.zeros(tx.count, dtype=np.int64)
-    first[selection.tx] = start_trims(subset_curves(tx, selection.tx), samples.sensing_faces, bound_mm, params.tx_free_start_mm)
-    return first
+def _free_end_trims(params: OptimizeParams, samples: SurfaceSamples, curves: CurveSet, selected: np.ndarray,
+                    bound_mm: float) -> np.ndarray:
+    """Rows to drop from the free end of each candidate of ``curves`` (Tx: the start, the first
+    ``tx_free_start_mm``; Rx: the end, the last ``rx_free_end_mm``): the ``selected`` ones where there
+    they come closer than ``bound_mm`` to another selected one; 0 elsewhere."""
+    free_mm, free_end = (params.tx_free_start_mm, "start") if curves.layer == "tx" else (params.rx_free_end_mm, "end")
+    drop = np.zeros(curves.count, dtype=np.int64)
+    if free_mm > 0:
+        drop[selected] = free_end_trims(subset_curves(curves, selected), samples.sensing_faces, bound_mm, free_mm, free_end)
+    return drop
 
 
 def _phase1_summary(report: dict) -> dict:
@@ -332,7 +346,7 @@ def optimize(
     geo = geodesics_for(mesh)
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
     problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
-                                params.tx_free_start_mm)
+                                params.tx_free_start_mm, params.rx_free_end_mm)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
@@ -344,9 +358,14 @@ def optimize(
 
     active = selection.active
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
-    if bound is not None and params.tx_free_start_mm > 0:
-        tx_first = _tx_start_trims(params, samples, tx, selection, bound)
-        active = active[tx_rx.seg_a[problem.cross_rows[active]] >= tx_first[problem.cross_tx[active]]]
+    rx_last = np.zeros(rx.count, dtype=np.int64)  # rows trimmed from each Rx candidate's end
+    if bound is not None:
+        tx_first = _free_end_trims(params, samples, tx, selection.tx, bound)
+        rx_last = _free_end_trims(params, samples, rx, selection.rx, bound)
+        rows = problem.cross_rows[active]
+        rx_segments = np.diff(rx.offsets)[problem.cross_rx[active]] - 1  # segments per Rx candidate
+        active = active[(tx_rx.seg_a[rows] >= tx_first[problem.cross_tx[active]])
+                        & (tx_rx.seg_b[rows] < rx_segments - rx_last[problem.cross_rx[active]])]
     active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
@@ -361,7 +380,7 @@ def optimize(
 
     design = {"pad_radius_mm": float(pad_radius), "d_min_mm": float(d_min_for(params, pad_radius)),
               "trace_width_mm": params.trace_width_mm, "clearance_mm": params.clearance_mm}
-    layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad, design, tx_first)
+    layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad, design, tx_first, rx_last)
     kept = np.flatnonzero(keep)[order]
     pad_distance = distance[np.ix_(kept[layout.pad], kept[layout.pad])]
     quality = _layout_metrics(params, mesh, samples, problem, selection, layout, fields[:, kept], pad_distance,
