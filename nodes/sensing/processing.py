@@ -136,6 +136,7 @@ class TouchProcessor:
         width = max(1, max(len(n) for n in neighbours))
         self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
         self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K)
+        self.holds = self.cell_distance <= self.hold_radius  # (K, K): a touch at a column's cell holds the rows
         self.tracker = Tracker(params.track_gate_mm)
         self.reset()
 
@@ -198,15 +199,16 @@ class TouchProcessor:
 
     def _update_baseline(self, raw, delta, valid, sigma, touches, t, dt) -> None:
         p = self.params
-        held = np.zeros(len(raw), dtype=bool)
+        quiet = valid & (np.abs(delta) < p.update_sigma * sigma)
         if touches:
-            peaks = np.array([touch.peak_cell for touch in touches])
-            held = np.any(self.cell_distance[:, peaks] <= self.hold_radius, axis=1)
-        self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
-        stuck = held & (t - self._held_since > p.max_hold_s)
-        self.baseline[stuck] = raw[stuck]
-        self._held_since[stuck] = np.inf
-        quiet = valid & ~held & (np.abs(delta) < p.update_sigma * sigma)
+            held = self.holds[:, [touch.peak_cell for touch in touches]].any(axis=1)
+            self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
+            stuck = held & (t - self._held_since > p.max_hold_s)
+            self.baseline[stuck] = raw[stuck]
+            self._held_since[stuck] = np.inf
+            quiet &= ~held
+        else:
+            self._held_since.fill(np.inf)
         alpha = 1.0 - np.exp(-dt / p.baseline_tau_s)
         self.baseline[quiet] += alpha * (raw[quiet] - self.baseline[quiet])
         beta = 1.0 - np.exp(-dt / p.noise_tau_s)
