@@ -134,8 +134,10 @@ class TouchProcessor:
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
-        self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
-        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K)
+        # (width, K): row j holds each cell's j-th neighbour within the peak radius, padded with the cell itself.
+        padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
+        self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
+        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
         self.holds = self.cell_distance <= self.hold_radius  # (K, K): a touch at a column's cell holds the rows
         self.tracker = Tracker(params.track_gate_mm)
         self.reset()
@@ -231,9 +233,9 @@ class TouchProcessor:
         above ``SUPPORT_SIGMA`` noise sigmas: a finger couples to several crossings, a one-frame
         spike of the board to one cell.
         """
-        supported = was_active | (self.support & (delta > SUPPORT_SIGMA * sigma)[None]).any(axis=1)
+        supported = was_active | self.support[delta > SUPPORT_SIGMA * sigma].any(axis=0)
         delta = delta / self.cell_gain
-        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=1)))
+        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=0)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
         for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
