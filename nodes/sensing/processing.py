@@ -138,7 +138,7 @@ class TouchProcessor:
         padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
         self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
         self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
-        self.holds = self.cell_distance <= self.hold_radius  # (K, K): a touch at a column's cell holds the rows
+        self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
         self.tracker = Tracker(params.track_gate_mm)
         self.reset()
 
@@ -203,7 +203,7 @@ class TouchProcessor:
         p = self.params
         quiet = valid & (np.abs(delta) < p.update_sigma * sigma)
         if touches:
-            held = self.holds[:, [touch.peak_cell for touch in touches]].any(axis=1)
+            held = self.holds[[touch.peak_cell for touch in touches]].any(axis=0)
             self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
             stuck = held & (t - self._held_since > p.max_hold_s)
             self.baseline[stuck] = raw[stuck]
