@@ -172,7 +172,8 @@ def main() -> None:
          f"{100 * speed['touched_fraction']:.0f} % touched"),
         *((f"  {fmt} format (pty, fast mode)", f"{link['frames_per_s']:.0f} frames/s",
            f"latency p50 / p99 {link['latency_ms_p50']:.3f} / {link['latency_ms_p99']:.3f} ms, "
-           f"{100 * link['touched_fraction']:.0f} % touched") for fmt, link in links.items()),
+           f"{link['frames_per_cpu_s']:.0f} frames per CPU second, {100 * link['touched_fraction']:.0f} % touched")
+          for fmt, link in links.items()),
         ("serial path alone ascii / binary / handshake", " / ".join(f"{rate:.0f}" for rate in link_only.values()),
          "frames/s, no processing"),
         ("throughput per CPU second", f"{speed['frames_per_cpu_s']:.0f} frames/s", "read + parse + process thread"),
@@ -211,7 +212,7 @@ def main() -> None:
         "frames_per_s": round(speed["frames_per_s"], 1), "latency_ms_p50": round(speed["latency_ms_p50"], 4),
         "latency_ms_p99": round(speed["latency_ms_p99"], 4),
         **{f"{key}_{fmt}": round(link[key], 4) for fmt, link in links.items()
-           for key in ("frames_per_s", "latency_ms_p50", "latency_ms_p99")},
+           for key in ("frames_per_s", "frames_per_cpu_s", "latency_ms_p50", "latency_ms_p99")},
         **{f"link_frames_per_s_{fmt}": round(rate, 1) for fmt, rate in link_only.items()},
         "latency_touch_ms_p50": round(speed["latency_touch_ms_p50"], 4),
         "frames_per_cpu_s": round(speed["frames_per_cpu_s"], 1),

@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..data.sensing_map import SensingMap
@@ -44,9 +43,10 @@ class ContactAreas:
         edges = self.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
         source, target = np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0).T  # sorted by source
         degree = np.bincount(source, minlength=len(self.contact_vertices))
-        # (n, max degree) mesh neighbours of each contact vertex, padded with the vertex itself.
-        self.vertex_neighbours = np.repeat(np.arange(len(degree))[:, None], max(int(degree.max()), 1), axis=1)
-        self.vertex_neighbours[source, np.arange(len(source)) - (np.cumsum(degree) - degree)[source]] = target
+        # (max degree, n): row j holds each contact vertex's j-th mesh neighbour, padded with the vertex
+        # itself (rows, so that the per-frame gathers and minima run along whole rows).
+        self.neighbour_rows = np.repeat(np.arange(len(degree))[None], max(int(degree.max()), 1), axis=0)
+        self.neighbour_rows[np.arange(len(source)) - (np.cumsum(degree) - degree)[source], source] = target
         self.vertex_to_cell = self._interpolation(interpolation_radius, pitch / 2)
 
     def _interpolation(self, radius: float, bandwidth: float) -> sp.csr_matrix:
@@ -95,13 +95,18 @@ class ContactAreas:
 
     def _component_labels(self, inside: np.ndarray, region: np.ndarray) -> np.ndarray:
         """Connected-component labels of the contact vertices ``region`` (= ``flatnonzero(inside)``)
-        over the mesh edges between them."""
-        local = np.cumsum(inside, dtype=np.int32) - 1  # index in region
-        neighbours = self.vertex_neighbours[region]
-        linked = inside[neighbours]
-        # A symmetric graph in CSR form: row k lists region vertex k's neighbours inside (and itself).
-        targets = local[neighbours[linked]]
-        rows = np.zeros(len(region) + 1, dtype=np.int32)
-        np.cumsum(np.count_nonzero(linked, axis=1), out=rows[1:])
-        graph = sp.csr_matrix((np.ones(len(targets)), targets, rows), shape=(len(region), len(region)))
-        return connected_components(graph, directed=False)[1]
+        over the mesh edges between them: each label is the smallest region index of its component,
+        found by taking the smallest label among a vertex's neighbours inside and jumping pointers
+        until nothing changes (a few rounds on a touch's contact patch; no graph is built)."""
+        own = np.arange(len(region))
+        local = np.empty(len(inside), dtype=np.intp)  # index in region (of the vertices inside)
+        local[region] = own
+        neighbours = self.neighbour_rows[:, region]
+        neighbours = np.where(inside[neighbours], local[neighbours], own)  # outside: the vertex itself
+        labels = own
+        while True:
+            smallest = np.minimum(labels[neighbours].min(axis=0), labels)
+            smallest = smallest[smallest]  # labels only decrease and stay in the component: jump
+            if np.array_equal(smallest, labels):
+                return labels
+            labels = smallest

@@ -43,6 +43,7 @@ class TangentPlaneFit:
             self.prior_a = 1.0 / sigma_a**2
         self.max_step = 0.5 * pitch
         self.columns = np.empty((len(z), 3))  # per plane: r2, -2 y0, -2 y1
+        self.offset = np.ones(3)  # (1, u0, u1): columns @ offset + |u|^2 is the squared distance
         self.rows = np.empty((4, len(z)))  # J (d model / d (u0, u1, a)) and the residual
         self.start = self.o0 = self.o1 = None
 
@@ -81,7 +82,9 @@ class TangentPlaneFit:
     def _evaluate(self, u0: float, u1: float, la: float):
         """(cost, residual, model, d model / d q), all but the cost in noise sigmas, at the in-plane
         offset (u0, u1) (mm) and log-amplitude ``la`` in the current plane."""
-        k, slope = self.profile.at_squared(self.columns @ (1.0, u0, u1) + (u0 * u0 + u1 * u1))
+        offset = self.offset
+        offset[1], offset[2] = u0, u1
+        k, slope = self.profile.at_squared(self.columns @ offset + (u0 * u0 + u1 * u1))
         scale = self.h * math.exp(la)
         model = scale * k
         residual = self.z - model

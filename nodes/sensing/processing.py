@@ -134,8 +134,11 @@ class TouchProcessor:
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
         width = max(1, max(len(n) for n in neighbours))
-        self.peak_neighbours = np.array([np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)])
-        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K)
+        # (width, K): row j holds each cell's j-th neighbour within the peak radius, padded with the cell itself.
+        padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
+        self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
+        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
+        self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
         self.tracker = Tracker(params.track_gate_mm)
         self.reset()
 
@@ -198,15 +201,16 @@ class TouchProcessor:
 
     def _update_baseline(self, raw, delta, valid, sigma, touches, t, dt) -> None:
         p = self.params
-        held = np.zeros(len(raw), dtype=bool)
+        quiet = valid & (np.abs(delta) < p.update_sigma * sigma)
         if touches:
-            peaks = np.array([touch.peak_cell for touch in touches])
-            held = np.any(self.cell_distance[:, peaks] <= self.hold_radius, axis=1)
-        self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
-        stuck = held & (t - self._held_since > p.max_hold_s)
-        self.baseline[stuck] = raw[stuck]
-        self._held_since[stuck] = np.inf
-        quiet = valid & ~held & (np.abs(delta) < p.update_sigma * sigma)
+            held = self.holds[[touch.peak_cell for touch in touches]].any(axis=0)
+            self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
+            stuck = held & (t - self._held_since > p.max_hold_s)
+            self.baseline[stuck] = raw[stuck]
+            self._held_since[stuck] = np.inf
+            quiet &= ~held
+        else:
+            self._held_since.fill(np.inf)
         alpha = 1.0 - np.exp(-dt / p.baseline_tau_s)
         self.baseline[quiet] += alpha * (raw[quiet] - self.baseline[quiet])
         beta = 1.0 - np.exp(-dt / p.noise_tau_s)
@@ -229,9 +233,9 @@ class TouchProcessor:
         above ``SUPPORT_SIGMA`` noise sigmas: a finger couples to several crossings, a one-frame
         spike of the board to one cell.
         """
-        supported = was_active | (self.support & (delta > SUPPORT_SIGMA * sigma)[None]).any(axis=1)
+        supported = was_active | self.support[delta > SUPPORT_SIGMA * sigma].any(axis=0)
         delta = delta / self.cell_gain
-        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=1)))
+        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=0)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
         for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
