@@ -25,7 +25,7 @@ def bunny_run():
     rx = trace_rx(TraceRxParams(angle_deg=10.0, n_curves=40), mesh, regions, rx_field)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
-    params = OptimizeParams(n_drive=10, n_sense=6, time_limit_s=1.0)
+    params = OptimizeParams(n_drive=10, n_sense=6, time_limit_s=1.0, rx_free_end_mm=60.0)  # both free ends
     candidate = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
     return mesh, tx, rx, cross, params, candidate, regions
 

@@ -8,8 +8,8 @@ pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, 
 ``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross;
 Tx curves may come closer within the first ``tx_free_start_mm`` of their free start near the pole,
 and Rx curves (wired at their start, see ``fab.unfold``) within the last ``rx_free_end_mm`` of their
-free end; the selected ones are then trimmed there until they have room, and crossings on the cut
-parts are not cells.
+free end (off by default); the selected ones are then trimmed there until they have room, and
+crossings on the cut parts are not cells (phase 1 still counts them).
 
 Relaxation ladder, applied only when phase 2 is infeasible (some selected curve cannot carry
 ``min_pads_per_curve`` pads at spacing ``d_min``): (1) smaller pads, each radius of
@@ -89,8 +89,9 @@ class OptimizeParams(NodeParams):
         "pole); the selected ones are trimmed there until they have room (mm)"
     )
     rx_free_end_mm: float = Field(
-        60.0, ge=0, description="Rx curves may come closer within this arc length of their free end (the end "
-        "not wired); the selected ones are trimmed there until they have room (mm)"
+        0.0, ge=0, description="Rx curves may come closer within this arc length of their free end (the end "
+        "not wired); the selected ones are trimmed there until they have room (mm; 0 = off: phase 1 counts "
+        "the crossings there, which trimming may take away)"
     )
     relax_pad_radii_mm: tuple[float, ...] = Field(
         (1.5, 1.0), description="smaller pad radii tried in order when phase 2 is infeasible"
