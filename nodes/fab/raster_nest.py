@@ -16,7 +16,9 @@ opens the next sheet. The result depends only on the input: no clock, no random 
 Speed: each part's grown outlines are built once (:class:`Part`) and rotated with plain array
 arithmetic (the same operations as ``shapely.affinity.rotate``, so the same numbers); angles whose
 rotated outline is longer or wider than the usable area are dropped before rasterizing; each sheet
-keeps its coarse grid and its occupied column extent up to date as parts are added.
+keeps its coarse grid and its occupied column extent up to date as parts are added; an angle is
+searched only for positions that end no further right than the current last finalist (ranking,
+narrowest angles first) or the current best (exact placement), since no other can win.
 """
 from __future__ import annotations
 
@@ -59,12 +61,12 @@ def occupied_radius(spacing: float, pixel: float) -> float:
 
 
 class Part:
-    """One part prepared once for every pass, angle and sheet: its outline, ``coarse`` (exterior of
+    """One part prepared once for every pass, angle and sheet: its convex hull, ``coarse`` (exterior of
     the ``spacing / 2`` buffer, for ranking), ``fine`` (the :func:`occupied_radius` buffer) and
     ``own_angles`` (:func:`_own_angles`)."""
 
     def __init__(self, polygon: Polygon, spacing: float, pixel: float, long_side: float, short_side: float):
-        self.outline = np.asarray(polygon.exterior.coords)
+        self.hull = np.asarray(polygon.convex_hull.exterior.coords)  # input vertices: the same bounds
         self.coarse = np.asarray(polygon.buffer(spacing / 2 + BUFFER_SLACK_MM, quad_segs=BUFFER_SEGMENTS).exterior.coords)
         self.fine = polygon.buffer(occupied_radius(spacing, pixel) + BUFFER_SLACK_MM, quad_segs=BUFFER_SEGMENTS)
         self.own_angles = _own_angles(polygon, long_side, short_side)
@@ -77,7 +79,7 @@ class Part:
         import cv2  # heavy: imported when used
 
         cos, sin = np.array([_rotation(float(a)) for a in angles_deg]).reshape(-1, 2).T
-        x, y = _rotate(self.outline, cos, sin)
+        x, y = _rotate(self.hull, cos, sin)
         bounds = np.stack([x.min(axis=1), y.min(axis=1), x.max(axis=1), y.max(axis=1)], axis=1)
         fits = np.nonzero(np.all(bounds[:, 2:] - bounds[:, :2] <= [long_side + 1e-9, short_side + 1e-9], axis=1))[0]
         if exact:  # the others: no position keeps them inside the usable area
@@ -213,7 +215,9 @@ def _ranked_angles(part: Part, sheet: Sheet, angles: np.ndarray, finalists: int)
     """The ``finalists`` angles whose placement on the coarse grid ends leftmost (then lowest)."""
     rough = sheet.rough()
     scores = {}
-    for a, raster in part.rasters(angles, rough.pixel, False, sheet.long_side, sheet.short_side):
+    rasters = part.rasters(angles, rough.pixel, False, sheet.long_side, sheet.short_side)
+    # narrowest first: they tend to end leftmost, so the limit below tightens early (speed only)
+    for a, raster in sorted(rasters, key=lambda r: r[1][2][2] - r[1][2][0]):
         # an angle can only rank among the finalists by ending no further right than the last of them
         limit = sorted(scores.values())[finalists - 1][0] if len(scores) >= finalists else np.inf
         position = rough.best_position(raster, limit)
