@@ -28,6 +28,7 @@ from pydantic import Field
 
 from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
+from ..geometry import triangles
 from .cut_sheets import IMPORT_STEPS
 from .guide_views import ObjectFrame, View, candidate_directions, render
 from .outline import TraceOutlines
@@ -343,7 +344,8 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     from matplotlib.figure import Figure  # no pyplot: no global state, safe in worker threads
 
     frame = object_frame(mesh, layout)
-    views = [render(mesh, d, params.image_px, frame) for d in candidate_directions()]
+    normals, _ = triangles.normals(triangles.corners(mesh.vertices, mesh.faces))
+    views = [render(mesh, d, params.image_px, frame, normals) for d in candidate_directions()]
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
     rows = wiring_rows(layout, outlines)
