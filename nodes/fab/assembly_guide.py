@@ -179,6 +179,8 @@ def _leader(offset_pt, half_box_pt, shrink_pt: float = 2.0) -> np.ndarray:
     sizes ``half_box_pt``), as matplotlib's annotation arrows; both at the anchor when that is empty."""
     offset = np.asarray(offset_pt, float)
     length = float(np.linalg.norm(offset))
+    if length == 0.0:
+        return np.zeros((2, 2))
     with np.errstate(divide="ignore"):
         inside = np.min(np.asarray(half_box_pt, float) / np.abs(offset)) * length  # points of it inside the box
     free = length - inside - shrink_pt
