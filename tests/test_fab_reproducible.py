@@ -52,3 +52,22 @@ def test_two_runs_give_identical_files(monkeypatch, epoch):
     from ezdxf.tools import juliandate
 
     assert f"$TDCREATE\n 40\n{juliandate(when)}\n" in first["sheets/sheet_1.dxf"].decode()
+
+
+def test_dxf_is_the_same_in_every_process():
+    """ezdxf writes the CLASS entries of the entity types in use in set order, which follows the
+    per-process string hash seed: the writer sorts them first."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import hashlib, numpy as np\n"
+        "from retrotouch.nodes.fab.cut_sheets import sheet_dxf\n"
+        "square = np.array([[0, 0], [10, 0], [10, 10], [0, 10.0]])\n"
+        "print(hashlib.sha256(sheet_dxf([square, square + 20], [square / 5], 100.0, 50.0, 3)).hexdigest())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    digests = {subprocess.run([sys.executable, "-c", script], env={**env, "PYTHONHASHSEED": str(seed)}, check=True,
+                              capture_output=True, text=True).stdout for seed in range(8)}
+    assert len(digests) == 1

@@ -12,7 +12,11 @@ Last page: the wiring table (solder tab -> Muca pin), also written as ``wiring.c
 
 Speed: every candidate view is rendered once; the trace pages share one figure whose axes and
 images are reused (only the image data and the drawn lines change from page to page), and each
-attached trace is burnt into the views' images once instead of being drawn again on every later page.
+attached trace is burnt into the views' images once instead of being drawn again on every later page;
+images are written cropped to the object; the flat pieces are patches added without data-limit
+updates, with one line collection for the label glyphs and one for all leader lines (annotation
+arrows cost more than their text), and a scale bar instead of graduated axes; the wiring table is
+aligned monospace text.
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ from pydantic import Field
 
 from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
+from ..geometry import triangles
 from .cut_sheets import IMPORT_STEPS
 from .guide_views import ObjectFrame, View, candidate_directions, render
 from .outline import TraceOutlines
@@ -131,13 +136,26 @@ def _overview_page(figure_type, views, frame: ObjectFrame, traces, tolerance: fl
     overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
     for col, v in enumerate(overview[::-1][:3]):
         ax = fig.add_subplot(grid[0, col])
-        ax.imshow(views[v].shade, interpolation="none")
+        _show(ax.imshow(views[v].shade, interpolation="none"), views[v], views[v].shade)
         for points, name, _ in traces:
             _draw_curve(ax, views[v], points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
         ax.set_title(frame.name(views[v].direction), fontsize=8, y=1.0)
         ax.set_axis_off()
     fig.text(0.03, 0.36, "\n".join(IMPORT_STEPS + ("",) + BENCH_STEPS), fontsize=7.5, va="top", family="DejaVu Sans")
     return fig
+
+
+def _show(image, view: View, pixels: np.ndarray) -> None:
+    """Show a view's image (``pixels``, shaped like ``view.shade``) cropped to the object and 2
+    pixels around it, in place in the axes' full view: fewer pixels to write into the PDF."""
+    covered = np.isfinite(view.depth)
+    rows, cols = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
+    r0, r1 = (max(rows[0] - 2, 0), min(rows[-1] + 3, view.size)) if len(rows) else (0, view.size)
+    c0, c1 = (max(cols[0] - 2, 0), min(cols[-1] + 3, view.size)) if len(cols) else (0, view.size)
+    image.set_data(pixels[r0:r1, c0:c1])
+    image.set_extent((c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
+    image.axes.set_xlim(-0.5, view.size - 0.5)
+    image.axes.set_ylim(view.size - 0.5, -0.5)
 
 
 def _label_offsets(anchors_pt: np.ndarray, sizes_pt: np.ndarray, taken: list) -> list[tuple[float, float]]:
@@ -155,9 +173,37 @@ def _label_offsets(anchors_pt: np.ndarray, sizes_pt: np.ndarray, taken: list) ->
     return offsets
 
 
+def _leader(offset_pt, half_box_pt, shrink_pt: float = 2.0) -> np.ndarray:
+    """(2, 2) ends (points, from the anchor) of a leader line towards a label centred at
+    ``offset_pt``: from ``shrink_pt`` off the anchor to ``shrink_pt`` before the label's box (half
+    sizes ``half_box_pt``), as matplotlib's annotation arrows; both at the anchor when that is empty."""
+    offset = np.asarray(offset_pt, float)
+    length = float(np.linalg.norm(offset))
+    if length == 0.0:
+        return np.zeros((2, 2))
+    with np.errstate(divide="ignore"):
+        inside = np.min(np.asarray(half_box_pt, float) / np.abs(offset)) * length  # points of it inside the box
+    free = length - inside - shrink_pt
+    if free <= shrink_pt:
+        return np.zeros((2, 2))
+    return np.outer([shrink_pt, free], offset / length)
+
+
+def _scale_bar_mm(width_mm: float) -> float:
+    """The longest 1, 2 or 5 x 10^k mm no longer than a fifth of ``width_mm``."""
+    bars = [m * 10.0**k for k in range(-1, 4) for m in (1, 2, 5)]
+    return max([b for b in bars if b <= width_mm / 5], default=bars[0])
+
+
 def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
     """The pieces of one trace side by side (unfolded frame, shifted along x), each next piece's
-    tab dashed where it overlaps the previous piece, crossing labels that do not overlap."""
+    tab dashed where it overlaps the previous piece, crossing labels that do not overlap.
+
+    Speed: one patch per piece added without data-limit updates (the limits are set first), the
+    label glyphs and the leader lines of all labels as one line collection each."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Polygon as PolygonPatch
+
     gap = 12.0
     shifts, x = [], 0.0
     for i in parts:
@@ -172,32 +218,43 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
     box = ax.get_position()
     width_pt, height_pt = box.width * PAGE_INCHES[0] * 72, box.height * PAGE_INCHES[1] * 72
     pt_per_mm = min(width_pt / (hi[0] - lo[0]), height_pt / (hi[1] - lo[1]))
-    taken = []
+    taken, glyphs, leaders = [], [], []  # leaders: (anchor (mm), ends (points from it), (line width, colour))
+
+    def label(text, at, offset, half_box, line, **style):
+        ax.annotate(text, at, xytext=offset, textcoords="offset points", ha="center", va="center", **style)
+        leaders.append((np.asarray(at, float), _leader(offset, half_box), line))
+
     for k, (i, shift, ring) in enumerate(zip(parts, shifts, rings)):
-        ax.fill(ring[:, 0], ring[:, 1], color="#c87533", alpha=0.8, lw=0.5, ec="black")
-        for glyph in outlines.label_polylines(int(i)):
-            ax.plot(glyph[:, 0] + shift[0], glyph[:, 1] + shift[1], color="blue", lw=0.5)
-        tab = outlines.tab[i] + shift
-        name_at = tab.mean(axis=0)
-        ax.annotate(outlines.names[i], name_at, xytext=(0, 16), textcoords="offset points", ha="center",
-                    va="center", fontsize=10, arrowprops={"arrowstyle": "-"})
+        ax.add_artist(PolygonPatch(ring, closed=True, facecolor="#c87533", alpha=0.8, lw=0.5, ec="black"))
+        glyphs += [glyph + shift for glyph in outlines.label_polylines(int(i))]
+        name_at = outlines.tab[i].mean(axis=0) + shift
+        label(outlines.names[i], name_at, (0, 16), (20, 6), (1.0, "black"), fontsize=10)
         centre_pt = (name_at - lo) * pt_per_mm + [0, 16]
         taken.append((centre_pt[0] - 25, centre_pt[1] - 7, centre_pt[0] + 25, centre_pt[1] + 7))
         if k + 1 < len(parts):  # the next piece's tab lies over this piece's end
             joint = np.vstack([outlines.tab[parts[k + 1]], outlines.tab[parts[k + 1]][:1]]) + shift
             ax.plot(joint[:, 0], joint[:, 1], "--", color="black", lw=0.9)
-            ax.annotate(f"✕ joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0),
-                        xytext=(0, -22), textcoords="offset points", ha="center", fontsize=7,
-                        arrowprops={"arrowstyle": "-", "lw": 0.5})
+            label(f"✕ joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0), (0, -22),
+                  (60, 4.5), (0.5, "black"), fontsize=7)
         mine = outlines.landmark_part == i
         xy = outlines.landmark_xy[mine] + shift
         names = [outlines.trace_names[o] for o in outlines.landmark_other[mine]]
         sizes = np.array([[0.62 * 6 * len(n) + 2, 8.0] for n in names]).reshape(-1, 2)
-        for point, name, offset in zip(xy, names, _label_offsets((xy - lo) * pt_per_mm, sizes, taken)):
-            ax.annotate(name, point, xytext=offset, textcoords="offset points", ha="center", va="center",
-                        fontsize=6, color="0.3", arrowprops={"arrowstyle": "-", "lw": 0.3, "color": "0.5"})
+        for point, name, offset, size in zip(xy, names, _label_offsets((xy - lo) * pt_per_mm, sizes, taken), sizes):
+            label(name, point, offset, size / 2, (0.3, "0.5"), fontsize=6, color="0.3")
+    ax.add_collection(LineCollection(glyphs, colors="blue", linewidths=0.5), autolim=False)
+    if leaders:  # the axes' scale is pt_per_mm once its aspect is equal: offsets in points -> mm
+        segments = [at + ends / pt_per_mm for at, ends, _ in leaders]
+        ax.add_collection(LineCollection(segments, linewidths=[lw for *_, (lw, _) in leaders],
+                                         colors=[color for *_, (_, color) in leaders]), autolim=False)
+    bar = _scale_bar_mm(hi[0] - lo[0])  # a scale bar instead of graduated axes (a third of the page's time)
+    ax.xaxis.set_visible(False)
+    ax.yaxis.set_visible(False)
+    ax.plot([lo[0] + 3, lo[0] + 3 + bar], [lo[1] + 2.5] * 2, color="black", lw=2, solid_capstyle="butt")
+    ax.annotate(f"{bar:g} mm", (lo[0] + 3 + bar / 2, lo[1] + 2.5), xytext=(0, 3), textcoords="offset points",
+                ha="center", va="bottom", fontsize=7)
     ax.set_aspect("equal", adjustable="box")
-    ax.set_title("flat cut piece(s), mm, seen from outside; small bulges = landmarks where the named trace of the "
+    ax.set_title("flat cut piece(s) to scale, seen from outside; small bulges = landmarks where the named trace of the "
                  "other layer crosses (○ in the views)", fontsize=9, y=1.0)
 
 
@@ -209,6 +266,8 @@ class _TracePages:
         grid = self.fig.add_gridspec(2, views_per_trace, height_ratios=[3, 2], top=0.9, bottom=0.05)
         self.view_axes = [self.fig.add_subplot(grid[0, col]) for col in range(views_per_trace)]
         self.images = [ax.imshow(views[0].shade, interpolation="none") for ax in self.view_axes]
+        for image in self.images:
+            _show(image, views[0], views[0].shade)
         for ax in self.view_axes:
             ax.set_axis_off()
         self.flat = self.fig.add_subplot(grid[1, :])
@@ -238,7 +297,7 @@ class _TracePages:
         joints = _arc_points(points, _joint_arcs(outlines, step, base_at_end))
         for ax, image, v in zip(self.view_axes, self.images, best):
             view = views[v]
-            image.set_data(self.attached[v])
+            _show(image, view, self.attached[v])
             _draw_curve(ax, view, points, tolerance, lw=2.5, color="tab:red" if layer == "rx" else "tab:blue")
             cx, _ = view.project(crossings[view.visible(crossings, tolerance)])
             ax.plot(cx[:, 0], cx[:, 1], "o", mfc="white", mec="black", ms=4, mew=0.8)
@@ -266,19 +325,17 @@ class _TracePages:
 
 
 def _wiring_pages(figure_type, rows: list[dict]):
-    """The wiring table, ``TABLE_ROWS`` rows a page."""
+    """The wiring table, ``TABLE_ROWS`` rows a page, as aligned monospace columns (one text per
+    page: a matplotlib table of cells took longer than all trace pages' labels together)."""
     columns = list(rows[0])
-    for start in range(0, len(rows), TABLE_ROWS):
+    cells = [columns] + [[str(r[c]) for c in columns] for r in rows]
+    widths = [max(len(row[k]) for row in cells) for k in range(len(columns))]
+    lines = ["  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip() for row in cells]
+    for start in range(1, len(lines), TABLE_ROWS):
         fig = figure_type(figsize=PAGE_INCHES)
-        ax = fig.add_axes([0.03, 0.03, 0.94, 0.88])
-        ax.set_axis_off()
         fig.suptitle("Wiring: solder each tab's wire to its Muca pin (also in wiring.csv)", fontsize=12)
-        chunk = rows[start : start + TABLE_ROWS]
-        table = ax.table(cellText=[[str(r[c]) for c in columns] for r in chunk], colLabels=columns, loc="upper center",
-                         cellLoc="left")
-        table.auto_set_font_size(False)
-        table.set_fontsize(7)
-        table.scale(1.0, 1.15)
+        text = "\n".join([lines[0], "-" * len(lines[0])] + lines[start : start + TABLE_ROWS])
+        fig.text(0.04, 0.9, text, family="DejaVu Sans Mono", fontsize=9.5, va="top", linespacing=1.35)
         yield fig
 
 
@@ -289,7 +346,8 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     from matplotlib.figure import Figure  # no pyplot: no global state, safe in worker threads
 
     frame = object_frame(mesh, layout)
-    views = [render(mesh, d, params.image_px, frame) for d in candidate_directions()]
+    normals, _ = triangles.normals(triangles.corners(mesh.vertices, mesh.faces))
+    views = [render(mesh, d, params.image_px, frame, normals) for d in candidate_directions()]
     tolerance = 0.01 * float(np.ptp(mesh.vertices, axis=0).max())
     traces = [_curve_points(layout, t) for t in range(layout.tx.count + layout.rx.count)]
     rows = wiring_rows(layout, outlines)

@@ -141,6 +141,9 @@ def _dxf_text(doc, rings, labels, width: float, height: float, decimals: int) ->
     everything = np.round(np.concatenate(list(rings) + list(labels)), decimals) if len(rings) else np.zeros((1, 2))
     msp.reset_extents((*everything.min(axis=0).tolist(), 0.0), (*everything.max(axis=0).tolist(), 0.0))
     msp.reset_limits((0.0, 0.0), (float(width), float(height)))  # the write copies both into the header
+    if doc.dxfversion != "AC1009":  # ezdxf adds the CLASS entries of the types in use in set order (string
+        for dxftype in sorted(doc.entitydb.dxf_types_in_use()):  # hashes differ between processes): sorted first
+            doc.classes.add_class(dxftype)
     stream = io.StringIO()
     doc.write(stream)
     return stream.getvalue()

@@ -77,9 +77,11 @@ def candidate_directions() -> np.ndarray:
     return np.vstack([axes, diagonals])
 
 
-def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | None = None) -> View:
+def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | None = None,
+           normals: np.ndarray | None = None) -> View:
     """Shaded orthographic render of the mesh seen from ``direction`` (painter's algorithm), upright
-    in ``frame`` (default: z up)."""
+    in ``frame`` (default: z up). ``normals``: the mesh's unit face normals, when already computed
+    (the guide renders 14 views of one mesh)."""
     import cv2  # heavy: imported when used
 
     frame = frame or ObjectFrame.from_up(np.array([0.0, 0.0, 1.0]))
@@ -94,7 +96,8 @@ def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | No
     view = View(direction, right, up, scale, (lo + hi) / 2, size,
                 np.full((size, size, 3), 255, np.uint8), np.full((size, size), -np.inf, np.float32))
     px, depth = view.project(V)
-    normals, _ = triangles.normals(triangles.corners(V, F))
+    if normals is None:
+        normals, _ = triangles.normals(triangles.corners(V, F))
     facing = normals @ direction
     front = np.nonzero(facing > 0)[0]
     order = front[np.argsort(depth[F[front]].mean(axis=1))]
@@ -108,14 +111,14 @@ def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | No
     view.shade[covered] = grey[:, None]
     # depth of each covered pixel on its face's plane, clamped to the face's depth range
     yy, xx = np.nonzero(covered)
-    n = normals[ids]
-    nu, nv, nw = n @ right, n @ up, n @ direction
-    p0 = V[F[ids, 0]]
-    du = (xx - size / 2) / scale + view.centre[0] - p0 @ right
-    dv = (size / 2 - yy) / scale + view.centre[1] - p0 @ up
-    plane = p0 @ direction - (nu * du + nv * dv) / np.maximum(nw, 1e-6)
-    face_depths = depth[F[ids]]
-    view.depth[covered] = np.clip(plane, face_depths.min(axis=1), face_depths.max(axis=1))
+    drawn, pixel_face = np.unique(ids, return_inverse=True)  # per drawn face first, then per pixel
+    n, p0 = normals[drawn], V[F[drawn, 0]]
+    nu, nv, nw = (n @ right)[pixel_face], (n @ up)[pixel_face], (n @ direction)[pixel_face]
+    du = (xx - size / 2) / scale + view.centre[0] - (p0 @ right)[pixel_face]
+    dv = (size / 2 - yy) / scale + view.centre[1] - (p0 @ up)[pixel_face]
+    plane = (p0 @ direction)[pixel_face] - (nu * du + nv * dv) / np.maximum(nw, 1e-6)
+    face_depths = depth[F[drawn]]
+    view.depth[covered] = np.clip(plane, face_depths.min(axis=1)[pixel_face], face_depths.max(axis=1)[pixel_face])
     return view
 
 

@@ -30,7 +30,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from .mats import MARGIN_MM, MATS_MM, fit_angles, usable_sides
 from .outline import TraceOutlines
-from .raster_nest import raster_nest
+from .raster_nest import Part, raster_nest
 
 ROTATION_STEP = 24
 """Trial angles added per raster pass (the first pass has three steps' worth)."""
@@ -139,9 +139,10 @@ def _strip_score(strip, polygons: list[Polygon]) -> tuple[int, float]:
 def _raster(polygons: list[Polygon], params: Params, long_side: float, short_side: float):
     """Raster passes with more angles until a pass no longer helps; (strip placement, angles)."""
     order = sorted(range(len(polygons)), key=lambda i: (-polygons[i].minimum_rotated_rectangle.area, i))
+    parts = [Part(p, params.spacing_mm, params.pixel_mm, long_side, short_side) for p in polygons]
     best, best_score, best_rotations = None, None, 0
     for rotations in range(3 * ROTATION_STEP, params.max_rotations + 1, ROTATION_STEP):
-        strip = raster_nest(polygons, long_side, short_side, params.spacing_mm, params.pixel_mm, rotations,
+        strip = raster_nest(parts, long_side, short_side, params.spacing_mm, params.pixel_mm, rotations,
                             params.finalists, order)
         score = _strip_score(strip, polygons)
         if best is not None and (score[0] > best_score[0] or (
