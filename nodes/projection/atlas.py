@@ -3,8 +3,8 @@
 The bake draws curves, crossing rings and pads; everything else stays background. So only the
 faces within reach of a curve or a crossing (:func:`layout_band`) get xatlas charts; every other
 face maps all its corners to one background texel that no chart and no gutter touches. xatlas's
-chart computation dominates the sink's time and grows faster than linearly with the face count;
-charting the bands alone also packs them at a higher texel density in the same texture.
+chart computation is the sink's largest cost; charting the bands alone also packs them at a
+higher texel density in the same texture.
 
 UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size; lengths mm.
 """
