@@ -11,6 +11,8 @@ the crossing error, which chains calibration, tracking and smoothing).
 Crossing error = distance on the true surface between a crossing and where light from its
 projected pixel lands in the true rig, for the smoothed pose that is projected.
 
+The projection.textures sink (which bakes the scene's textures) is timed on the same bunny and layout.
+
 Prints a table, then as its LAST line one JSON object.
 """
 from __future__ import annotations
@@ -30,12 +32,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # synthetic scenes live with the tests
 
-from proj_fixtures import bunny_layout, bunny_mm, calibrate_synthetic, demo_rig, landing_points  # noqa: E402
+from proj_fixtures import bunny_layout, bunny_mm, bunny_regions, calibrate_synthetic, demo_rig, landing_points  # noqa: E402
 from retrotouch.nodes.data.scene import build_scene  # noqa: E402
 from retrotouch.nodes.projection.camera import project_points, transform_points  # noqa: E402
 from retrotouch.nodes.projection.depth_frames import SyntheticDepthSource, demo_trajectory  # noqa: E402
 from retrotouch.nodes.projection.raster import rasterize_depth  # noqa: E402
 from retrotouch.nodes.projection.render import RenderStyle, render_layers, visible_points  # noqa: E402
+from retrotouch.nodes.projection.textures import TextureParams, projection_textures  # noqa: E402
 from retrotouch.nodes.projection.tracking import DepthTracker, pose_error  # noqa: E402
 
 
@@ -51,6 +54,18 @@ def crossing_errors(scene, mesh, T_est, T_true, est_projector, true_projector) -
     pixels = project_points(transform_points(T_est, scene.crossing_points[vis]), est_projector)
     landed = landing_points(pixels, mesh.vertices, mesh.faces, T_true, true_projector)
     return np.linalg.norm(landed - scene.crossing_points[vis], axis=1)
+
+
+def textures_sink_seconds(mesh, layout) -> float:
+    """Best of 3 runs (s) of the projection.textures sink (default 2048 px texture), after one warm-up run."""
+    regions = bunny_regions(mesh)
+    projection_textures(TextureParams(), mesh, regions, layout)
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        projection_textures(TextureParams(), mesh, regions, layout)
+        runs.append(time.perf_counter() - t0)
+    return min(runs)
 
 
 def main() -> None:
@@ -93,6 +108,7 @@ def main() -> None:
     raw_err, smooth_err = np.array(raw_err), np.array(smooth_err)
     cross_all = np.concatenate(cross)
     cross_all = cross_all[np.isfinite(cross_all)]
+    textures_s = textures_sink_seconds(mesh, layout)
 
     print(f"projection benchmark: bunny {len(mesh.faces)} faces, layout {layout.tx.count} Tx x {layout.rx.count} Rx, "
           f"{len(layout.cells.points)} crossings, {FRAMES} frames at 1280x720, 2 threads")
@@ -108,6 +124,7 @@ def main() -> None:
     print(f"{'smoothed pose deg':<22}{smooth_err[:, 0].mean():>10.3f}{smooth_err[:, 0].max():>10.3f}")
     print(f"{'smoothed pose mm':<22}{smooth_err[:, 1].mean():>10.3f}{smooth_err[:, 1].max():>10.3f}")
     print(f"{'crossing landing mm':<22}{cross_all.mean():>10.3f}{cross_all.max():>10.3f}   ({len(cross_all)} drawn crossings)")
+    print(f"projection.textures sink (GLB, OBJ, PNG, scene; 2048 px): {textures_s:.2f} s (best of 3)")
     print(json.dumps({
         "fps": round(1000.0 / float(np.median(total)), 1),
         "fps_mean": round(1000.0 / float(total.mean()), 1),
@@ -123,6 +140,7 @@ def main() -> None:
         "calibration_rms_px": round(max(cal.rms_camera_px, cal.rms_projector_px, cal.rms_stereo_px), 4),
         "crossing_error_mm": round(float(cross_all.mean()), 4),
         "crossing_error_mm_max": round(float(cross_all.max()), 4),
+        "textures_sink_s": round(textures_s, 2),
     }))
 
 

@@ -176,3 +176,43 @@ def test_only_faces_within_paint_reach_get_charts_the_rest_show_background(baked
     scene = load_scene(out / "projection/bunny_scene.npz")
     for layer_texture in scene.layer_textures:
         assert (layer_texture[px[1] - 2 : px[1] + 3, px[0] - 2 : px[0] + 3] == 0).all()  # no light there
+
+
+def test_glb_embeds_the_texture_png_as_written(baked):
+    *_, files, _ = baked
+    glb = trimesh.load(io.BytesIO(files.contents["projection/bunny_layout.glb"]), file_type="glb", force="mesh")
+    embedded = np.asarray(glb.visual.material.baseColorTexture.convert("RGB"))
+    png = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(embedded, png[:, :, ::-1])
+
+
+def test_paint_follows_the_distance_to_the_layout(baked):
+    """At random points of the charted faces, the texture (sampled bilinearly at the point's UV)
+    shows a layer's colour where the point lies well inside that layer's trace (3D distance to its
+    curves), and the background where it is well away from every curve and crossing."""
+    from scipy.spatial import cKDTree
+
+    from retrotouch.nodes.projection.atlas import curve_samples, texels_per_mm
+
+    mesh, layout, params, files, _ = baked
+    tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
+    atlas = layout_atlas(mesh, layout, params)
+    rng = np.random.default_rng(7)
+    tri = mesh.vertices[mesh.faces]
+    weight = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) * atlas.charted
+    faces = rng.choice(len(tri), 100_000, p=weight / weight.sum())
+    root, r2 = np.sqrt(rng.random(len(faces))), rng.random(len(faces))
+    bary = np.stack([1 - root, root * (1 - r2), root * r2], axis=1)
+    points = np.einsum("kj,kjd->kd", bary, tri[faces])
+    px = face_uv_pixels(atlas, faces, bary, params.texture_px).astype(np.float32).reshape(-1, 1000, 2)
+    colour = cv2.remap(tex, px[..., 0], px[..., 1], cv2.INTER_LINEAR).reshape(-1, 3).astype(int)
+    margin = 1.5 / texels_per_mm(mesh, atlas, params.texture_px)
+    half = layout.trace_width_mm / 2
+    to_tx, to_rx, to_cell = (cKDTree(p).query(points)[0] for p in (curve_samples(layout.tx, 0.02), curve_samples(layout.rx, 0.02), layout.cells.points))
+    clear_of_cells = to_cell > max(layout.pad_radius_mm, params.crossing_radius_mm + half) + margin
+    for inside, other, bgr in ((to_tx, to_rx, [0x20, 0x30, 0xD0]), (to_rx, to_tx, [0xD0, 0x50, 0x20])):
+        painted = (inside < half - margin) & (other > half + margin) & clear_of_cells
+        assert painted.sum() > 1000
+        assert (np.abs(colour[painted] - bgr).sum(axis=1) < 60).mean() > 0.99
+    bare = (np.minimum(to_tx, to_rx) > half + margin) & clear_of_cells
+    assert (np.abs(colour[bare] - 0xD8).sum(axis=1) < 60).mean() > 0.97

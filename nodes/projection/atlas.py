@@ -3,8 +3,8 @@
 The bake draws curves, crossing rings and pads; everything else stays background. So only the
 faces within reach of a curve or a crossing (:func:`layout_band`) get xatlas charts; every other
 face maps all its corners to one background texel that no chart and no gutter touches. xatlas's
-chart computation dominates the sink's time and grows faster than linearly with the face count;
-charting the bands alone also packs them at a higher texel density in the same texture.
+chart computation is the sink's largest cost; charting the bands alone also packs them at a
+higher texel density in the same texture.
 
 UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * size; lengths mm.
 """
@@ -21,6 +21,10 @@ SAMPLE_SPACING_MM = 0.25
 """Curves are sampled this densely (mm) to find the faces near them."""
 MIN_UTILIZATION = 0.4
 """Assumed worst chart utilization of the packed texture, for an upper bound of the texel size."""
+CHART_BOUNDARY_EDGES = 128
+"""Longest chart boundary, in mean edge lengths of the charted faces. xatlas checks a growing
+chart's parametrization for overlaps at a cost that grows with its boundary; unbounded, a few
+long charts along the layout's strips dominate the sink's time."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,20 +79,30 @@ def layout_band(mesh: Mesh, layout: Layout, texture_px: int, line_reach_mm: floa
 
 
 def _xatlas(vertices: np.ndarray, faces: np.ndarray, texture_px: int, padding_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """xatlas charts of (vertices, faces) packed into a ``texture_px`` square: (vertex_map, faces, uv)."""
+    """xatlas charts of (vertices, faces) packed into a ``texture_px`` square: (vertex_map, faces, uv).
+
+    Chart boundaries are at most :data:`CHART_BOUNDARY_EDGES` mean edge lengths long. The charts
+    are packed at half the resolution with half the gutter (rounded up): at least ``padding_px``
+    between charts at full resolution, with a quarter of the texels in the packer's bitmaps. The
+    UVs are scaled alike in u and v (texels stay square when xatlas's atlas is not)."""
     import xatlas
 
+    tri = corners(vertices, faces)
+    mean_edge_mm = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
     atlas = xatlas.Atlas()
     atlas.add_mesh(vertices.astype(np.float32), faces.astype(np.uint32))
+    charts = xatlas.ChartOptions()
+    charts.max_boundary_length = CHART_BOUNDARY_EDGES * mean_edge_mm
     pack = xatlas.PackOptions()
-    pack.resolution = texture_px
-    pack.padding = padding_px
+    pack.resolution = max(1, texture_px // 2)
+    pack.padding = -(-padding_px // 2)
     pack.bilinear = True
-    atlas.generate(pack_options=pack)
+    atlas.generate(chart_options=charts, pack_options=pack)
     vmap, chart_faces, uv = atlas[0]
     if not np.array_equal(vmap[chart_faces], faces):
         raise RuntimeError("xatlas reordered faces; the face -> UV mapping would be wrong")
-    return np.asarray(vmap, np.int64), np.asarray(chart_faces, np.int64), np.asarray(uv, np.float64)
+    size = np.array([atlas.width, atlas.height], np.float64)
+    return np.asarray(vmap, np.int64), np.asarray(chart_faces, np.int64), np.asarray(uv, np.float64) * size / size.max()
 
 
 def background_texel(uv: np.ndarray, faces: np.ndarray, texture_px: int, clearance_px: int) -> np.ndarray | None:

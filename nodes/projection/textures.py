@@ -30,7 +30,9 @@ UV convention: OBJ/trimesh (origin bottom-left, v up); texture row = (1 - v) * s
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -159,13 +161,15 @@ def bake_projector_texture(mesh: Mesh, layout: Layout, atlas: Atlas, params: Tex
 def obj_text(mesh: Mesh, atlas: Atlas, mtl_file: str) -> str:
     """Wavefront OBJ of the split-vertex atlas mesh (one ``vt`` per vertex, 1-based ``f v/vt``)."""
     v = mesh.vertices[atlas.vertex_map]
-    lines = [f"# retrotouch projection texture mesh (mm)\nmtllib {mtl_file}\no layout"]
-    lines.append("\n".join(f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v))
-    lines.append("\n".join(f"vt {s:.6f} {t:.6f}" for s, t in atlas.uv))
-    lines.append("usemtl layout")
-    f = atlas.faces + 1
-    lines.append("\n".join(f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in f))
-    return "\n".join(lines) + "\n"
+    f = np.repeat(atlas.faces + 1, 2, axis=1)
+    lines = [
+        f"# retrotouch projection texture mesh (mm)\nmtllib {mtl_file}\no layout\n",
+        ("v %.6f %.6f %.6f\n" * len(v)) % tuple(v.ravel().tolist()),
+        ("vt %.6f %.6f\n" * len(atlas.uv)) % tuple(atlas.uv.ravel().tolist()),
+        "usemtl layout\n",
+        ("f %d/%d %d/%d %d/%d\n" * len(f)) % tuple(f.ravel().tolist()),
+    ]
+    return "".join(lines)
 
 
 def standing_transform(vertices_m: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -182,15 +186,15 @@ def standing_transform(vertices_m: np.ndarray, up: np.ndarray) -> np.ndarray:
     return transform
 
 
-def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray, up: np.ndarray) -> bytes:
-    """The GLB described in the module docstring (metres, matte material, texture embedded, mesh
-    face order, standing with ``up`` along +Y)."""
+def glb_bytes(mesh: Mesh, atlas: Atlas, texture_png: bytes, up: np.ndarray) -> bytes:
+    """The GLB described in the module docstring (metres, matte material, ``texture_png`` embedded
+    as it is, mesh face order, standing with ``up`` along +Y)."""
     import trimesh
     from PIL import Image
 
     material = trimesh.visual.material.PBRMaterial(
         name="layout",
-        baseColorTexture=Image.fromarray(texture_bgr[:, :, ::-1].copy()),
+        baseColorTexture=Image.new("RGB", (1, 1)),  # a placeholder: the PNG goes in by with_png_image
         baseColorFactor=[255, 255, 255, 255],
         metallicFactor=0.0,
         roughnessFactor=GLB_ROUGHNESS,
@@ -210,7 +214,29 @@ def glb_bytes(mesh: Mesh, atlas: Atlas, texture_bgr: np.ndarray, up: np.ndarray)
 
     scene = trimesh.Scene()
     scene.add_geometry(textured, node_name="object", geom_name="layout", transform=standing_transform(vertices_m, up))
-    return bytes(trimesh.exchange.gltf.export_glb(scene, include_normals=True, tree_postprocessor=describe))
+    glb = bytes(trimesh.exchange.gltf.export_glb(scene, include_normals=True, tree_postprocessor=describe))
+    return with_png_image(glb, texture_png)
+
+
+def with_png_image(glb: bytes, png: bytes) -> bytes:
+    """``glb`` (one buffer, one image) with the image's bytes replaced by ``png`` (no re-encoding)."""
+    json_length = struct.unpack_from("<I", glb, 12)[0]
+    tree = json.loads(glb[20 : 20 + json_length])
+    blob = glb[20 + json_length + 8 :]
+    image_view = tree["images"][0]["bufferView"]
+    parts, offset = [], 0
+    for index, view in enumerate(tree["bufferViews"]):
+        start = view.get("byteOffset", 0)
+        data = png if index == image_view else blob[start : start + view["byteLength"]]
+        view["byteOffset"], view["byteLength"] = offset, len(data)
+        parts.append(data + b"\0" * (-len(data) % 4))
+        offset += len(parts[-1])
+    binary = b"".join(parts)
+    tree["buffers"][0]["byteLength"] = len(binary)
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
 def mtl_text(texture_file: str) -> str:
@@ -247,9 +273,10 @@ def projection_textures(params: TextureParams, mesh: Mesh, regions: SurfaceRegio
     stem = params.name or name_from_source(mesh.source)
     atlas = layout_atlas(mesh, layout, params)
     texture = bake_texture(mesh, layout, atlas, params)
-    ok, png = cv2.imencode(".png", texture)
+    ok, encoded = cv2.imencode(".png", texture)
     if not ok:
         raise RuntimeError("PNG encoding of the texture failed")
+    png = encoded.tobytes()
     base = f"projection/{stem}"
     scene = dataclasses.replace(
         build_scene(mesh, layout),
@@ -260,10 +287,10 @@ def projection_textures(params: TextureParams, mesh: Mesh, regions: SurfaceRegio
     )
     return Files(
         {
-            f"{base}_layout.glb": glb_bytes(mesh, atlas, texture, regions.up),
+            f"{base}_layout.glb": glb_bytes(mesh, atlas, png, regions.up),
             f"{base}_layout.obj": obj_text(mesh, atlas, f"{stem}_layout.mtl").encode(),
             f"{base}_layout.mtl": mtl_text(f"{stem}_texture.png").encode(),
-            f"{base}_texture.png": png.tobytes(),
+            f"{base}_texture.png": png,
             f"{base}_scene.npz": save_scene(scene),
         }
     )
