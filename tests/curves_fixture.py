@@ -2,9 +2,9 @@
 (cached across the curve test modules).
 
 Isotropic remeshing is chaotic: a relative change of 1e-6 in the input, or another machine's rounding,
-gives a different mesh of the same object (CI's machine gave the bunny's first vertex 3e-5 mm away).
-The tests must hold for any of them, so ``RETROTOUCH_TEST_JITTER=REL:SEED`` perturbs every input mesh
-by ``REL`` (relative, normal, seeded) before it is remeshed: run the tests under a few seeds to check.
+gives a different mesh of the same object. The tests must hold for any of them, so
+``RETROTOUCH_TEST_JITTER=REL:SEED`` perturbs every input mesh by ``REL`` (relative, normal, seeded)
+before it is remeshed: run the tests under a few seeds to check.
 """
 from __future__ import annotations
 
