@@ -7,6 +7,11 @@ temp folders and stop worker processes run to the end. :class:`Interrupted` deri
 or swallows it; the command line prints one ``interrupted`` line and exits 130 (143 for SIGTERM).
 Inside :func:`deferred` a signal is held until the block ends (for steps that must not be cut in
 half, such as swapping the output folder).
+
+A library may still swallow the exception (some guard their optional imports with ``except
+BaseException``, and a C extension whose initialisation is cut reports an ImportError instead), so
+the signal is also remembered: :func:`check` raises it again (called by loops that would otherwise
+run on forever), and :func:`requested` tells an error handler that an error came from it.
 """
 from __future__ import annotations
 
@@ -33,15 +38,28 @@ class Interrupted(BaseException):
 
 _depth = 0
 _pending: int | None = None
+_received: int | None = None
 
 
 def _handler(signum: int, frame: object) -> None:
-    global _pending
+    global _pending, _received
     ignore()
+    _received = signum
     if _depth:
         _pending = signum
         return
     raise Interrupted(signum)
+
+
+def requested() -> int | None:
+    """The signal number of the interruption received, if any."""
+    return _received
+
+
+def check() -> None:
+    """Raise the interruption again if one was received (and swallowed on its way up)."""
+    if _received is not None:
+        raise Interrupted(_received)
 
 
 def install() -> dict[int, object]:
@@ -56,8 +74,8 @@ def install() -> dict[int, object]:
 
 def restore(previous: dict[int, object]) -> None:
     """Put back the handlers :func:`install` replaced."""
-    global _pending
-    _pending = None
+    global _pending, _received
+    _pending = _received = None
     for signum, handler in previous.items():
         signal.signal(signum, handler)  # type: ignore[arg-type]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from retrotouch.graph import interrupts
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.runner import run_pipeline
 from retrotouch.graph.store import Store
@@ -127,6 +128,44 @@ def test_sigterm_stops_the_same_way(tmp_path, test_nodes):
     out, err = proc.communicate(timeout=60)
     assert (proc.returncode, err) == (143, "retrotouch: error: interrupted\n")
     assert _leftovers(tmp_path) == []
+
+
+def _swallow_a_ctrl_c() -> None:
+    """What trimesh's optional-import guards do with an interruption that lands in them."""
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1.0)  # the handler runs here
+    except BaseException:  # noqa: BLE001 - the library's, on purpose
+        pass
+
+
+def test_an_interruption_a_library_swallows_is_raised_again_by_check():
+    previous = interrupts.install()
+    try:
+        _swallow_a_ctrl_c()
+        assert interrupts.requested() == signal.SIGINT
+        with pytest.raises(interrupts.Interrupted):
+            interrupts.check()
+    finally:
+        interrupts.restore(previous)
+    assert interrupts.requested() is None
+
+
+def test_an_error_after_a_swallowed_interruption_is_reported_as_the_interruption(monkeypatch, capsys):
+    """A C extension cut short in its initialisation raises ImportError('initialization failed')."""
+    from retrotouch.graph.cli import main
+    from retrotouch.nodes.app import APP
+    from retrotouch.nodes.sensing import cli as sensing_cli
+
+    def start_up(**_):
+        _swallow_a_ctrl_c()
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(sensing_cli, "_sense", start_up)
+    with pytest.raises(SystemExit) as stopped:
+        main(APP, ["sense", "--simulate"])
+    assert stopped.value.code == 130
+    assert capsys.readouterr().err == "retrotouch: error: interrupted\n"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to find the workers")

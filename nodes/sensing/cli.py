@@ -34,6 +34,7 @@ from typing import Any, Optional
 
 import typer
 
+from ...graph import interrupts
 from ...graph.app import current
 from ...graph.errors import UserError
 from .sinks import EventSinks, status_event
@@ -55,6 +56,7 @@ def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks,
     start = None
     calibrated = False
     for frame in frames:
+        interrupts.check()
         start = frame.t if start is None else start
         t = frame.t - start
         result = processor.process(frame.values, t)
@@ -264,7 +266,8 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
             print("the frames ended; the live view keeps serving its last frame (Ctrl-C to stop)", file=sys.stderr,
                   flush=True)
             while True:
-                time.sleep(3600)
+                time.sleep(1.0)
+                interrupts.check()
     finally:
         if hasattr(frames, "close"):
             frames.close()  # a generator: stops the simulator and closes its port now
