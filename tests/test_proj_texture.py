@@ -12,6 +12,7 @@ import trimesh
 from proj_fixtures import bunny_layout, bunny_mm, bunny_regions, demo_rig
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.scene import load_scene
+from retrotouch.nodes.geometry.triangles import areas, corners
 from retrotouch.nodes.projection.depth_frames import demo_trajectory
 from retrotouch.nodes.projection.raster import render_textured
 from retrotouch.nodes.projection.render import RenderStyle, render_layers
@@ -198,8 +199,8 @@ def test_paint_follows_the_distance_to_the_layout(baked):
     tex = cv2.imdecode(np.frombuffer(files.contents["projection/bunny_texture.png"], np.uint8), cv2.IMREAD_COLOR)
     atlas = layout_atlas(mesh, layout, params)
     rng = np.random.default_rng(7)
-    tri = mesh.vertices[mesh.faces]
-    weight = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) * atlas.charted
+    tri = corners(mesh.vertices, mesh.faces)
+    weight = areas(tri) * atlas.charted
     faces = rng.choice(len(tri), 100_000, p=weight / weight.sum())
     root, r2 = np.sqrt(rng.random(len(faces))), rng.random(len(faces))
     bary = np.stack([1 - root, root * (1 - r2), root * r2], axis=1)
