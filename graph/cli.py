@@ -291,8 +291,9 @@ def _main(application: App, argv: list[str] | None) -> None:
     except (typer.Abort, KeyboardInterrupt):
         _fail("interrupted", 130)
     except Exception as exc:  # an engine bug: keep the traceback, show one line
-        if interrupts.requested() is not None:  # e.g. an import cut short by the signal
-            _fail("interrupted", 128 + interrupts.requested())
+        stop = interrupts.requested()
+        if stop is not None:  # e.g. an import cut short by the signal
+            _fail("interrupted", stop.exit_code)
         _fail(f"unexpected {type(exc).__name__}: {exc} (traceback: {_crash_log()})", 1)
     sys.exit(result if isinstance(result, int) else 0)
 

@@ -38,28 +38,28 @@ class Interrupted(BaseException):
 
 _depth = 0
 _pending: int | None = None
-_received: int | None = None
+_received: Interrupted | None = None
 
 
 def _handler(signum: int, frame: object) -> None:
     global _pending, _received
     ignore()
-    _received = signum
+    _received = Interrupted(signum)
     if _depth:
         _pending = signum
         return
     raise Interrupted(signum)
 
 
-def requested() -> int | None:
-    """The signal number of the interruption received, if any."""
+def requested() -> Interrupted | None:
+    """The interruption received, if any."""
     return _received
 
 
 def check() -> None:
     """Raise the interruption again if one was received (and swallowed on its way up)."""
     if _received is not None:
-        raise Interrupted(_received)
+        raise Interrupted(_received.signum)
 
 
 def install() -> dict[int, object]:
