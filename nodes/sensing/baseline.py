@@ -3,11 +3,12 @@ step 1), over every channel pair the board scans (``num_tx x num_rx``), wired to
 
 * **Start-up**: the first ``calibration_frames`` frames (no touch assumed) give each channel's
   baseline; their noise sigma is measured after the frames' common modes are removed.
-* **Common modes** per frame, from the *quiet* channels (valid, within ``update_sigma`` noise
-  sigmas of their baseline, not excluded by the caller as touched): a relative offset common to
-  the whole board (temperature drift: median of ``delta / baseline``), then one offset per Tx row
-  and one per Rx column (noise and drift that a drive line or a receiver adds to every channel it
-  scans: mean of the quiet channels' deltas along the row, then along the column). Channel pairs
+* **Common modes** per frame, from the channels the caller does not exclude as touched: a relative
+  offset common to the whole board (temperature drift: median of ``delta / baseline``), then one
+  offset per Tx row and one per Rx column (noise and drift that a drive line or a receiver adds to
+  every channel it scans): medians along the rows and columns first, then the mean of the *quiet*
+  channels (within ``update_sigma`` noise sigmas of those medians) along each row, then along each
+  column. Channel pairs
   without a crossing carry these common modes but no touch, so they make the estimates robust
   beside a touch. A row or column with fewer than ``MIN_QUIET`` quiet channels gets no offset.
 * **Tracking**: each quiet channel's baseline follows the raw counts with time constant
@@ -96,11 +97,16 @@ class Baseline:
         """``raw - baseline`` with the frame's common modes removed (counts; 0 where not ``valid``);
         ``touched`` channels never inform the common modes."""
         delta = raw - self.baseline
-        quiet = valid & (np.abs(delta) < self.params.update_sigma * sigma) & ~touched & (self.baseline > 0)
-        if np.count_nonzero(quiet) >= MIN_QUIET:
-            common = median(delta[quiet] / self.baseline[quiet])
+        candidates = valid & ~touched & (self.baseline > 0)
+        if np.count_nonzero(candidates) >= MIN_QUIET:
+            common = median(delta[candidates] / self.baseline[candidates])
             delta = raw - self.baseline * (1.0 + common)
-            quiet &= np.abs(delta) < self.params.update_sigma * sigma
+            # Quiet is judged after a first, robust removal (medians along the lines): correlated
+            # noise larger than the channels' own would otherwise leave whole lines un-quiet.
+            grid = np.where(candidates, delta, np.nan).reshape(self.shape)
+            rough = np.nan_to_num(np.nanmedian(grid, axis=1, keepdims=True))
+            rough = rough + np.nan_to_num(np.nanmedian(grid - rough, axis=0, keepdims=True))
+            quiet = candidates & (np.abs(delta - rough.ravel()) < self.params.update_sigma * sigma)
             delta -= line_offsets(delta.reshape(self.shape), quiet.reshape(self.shape)).ravel()
         delta[~valid] = 0.0
         return delta

@@ -18,6 +18,7 @@ from ..data.sensing_map import SensingMap
 from ..geometry.surface import SurfaceProjector
 from .baseline import median
 from .coupling_profile import CouplingProfile, ProfileLearner
+from .gain_learning import MIN_SNR, NEAR_PROFILE, GainLearner
 from .plane_fit import TangentPlaneFit
 
 if TYPE_CHECKING:
@@ -36,7 +37,7 @@ class CouplingFit:
     """The coupling model of one sensing map and what it learned so far (width, shape, amplitude)."""
 
     def __init__(self, sensing_map: SensingMap, params: ProcessingParams, projector: SurfaceProjector,
-                 cell_gain: np.ndarray, cell_distance: np.ndarray):
+                 cell_gain: np.ndarray, cell_distance: np.ndarray, measured_gains: bool = False):
         self.map, self.params, self.projector = sensing_map, params, projector
         self.cell_gain, self.cell_distance = cell_gain, cell_distance
         self.pitch = sensing_map.pitch_mm()
@@ -47,6 +48,8 @@ class CouplingFit:
         self.amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
         self._amplitude_count = 0  # well-posed fits seen
         self.coupling = ProfileLearner(CouplingProfile.gaussian(1.0))  # the shape, in units of the width
+        self.gains = (GainLearner(cell_gain, sensing_map.cell_pad, measured=measured_gains)
+                      if params.learn_gains else None)
         self._use_profile()
 
     def _use_profile(self) -> None:
@@ -211,13 +214,31 @@ class CouplingFit:
         plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
         fits = [plane_fit.run(p, f, log_amplitude) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
-        if update and self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
+        if not (update and self._learn_amplitude(log_amplitude, information) and learn_profile):
+            return point, face, bary, log_amplitude
+        if self.gains is not None:
+            self._learn_gains(near, x - point, log_amplitude, d, noise)
+        if width_learned:
             scale = h * math.exp(log_amplitude)
             offsets = x - point
             squared = np.einsum("ij,ij->i", offsets, offsets) / self.coupling_sigma**2  # in widths
             if self.coupling.add(squared, z / scale, scale * scale):
                 self._use_profile()
         return point, face, bary, log_amplitude
+
+    def _learn_gains(self, cells: np.ndarray, offsets: np.ndarray, log_amplitude: float, values: np.ndarray,
+                     noise: np.ndarray) -> None:
+        """Give the gain learner (:mod:`.gain_learning`) a well-posed single touch's crossings near the
+        fitted finger (``offsets`` from it, mm) that read above ``MIN_SNR`` sigmas, and use its gains
+        (in place: the peak test shares the array) every 10th touch."""
+        profile = self.profile.at_squared(np.einsum("ij,ij->i", offsets, offsets))[0]
+        use = (profile >= NEAR_PROFILE) & (values > MIN_SNR * noise)
+        if not use.any():
+            return
+        model = math.exp(log_amplitude) * profile[use]
+        self.gains.add(cells[use], np.log(values[use] / model), (values[use] / noise[use]) ** 2)
+        if self.gains.touches % 10 == 0:
+            self.cell_gain[:] = self.gains.gains()
 
     def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> bool:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within

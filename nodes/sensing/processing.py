@@ -82,6 +82,7 @@ class ProcessingParams(NodeParams):
     refine: bool = Field(True, description="refine the centroid with the coupling fit")
     no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
     adapt_coupling: bool = Field(True, description="learn the coupling width, then the profile's shape, from touches")
+    learn_gains: bool = Field(True, description="learn each crossing's gain and the no-pad gain from touches")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -134,7 +135,8 @@ class TouchProcessor:
                           else np.asarray(cell_gain, dtype=np.float64))
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
-        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance)
+        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance,
+                               measured_gains=cell_gain is not None)
         self.contacts = ContactAreas(sensing_map, params.contact_mesh_faces,
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
