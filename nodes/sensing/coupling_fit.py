@@ -67,7 +67,8 @@ class CouplingFit:
         ``found``, strongest peak first; entries that are one finger are merged out). Each fit starts
         at its peak crossing (on the touched side, within a pitch of the finger); with several
         touches the first pass fits each one to its own cells (nearest to its peak), peaks whose fits
-        land within ``2 finger_radius`` of a stronger one's are dropped (their area added to it), and
+        land within ``2 finger_radius`` of a stronger one's, or whose delta the strongest finger's
+        tail can explain (:meth:`_separate_fingers`), are dropped (their area added to it), and
         a second pass fits each remaining touch to all deltas minus the other touches' fitted
         coupling, starting from its first fit's point and amplitude. The coupling profile learns from
         single touches and from second-pass fits (a first pass beside another touch carries that

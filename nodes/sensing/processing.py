@@ -29,8 +29,10 @@ Per frame (``TouchProcessor.process``):
    surface; weak priors (offset ~ N(0, pitch^2), amplitude learned from well-posed touches) keep
    directions that a sparse layout does not resolve bounded. With several touches each one is
    refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
-   whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's are one
-   finger. ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
+   whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's, or that
+   the strongest finger's heaviest plausible (power-law) tail explains, are one finger. With
+   ``learn_gains`` the crossings' gains and the no-pad gain are learned from well-posed single
+   touches (:mod:`.gain_learning`). ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
    with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
    (log-quadratic fits), then the shape, in units of that width, is learned from well-posed single
    touches: a board whose coupling is not a Gaussian (flat top, heavy tail) is localized without
