@@ -54,7 +54,7 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
         sys.executable, "-m", "retrotouch.nodes", "run", str(trimmed_pipeline(tmp_path)),
         "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
-        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]",
+        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
     ]
     done = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]

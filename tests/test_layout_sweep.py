@@ -7,8 +7,9 @@ from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, p
 from retrotouch.nodes.layout.sweep import AngleLayout
 
 
-def branch(angle, radius, mean, cv, secondary=True, feasible=True):
+def branch(angle, radius, mean, cv, secondary=True, feasible=True, cells=50):
     metrics = {"coverage_radius_mm": radius, "power_mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
+               "cells": cells,
                "pads": 10, "tx_channels": 21, "rx_channels": 12, "relaxations": [],
                "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0, "deterministic_time": 0.5}], "resolution_mm": 0.5}}
     return AngleLayout("dipole", angle, feasible, "ok" if feasible else "no pads", None, metrics)
@@ -20,6 +21,14 @@ def test_radius_ties_within_tolerance_fall_to_the_mean_then_the_cv():
     assert best_branch(candidates, 0.0) == 0
     off = [branch(-10, 30.0, 8.0, 0.5, False), branch(0, 30.6, 7.0, 0.4, False)]
     assert best_branch(off, 1.0) == 1  # secondary off: the Voronoi CV decides among ties
+
+
+def test_power_means_within_the_tolerance_fall_to_the_most_cells():
+    candidates = [branch(-10, 30.0, 8.0, 0.3, cells=60), branch(0, 30.4, 8.3, 0.6, cells=130), branch(10, 30.2, 9.0, 0.2, cells=200)]
+    assert best_branch(candidates, 1.0) == 0  # no mean tolerance: the lowest power mean
+    assert best_branch(candidates, 1.0, 0.05) == 1  # 8.3 ties with 8.0, more cells; 9.0 is 12.5 % worse: out
+    assert best_branch(candidates, 1.0, 0.2) == 2
+    assert best_branch(candidates, 0.1, 0.2) == 0  # the radius comes first
 
 
 def test_infeasible_branches_are_skipped_and_listed():

@@ -1,9 +1,10 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
 A branch is one Rx family (dipole loops or rings) at one angle; branches of several families arrive
-as one list (``candidates: ["select[*]", "ring_select[*]"]``) and are taken in order; the best is chosen by (coverage radius within ``radius_tolerance_mm``
-of the best, then the power mean of the sample distances when the secondary objective is on, then
-the Voronoi CV of the pads). Every branch gets a row in ``metrics["angles"]`` and the printed table,
+as one list (``candidates: ["select[*]", "ring_select[*]"]``) and are taken in order. The best has
+the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the
+sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
+then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in ``metrics["angles"]`` and the printed table,
 with its notes: a failed branch with its reason, and a feasible branch whose coverage radius
 exceeds ``outlier_factor`` times the median of the feasible branches as far worse. Units: mm, deg.
 """
@@ -22,24 +23,30 @@ class PickParams(NodeParams):
     radius_tolerance_mm: float = Field(
         1.0, ge=0, description="coverage radii within this of the best count as equal (then mean, then CV)"
     )
+    mean_tolerance: float = Field(
+        0.05, ge=0, description="power means within this share of the best count as equal (then most cells, then CV)"
+    )
     outlier_factor: float = Field(
         1.5, gt=1, description="a branch whose coverage radius exceeds this times the median is noted as far worse"
     )
 
 
-def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float) -> int:
+def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float, mean_tolerance: float = 0.0) -> int:
     """Index of the best feasible branch: smallest coverage radius (ties within the tolerance, since
     the K samples resolve no finer), then the secondary objective when it is on (power mean of the
-    sample distances), then the Voronoi CV."""
+    sample distances; ties within ``mean_tolerance`` of the best, relative), then the most cells (the
+    sensor's resolution), then the Voronoi CV."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     best_radius = min(candidates[i].metrics["coverage_radius_mm"] for i in feasible)
     tied = [i for i in feasible if candidates[i].metrics["coverage_radius_mm"] <= best_radius + radius_tolerance_mm]
+    mean = {i: candidates[i].metrics["power_mean_distance_mm"] if candidates[i].metrics["secondary"] else 0.0 for i in tied}
+    best_mean = min(mean.values())
+    tied = [i for i in tied if mean[i] <= best_mean * (1.0 + mean_tolerance)]
 
     def key(i: int) -> tuple:
         m = candidates[i].metrics
-        mean = m["power_mean_distance_mm"] if m["secondary"] else 0.0
         cv = m["voronoi_cv"] if m["voronoi_cv"] is not None else float("inf")
-        return (mean, cv, m["coverage_radius_mm"])
+        return (-(m.get("cells") or 0), cv, mean[i], m["coverage_radius_mm"])
 
     return min(tied, key=key)
 
@@ -130,7 +137,7 @@ def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, ob
     if not feasible:
         reasons = "; ".join(f"{c.family} {c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
         raise UserError(f"no branch gives a feasible layout ({reasons})")
-    best = best_branch(candidates, params.radius_tolerance_mm)
+    best = best_branch(candidates, params.radius_tolerance_mm, params.mean_tolerance)
     rows = angle_table(candidates, params.outlier_factor)
     if params.print_table:
         print_angle_table(rows, best)
