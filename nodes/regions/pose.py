@@ -6,7 +6,12 @@ hull triangle). Each candidate gets
 
 * its **contact area** (mm^2): the faces whose normal is within ``angle_threshold_deg`` of the floor
   normal and whose corners all lie within ``plane_tolerance_mm`` of it (connectivity not applied:
-  several feet add up), and
+  several feet add up); on a stable floor that the object touches with ``FEET_MIN`` or more separate
+  feet, at least the area of the polygon the feet span (:func:`feet_support_mm2`). A rigid body
+  generically rests on three points; four or more separate patches of similar size in one plane
+  (the legs of an animal, a stool, a table) are what it was made to stand on, and the load is
+  carried over the whole polygon between them however small each rounded foot's own contact is;
+  and
 * its **tipping angle** (degrees): the support polygon is the convex hull of the hull vertices
   within ``plane_tolerance_mm`` of the floor; the angle is ``atan(margin / height)``, where
   ``margin`` is the distance from the centre of mass's projection to the polygon's nearest edge
@@ -30,6 +35,8 @@ import dataclasses
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..geometry.triangles import corners, normals
@@ -42,6 +49,17 @@ MIRROR_TOLERANCE = 1.5
 sample spacings of the surface."""
 MIRROR_UPRIGHT_DEG = 20.0
 """A floor keeps a mirror plane upright when its up direction is within this angle of the plane."""
+PLANE_CHUNK = 128
+"""Planes tested against all vertices at once (bounds memory)."""
+FEET_MIN = 4
+"""Separate contact patches from which a floor stands on feet (a rigid body generically rests on
+three points; four or more separate patches in one plane are made to stand on)."""
+FEET_ANGLE_DEG = 45.0
+"""A foot's contact faces: normal within this angle of the floor normal (the rounded end of a leg)."""
+FEET_DEPTH = 2.0
+"""A foot's contact faces lie within this many plane tolerances of the floor."""
+FEET_SHARE = 0.25
+"""A contact patch counts as a foot with at least this share of the largest patch's area."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +132,68 @@ def tipping_angle_deg(points: np.ndarray, down: np.ndarray, centre: np.ndarray, 
     return float(np.degrees(np.arctan2(margin, max(support - centre @ down, 1e-9))))
 
 
+def touching_faces(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_normals: np.ndarray,
+    planes: np.ndarray,
+    angle_deg: float,
+    tolerance_mm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(face, plane)`` index pairs: the face's normal is within ``angle_deg`` of the plane's outward
+    normal and its corners lie within ``tolerance_mm`` of the plane (``planes`` rows: normal, offset)."""
+    gap = np.full(len(vertices), np.inf)
+    for start in range(0, len(planes), PLANE_CHUNK):
+        chunk = planes[start : start + PLANE_CHUNK]
+        gap = np.minimum(gap, -(vertices @ chunk[:, :3].T + chunk[:, 3]).max(axis=1))
+    close = np.flatnonzero((gap[faces] <= tolerance_mm).all(axis=1))
+    used, corner = np.unique(faces[close], return_inverse=True)
+    corner = corner.reshape(-1, 3)
+    found: list[tuple[np.ndarray, np.ndarray]] = []
+    for start in range(0, len(planes), PLANE_CHUNK):
+        chunk = planes[start : start + PLANE_CHUNK]
+        near = vertices[used] @ chunk[:, :3].T + chunk[:, 3] >= -tolerance_mm
+        face, plane = np.nonzero(near[corner].all(axis=1))
+        face = close[face]
+        facing = np.einsum("kj,kj->k", face_normals[face], chunk[plane, :3]) >= np.cos(np.radians(angle_deg))
+        found.append((face[facing], plane[facing] + start))
+    return np.concatenate([f for f, _ in found]), np.concatenate([p for _, p in found])
+
+
+def feet_support_mm2(
+    vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, planes: np.ndarray, tolerance_mm: float
+) -> np.ndarray:
+    """Per plane (rows: outward normal, offset), the area (mm^2) of the polygon spanned by its feet,
+    0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
+    ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
+    plane's largest patch's area."""
+    from .faces import FaceGraph
+
+    face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
+    support = np.zeros(len(planes))
+    if len(face) == 0:
+        return support
+    keys = plane * len(faces) + face
+    order = np.argsort(keys)
+    opposite = FaceGraph(faces, len(vertices)).opposite
+    node = np.repeat(np.arange(len(face)), 3)
+    wanted = plane[node] * len(faces) + opposite[3 * face[:, None] + np.arange(3)].ravel() // 3
+    position = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
+    found = keys[order][position] == wanted
+    links = coo_matrix((np.ones(int(found.sum())), (node[found], order[position][found])), shape=(len(face),) * 2)
+    label = connected_components(links, directed=False)[1]
+    area = np.bincount(label, weights=normals(corners(vertices, faces[face]))[1])
+    label_plane = np.zeros(len(area), dtype=np.int64)
+    label_plane[label] = plane
+    largest = np.zeros(len(planes))
+    np.maximum.at(largest, label_plane, area)
+    foot = area >= FEET_SHARE * largest[label_plane]
+    for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= FEET_MIN):
+        points = vertices[np.unique(faces[face[(plane == index) & foot[label]]])]
+        support[index] = ConvexHull(points @ plane_basis(planes[index, :3])).volume
+    return support
+
+
 def candidate_floors(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -127,20 +207,17 @@ def candidate_floors(
     cell = cKDTree(fibonacci_directions(direction_cells)).query(hull.equations[:, :3])[1]
     order = np.lexsort((-hull_areas, cell))
     keep = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
-    plane_normals, offsets = hull.equations[keep, :3], hull.equations[keep, 3]
+    plane_normals = hull.equations[keep, :3]
     face_normals, face_areas = normals(corners(vertices, faces))
-    chord = 2.0 * np.sin(np.radians(angle_threshold_deg) / 2.0)
-    pairs = cKDTree(face_normals).sparse_distance_matrix(cKDTree(plane_normals), chord, output_type="ndarray")
-    face, plane = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    depth = -(np.einsum("kcj,kj->kc", vertices[faces[face]], plane_normals[plane]) + offsets[plane, None])
-    touching = depth.max(axis=1) <= plane_tolerance_mm
-    contact = np.bincount(plane[touching], weights=face_areas[face[touching]], minlength=len(plane_normals))
+    face, plane = touching_faces(vertices, faces, face_normals, hull.equations[keep], angle_threshold_deg, plane_tolerance_mm)
+    contact = np.bincount(plane, weights=face_areas[face], minlength=len(plane_normals))
     centre = centre_of_mass(vertices, faces)
     hull_points = hull.points[hull.vertices]
-    return [
-        Floor(down, float(area), tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm))
-        for down, area in zip(plane_normals, contact)
-    ]
+    tipping = np.array([tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm) for down in plane_normals])
+    stable = np.flatnonzero(tipping > 0.0)
+    feet = feet_support_mm2(vertices, faces, face_normals, hull.equations[keep][stable], plane_tolerance_mm)
+    contact[stable] = np.maximum(contact[stable], feet)
+    return [Floor(down, float(area), float(tilt)) for down, area, tilt in zip(plane_normals, contact, tipping)]
 
 
 def ranked_floors(
