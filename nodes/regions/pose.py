@@ -60,6 +60,9 @@ FEET_DEPTH = 2.0
 """A foot's contact faces lie within this many plane tolerances of the floor."""
 FEET_SHARE = 0.25
 """A contact patch counts as a foot with at least this share of the largest patch's area."""
+LEG_SHARE = 0.05
+"""Feet stand on legs: they stay separate up to this share of the object's bounding-box diagonal
+above the floor (bumps of one face, or a body lying on its side, merge well below it)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,7 +169,8 @@ def feet_support_mm2(
     """Per plane (rows: outward normal, offset), the area (mm^2) of the polygon spanned by its feet,
     0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
     ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
-    plane's largest patch's area."""
+    plane's largest patch's area, and still apart on the surface up to ``LEG_SHARE`` of the object's
+    diagonal above the floor (legs)."""
     from .faces import FaceGraph
 
     face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
@@ -175,7 +179,9 @@ def feet_support_mm2(
         return support
     keys = plane * len(faces) + face
     order = np.argsort(keys)
-    opposite = FaceGraph(faces, len(vertices)).opposite
+    graph = FaceGraph(faces, len(vertices))
+    opposite = graph.opposite
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
     node = np.repeat(np.arange(len(face)), 3)
     wanted = plane[node] * len(faces) + opposite[3 * face[:, None] + np.arange(3)].ravel() // 3
     position = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
@@ -189,8 +195,12 @@ def feet_support_mm2(
     np.maximum.at(largest, label_plane, area)
     foot = area >= FEET_SHARE * largest[label_plane]
     for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= FEET_MIN):
-        points = vertices[np.unique(faces[face[(plane == index) & foot[label]]])]
-        support[index] = ConvexHull(points @ plane_basis(planes[index, :3])).volume
+        feet = (plane == index) & foot[label]
+        depth = -(vertices @ planes[index, :3] + planes[index, 3])
+        legs = graph.components((depth[faces] <= max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)).all(axis=1))
+        if len(np.unique(legs[face[feet]])) >= FEET_MIN:
+            points = vertices[np.unique(faces[face[feet]])] @ plane_basis(planes[index, :3])
+            support[index] = ConvexHull(points).volume
     return support
 
 
