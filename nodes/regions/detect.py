@@ -19,11 +19,15 @@ Then, with heat-method geodesic distances (potpourri3d):
 * ``exclusion_base``: faces grown outward from the base, across edges, while their mean vertex
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
   less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first).
-* ``far_vertex``: the vertex outside base and first exclusion farthest from the base;
+* ``far_vertex``: the vertex outside base and first exclusion farthest from the base (on a thin
+  object, whose top is everywhere close to the base's rim, farthest from the base centre, so the Tx
+  lines run the object's length);
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
   faces around it.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import potpourri3d as pp3d
@@ -134,7 +138,10 @@ def automatic_pose(
         base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
         if not base.cavity:
             skipped = f", {rank} upside-down pose(s) passed over" if rank else ""
-            return base, floor.down, why + skipped
+            if floor.feet and base.kind in ("flat", "round"):  # one foot is the base, the others sense
+                base = dataclasses.replace(base, kind="patches", patches=floor.feet)
+            feet = f", standing on {floor.feet} feet (the polygon they span is its contact)" if floor.feet else ""
+            return base, floor.down, why + feet + skipped
         first = first or (base, floor.down)
     return first[0], first[1], why + " (every candidate encloses a cavity)"
 
@@ -233,7 +240,8 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     free = np.flatnonzero(~touches_blocked)
     if len(free) == 0:
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
-    far_vertex = int(free[np.argmax(from_base[free])])
+    reach = solver.compute_distance(int(anchors[0])) if base.kind == "thin" else from_base
+    far_vertex = int(free[np.argmax(reach[free])])
     from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked

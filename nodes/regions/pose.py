@@ -67,11 +67,13 @@ above the floor (bumps of one face, or a body lying on its side, merge well belo
 
 @dataclasses.dataclass(frozen=True)
 class Floor:
-    """A candidate floor plane: outward ``down`` unit normal, contact area mm^2, tipping angle deg."""
+    """A candidate floor plane: outward ``down`` unit normal, contact area mm^2, tipping angle deg,
+    and the number of feet whose polygon is its contact (0: the contact faces' area)."""
 
     down: np.ndarray
     contact_mm2: float
     tipping_deg: float
+    feet: int = 0
 
 
 def fibonacci_directions(count: int) -> np.ndarray:
@@ -165,18 +167,18 @@ def touching_faces(
 
 def feet_support_mm2(
     vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, planes: np.ndarray, tolerance_mm: float
-) -> np.ndarray:
-    """Per plane (rows: outward normal, offset), the area (mm^2) of the polygon spanned by its feet,
-    0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per plane (rows: outward normal, offset), ``(area mm^2 of the polygon its feet span, number of
+    feet)``, both 0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
     ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
     plane's largest patch's area, and still apart on the surface up to ``LEG_SHARE`` of the object's
     diagonal above the floor (legs)."""
     from .faces import FaceGraph
 
     face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
-    support = np.zeros(len(planes))
+    support, count = np.zeros(len(planes)), np.zeros(len(planes), dtype=np.int64)
     if len(face) == 0:
-        return support
+        return support, count
     keys = plane * len(faces) + face
     order = np.argsort(keys)
     graph = FaceGraph(faces, len(vertices))
@@ -200,8 +202,8 @@ def feet_support_mm2(
         legs = graph.components((depth[faces] <= max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)).all(axis=1))
         if len(np.unique(legs[face[feet]])) >= FEET_MIN:
             points = vertices[np.unique(faces[face[feet]])] @ plane_basis(planes[index, :3])
-            support[index] = ConvexHull(points).volume
-    return support
+            support[index], count[index] = ConvexHull(points).volume, len(np.unique(label[feet]))
+    return support, count
 
 
 def candidate_floors(
@@ -225,9 +227,13 @@ def candidate_floors(
     hull_points = hull.points[hull.vertices]
     tipping = np.array([tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm) for down in plane_normals])
     stable = np.flatnonzero(tipping > 0.0)
-    feet = feet_support_mm2(vertices, faces, face_normals, hull.equations[keep][stable], plane_tolerance_mm)
-    contact[stable] = np.maximum(contact[stable], feet)
-    return [Floor(down, float(area), float(tilt)) for down, area, tilt in zip(plane_normals, contact, tipping)]
+    support, count = feet_support_mm2(vertices, faces, face_normals, hull.equations[keep][stable], plane_tolerance_mm)
+    feet = np.zeros(len(plane_normals), dtype=np.int64)
+    feet[stable] = np.where(support > contact[stable], count, 0)
+    contact[stable] = np.maximum(contact[stable], support)
+    return [
+        Floor(down, float(area), float(tilt), int(n)) for down, area, tilt, n in zip(plane_normals, contact, tipping, feet)
+    ]
 
 
 def ranked_floors(
