@@ -221,18 +221,20 @@ def candidate_floors(
     keep = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
     plane_normals = hull.equations[keep, :3]
     face_normals, face_areas = normals(corners(vertices, faces))
-    face, plane = touching_faces(vertices, faces, face_normals, hull.equations[keep], angle_threshold_deg, plane_tolerance_mm)
+    planes = hull.equations[keep]
+    face, plane = touching_faces(vertices, faces, face_normals, planes, angle_threshold_deg, plane_tolerance_mm)
     contact = np.bincount(plane, weights=face_areas[face], minlength=len(plane_normals))
     centre = centre_of_mass(vertices, faces)
     hull_points = hull.points[hull.vertices]
     tipping = np.array([tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm) for down in plane_normals])
     stable = np.flatnonzero(tipping > 0.0)
-    support, count = feet_support_mm2(vertices, faces, face_normals, hull.equations[keep][stable], plane_tolerance_mm)
+    support, count = feet_support_mm2(vertices, faces, face_normals, planes[stable], plane_tolerance_mm)
     feet = np.zeros(len(plane_normals), dtype=np.int64)
     feet[stable] = np.where(support > contact[stable], count, 0)
     contact[stable] = np.maximum(contact[stable], support)
     return [
-        Floor(down, float(area), float(tilt), int(n)) for down, area, tilt, n in zip(plane_normals, contact, tipping, feet)
+        Floor(down, float(area), float(tilt), int(n))
+        for down, area, tilt, n in zip(plane_normals, contact, tipping, feet)
     ]
 
 
