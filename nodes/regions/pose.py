@@ -8,10 +8,11 @@ hull triangle). Each candidate gets
   normal and whose corners all lie within ``plane_tolerance_mm`` of it (connectivity not applied:
   several feet add up); on a stable floor that the object touches with ``FEET_MIN`` or more separate
   feet, at least the area of the polygon the feet span (:func:`feet_support_mm2`). A rigid body
-  generically rests on three points; four or more separate patches of similar size in one plane
-  (the legs of an animal, a stool, a table) are what it was made to stand on, and the load is
-  carried over the whole polygon between them however small each rounded foot's own contact is;
-  and
+  generically rests on three points; four or more separate patches of similar size in one plane,
+  at the ends of legs (still apart ``LEG_SHARE`` of the diagonal above the floor), are what it was
+  made to stand on (an animal or a figurine on its legs), and the load is carried over the whole
+  polygon between them however small each rounded foot's own contact is (a flat face larger than
+  that polygon still wins: a stool with a broad flat seat is set on its seat); and
 * its **tipping angle** (degrees): the support polygon is the convex hull of the hull vertices
   within ``plane_tolerance_mm`` of the floor; the angle is ``atan(margin / height)``, where
   ``margin`` is the distance from the centre of mass's projection to the polygon's nearest edge
