@@ -9,8 +9,8 @@
    part of the one sensing region (a foot cannot join the base without covering the leg between).
 3. **Room for the Rx dipole**: the patch grows ring by ring (faces sharing a vertex with it) around
    its deepest vertex until some interior vertex is ``min_base_radius_mm`` from the nearest
-   boundary vertex and two adjacent vertices are interior (:func:`grow_for_dipole`). A round or curved bottom gets a contact cap this way, a tiny
-   flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
+   boundary vertex and two adjacent vertices are interior (:func:`grow_for_dipole`). A round or
+   curved bottom gets a contact cap this way, a tiny flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
    the plane tolerance above the plane is a round bottom's contact cap.
 4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
    plates, dishes, lids, a lying blade): before step 3, the patch takes the whole bottom side, the
