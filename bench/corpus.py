@@ -82,6 +82,7 @@ def measured(stem: str, out: Path) -> dict[str, object]:
     regions = detect_regions(RegionParams(), mesh)
     return {
         "pose": regions.pose_kind,
+        "up": [round(float(v), 3) for v in regions.up],
         "tipping_deg": round(regions.tipping_angle_deg, 1),
         "base_percent": round(100 * regions.base_area_fraction, 2),
         "cells": metrics.get("cells"),

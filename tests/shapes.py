@@ -60,9 +60,10 @@ def radial(direction_radius: Callable[[np.ndarray], np.ndarray], subdivisions: i
     return trimesh.Trimesh(directions * direction_radius(directions)[:, None], sphere.faces)
 
 
-def four_legged_figurine() -> trimesh.Trimesh:
-    """An animal figurine: an ellipsoid body (110 x 50 x 40 mm) on four legs with flat soles, a
-    head bump in front; stands on the soles (z = -45 mm)."""
+def four_legged_figurine(soles: bool = True) -> trimesh.Trimesh:
+    """An animal figurine: an ellipsoid body (110 x 50 x 40 mm) on four legs, a head bump in front;
+    stands on the legs' flat soles (z = -45 mm), or with ``soles=False`` on their rounded ends
+    (hooves: almost no flat contact, z = -63 mm)."""
     axes = np.array([55.0, 25.0, 20.0])
 
     def radius(d: np.ndarray) -> np.ndarray:
@@ -80,7 +81,8 @@ def four_legged_figurine() -> trimesh.Trimesh:
 
     mesh = radial(radius)
     vertices = mesh.vertices.copy()
-    vertices[:, 2] = np.maximum(vertices[:, 2], -45.0)  # flat soles
+    if soles:
+        vertices[:, 2] = np.maximum(vertices[:, 2], -45.0)
     return trimesh.Trimesh(vertices, mesh.faces)
 
 

@@ -204,6 +204,20 @@ def test_repair_closes_holes_and_keeps_largest() -> None:
     assert report["vertices"] == len(big.vertices)
 
 
+def test_scan_with_an_open_bottom_is_closed_by_default() -> None:
+    """A turntable scan has no bottom: a hole with 1,500 boundary edges (more than any fixed small
+    limit) is closed by the default repair, and a set limit still leaves it open."""
+    tube = trimesh.creation.cylinder(radius=40.0, height=60.0, sections=1500)
+    walls = np.asarray(tube.faces[tube.face_normals[:, 2] > -0.99], dtype=np.int64)
+    scan = Mesh(np.asarray(tube.vertices), walls, "scan")
+    repaired = repair_mesh(RepairParams(), scan)
+    assert check_topology(CheckTopologyParams(), repaired)["report"]["genus"] == 0
+    assert "closed 1 hole(s) with 1,498 faces" in repaired.repairs
+    limited = repair_mesh(RepairParams(max_hole_edges=1000), scan)
+    with pytest.raises(UserError, match="1500 boundary edges"):
+        check_topology(CheckTopologyParams(), limited)
+
+
 def test_remesh_to_vertex_count_lands_within_15_percent() -> None:
     sphere = as_mesh(trimesh.creation.icosphere(subdivisions=4, radius=40.0))
     out = remesh(RemeshParams(target_vertices=1000), sphere)

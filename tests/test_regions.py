@@ -196,7 +196,11 @@ def test_shared_meshes_rest_without_overrides(path: Path) -> None:
     assert_valid_regions(mesh, r)
     assert r.tipping_angle_deg >= params.min_tipping_deg  # a stable pose
     assert r.sensing_faces.mean() > 0.45
-    assert r.base_distance_mm[r.far_vertex] > 0.8 * np.ptp(mesh.vertices @ r.up)  # far from the base
+    if r.pose_kind == "thin":  # the Tx pole at the other end from the base centre (a lying blade's tip)
+        span = np.linalg.norm(mesh.vertices[r.far_vertex] - mesh.vertices[r.base_centre])
+        assert span > 0.5 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)), span
+    else:
+        assert r.base_distance_mm[r.far_vertex] > 0.8 * np.ptp(mesh.vertices @ r.up)  # far from the base
 
 
 def remeshed(tm: trimesh.Trimesh, vertices: int = 2000) -> Mesh:
@@ -231,3 +235,17 @@ def test_figurine_base_is_one_foot_and_the_rest_one_piece() -> None:
     assert_valid_regions(figurine, r)
     soles = np.unique(figurine.faces[r.base_faces])
     assert np.ptp(figurine.vertices[soles, :2], axis=0).max() < 40.0  # one foot, not the body
+
+
+def test_narrow_lying_blade_keeps_its_top_sensing() -> None:
+    """A 150 x 9 x 2 mm blade lies on its broad side; its bottom side is narrower than the dipole's
+    radius, yet the base stays on the bottom (it does not wrap the top), and the Tx pole is at the
+    other end from the base centre, so the Tx lines run along the blade."""
+    blade = remeshed(trimesh.creation.box(extents=(150.0, 9.0, 2.0)), 3000)
+    r = detect_regions(RegionParams(), blade)
+    assert abs(r.up[2]) > 0.99 and r.pose_kind == "thin"
+    face_normals, areas = normals(corners(blade.vertices, blade.faces))
+    top = face_normals @ r.up > 0.9
+    assert areas[top & r.sensing_faces].sum() > 0.85 * areas[top].sum()
+    assert np.linalg.norm(blade.vertices[r.far_vertex] - blade.vertices[r.base_centre]) > 100.0
+    assert_valid_regions(blade, r)

@@ -3,7 +3,8 @@
 Nodes:
 
 * ``mesh.repair`` -- remove duplicate vertices/faces, null faces and unreferenced vertices, repair
-  non-manifold edges and vertices, orient faces coherently, close holes, keep only the largest
+  non-manifold edges and vertices, orient faces coherently, close holes (every hole by default, so a
+  scan's open bottom is closed), keep only the largest
   connected component (a scan's loose fragments), and make the orientation outward (signed
   volume > 0). Each change is listed in ``Mesh.repairs``.
 * ``mesh.remesh`` -- isotropic explicit remeshing to a target edge length in mm, or to a target
@@ -94,7 +95,9 @@ class RepairParams(NodeParams):
     """Which clean-up steps run."""
 
     close_holes: bool = Field(True, description="fill holes bounded by at most max_hole_edges edges")
-    max_hole_edges: int = Field(1000, ge=3, description="largest hole (in boundary edges) to close")
+    max_hole_edges: int | None = Field(
+        None, ge=3, description="largest hole (in boundary edges) to close; null: every hole (a scan's open bottom)"
+    )
     keep_largest: bool = Field(True, description="drop every component but the largest (by area)")
     non_manifold_edges: Literal["remove_faces", "split_vertices"] = Field(
         "remove_faces", description="how non-manifold edges are repaired"
@@ -130,7 +133,8 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     if params.close_holes:
         holes = meshset.get_topological_measures()["number_holes"]
         try:
-            meshset.meshing_close_holes(maxholesize=params.max_hole_edges)
+            largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
+            meshset.meshing_close_holes(maxholesize=largest)
         except pymeshlab.PyMeshLabException as exc:
             raise UserError(
                 f"closing holes failed ({str(exc).strip()[:100]}): set close_holes: false and "

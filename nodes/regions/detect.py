@@ -20,14 +20,17 @@ Then, with heat-method geodesic distances (potpourri3d):
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
   less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first).
 * ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
-  first exclusion farthest from the base; with ``tx_pole="centre"`` the geodesic centre of that
-  free region: the free vertex whose largest distance to the region's ``CENTRE_SAMPLES``
-  farthest-point samples is smallest, so Tx lines fan out to every side of the object;
+  first exclusion farthest from the base (on a thin object, whose top is everywhere close to the
+  base's rim, farthest from the base centre, so the Tx lines run the object's length); with
+  ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
+  distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
+  out to every side of the object;
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
   faces around it.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import numpy as np
@@ -142,7 +145,10 @@ def automatic_pose(
         base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
         if not base.cavity:
             skipped = f", {rank} upside-down pose(s) passed over" if rank else ""
-            return base, floor.down, why + skipped
+            if floor.feet and base.kind in ("flat", "round"):  # one foot is the base, the others sense
+                base = dataclasses.replace(base, kind="patches", patches=floor.feet)
+            feet = f", standing on {floor.feet} feet (the polygon they span is its contact)" if floor.feet else ""
+            return base, floor.down, why + feet + skipped
         first = first or (base, floor.down)
     return first[0], first[1], why + " (every candidate encloses a cavity)"
 
@@ -257,7 +263,8 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     free = np.flatnonzero(~touches_blocked)
     if len(free) == 0:
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
-    far_vertex = int(free[np.argmax(from_base[free])])
+    reach = solver.compute_distance(int(anchors[0])) if base.kind == "thin" else from_base
+    far_vertex = int(free[np.argmax(reach[free])])
     from_far = solver.compute_distance(far_vertex)
     if params.tx_pole == "centre":
         far_vertex = geodesic_centre(solver, free, far_vertex, from_far)

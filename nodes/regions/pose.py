@@ -6,7 +6,13 @@ hull triangle). Each candidate gets
 
 * its **contact area** (mm^2): the faces whose normal is within ``angle_threshold_deg`` of the floor
   normal and whose corners all lie within ``plane_tolerance_mm`` of it (connectivity not applied:
-  several feet add up), and
+  several feet add up); on a stable floor that the object touches with ``FEET_MIN`` or more separate
+  feet, at least the area of the polygon the feet span (:func:`feet_support_mm2`). A rigid body
+  generically rests on three points; four or more separate patches of similar size in one plane,
+  at the ends of legs (still apart ``LEG_SHARE`` of the diagonal above the floor), are what it was
+  made to stand on (an animal or a figurine on its legs), and the load is carried over the whole
+  polygon between them however small each rounded foot's own contact is (a flat face larger than
+  that polygon still wins: a stool with a broad flat seat is set on its seat); and
 * its **tipping angle** (degrees): the support polygon is the convex hull of the hull vertices
   within ``plane_tolerance_mm`` of the floor; the angle is ``atan(margin / height)``, where
   ``margin`` is the distance from the centre of mass's projection to the polygon's nearest edge
@@ -30,6 +36,8 @@ import dataclasses
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from ..geometry.triangles import corners, normals
@@ -42,15 +50,31 @@ MIRROR_TOLERANCE = 1.5
 sample spacings of the surface."""
 MIRROR_UPRIGHT_DEG = 20.0
 """A floor keeps a mirror plane upright when its up direction is within this angle of the plane."""
+PLANE_CHUNK = 128
+"""Planes tested against all vertices at once (bounds memory)."""
+FEET_MIN = 4
+"""Separate contact patches from which a floor stands on feet (a rigid body generically rests on
+three points; four or more separate patches in one plane are made to stand on)."""
+FEET_ANGLE_DEG = 45.0
+"""A foot's contact faces: normal within this angle of the floor normal (the rounded end of a leg)."""
+FEET_DEPTH = 2.0
+"""A foot's contact faces lie within this many plane tolerances of the floor."""
+FEET_SHARE = 0.25
+"""A contact patch counts as a foot with at least this share of the largest patch's area."""
+LEG_SHARE = 0.05
+"""Feet stand on legs: they stay separate up to this share of the object's bounding-box diagonal
+above the floor (bumps of one face, or a body lying on its side, merge well below it)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Floor:
-    """A candidate floor plane: outward ``down`` unit normal, contact area mm^2, tipping angle deg."""
+    """A candidate floor plane: outward ``down`` unit normal, contact area mm^2, tipping angle deg,
+    and the number of feet whose polygon is its contact (0: the contact faces' area)."""
 
     down: np.ndarray
     contact_mm2: float
     tipping_deg: float
+    feet: int = 0
 
 
 def fibonacci_directions(count: int) -> np.ndarray:
@@ -114,6 +138,75 @@ def tipping_angle_deg(points: np.ndarray, down: np.ndarray, centre: np.ndarray, 
     return float(np.degrees(np.arctan2(margin, max(support - centre @ down, 1e-9))))
 
 
+def touching_faces(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_normals: np.ndarray,
+    planes: np.ndarray,
+    angle_deg: float,
+    tolerance_mm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(face, plane)`` index pairs: the face's normal is within ``angle_deg`` of the plane's outward
+    normal and its corners lie within ``tolerance_mm`` of the plane (``planes`` rows: normal, offset)."""
+    gap = np.full(len(vertices), np.inf)
+    for start in range(0, len(planes), PLANE_CHUNK):
+        chunk = planes[start : start + PLANE_CHUNK]
+        gap = np.minimum(gap, -(vertices @ chunk[:, :3].T + chunk[:, 3]).max(axis=1))
+    close = np.flatnonzero((gap[faces] <= tolerance_mm).all(axis=1))
+    used, corner = np.unique(faces[close], return_inverse=True)
+    corner = corner.reshape(-1, 3)
+    found: list[tuple[np.ndarray, np.ndarray]] = []
+    for start in range(0, len(planes), PLANE_CHUNK):
+        chunk = planes[start : start + PLANE_CHUNK]
+        near = vertices[used] @ chunk[:, :3].T + chunk[:, 3] >= -tolerance_mm
+        face, plane = np.nonzero(near[corner].all(axis=1))
+        face = close[face]
+        facing = np.einsum("kj,kj->k", face_normals[face], chunk[plane, :3]) >= np.cos(np.radians(angle_deg))
+        found.append((face[facing], plane[facing] + start))
+    return np.concatenate([f for f, _ in found]), np.concatenate([p for _, p in found])
+
+
+def feet_support_mm2(
+    vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, planes: np.ndarray, tolerance_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per plane (rows: outward normal, offset), ``(area mm^2 of the polygon its feet span, number of
+    feet)``, both 0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
+    ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
+    plane's largest patch's area, and still apart on the surface up to ``LEG_SHARE`` of the object's
+    diagonal above the floor (legs)."""
+    from .faces import FaceGraph
+
+    face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
+    support, count = np.zeros(len(planes)), np.zeros(len(planes), dtype=np.int64)
+    if len(face) == 0:
+        return support, count
+    keys = plane * len(faces) + face
+    order = np.argsort(keys)
+    graph = FaceGraph(faces, len(vertices))
+    opposite = graph.opposite
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    node = np.repeat(np.arange(len(face)), 3)
+    wanted = plane[node] * len(faces) + opposite[3 * face[:, None] + np.arange(3)].ravel() // 3
+    position = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
+    found = keys[order][position] == wanted
+    links = coo_matrix((np.ones(int(found.sum())), (node[found], order[position][found])), shape=(len(face),) * 2)
+    label = connected_components(links, directed=False)[1]
+    area = np.bincount(label, weights=normals(corners(vertices, faces[face]))[1])
+    label_plane = np.zeros(len(area), dtype=np.int64)
+    label_plane[label] = plane
+    largest = np.zeros(len(planes))
+    np.maximum.at(largest, label_plane, area)
+    foot = area >= FEET_SHARE * largest[label_plane]
+    for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= FEET_MIN):
+        feet = (plane == index) & foot[label]
+        depth = -(vertices @ planes[index, :3] + planes[index, 3])
+        legs = graph.components((depth[faces] <= max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)).all(axis=1))
+        if len(np.unique(legs[face[feet]])) >= FEET_MIN:
+            points = vertices[np.unique(faces[face[feet]])] @ plane_basis(planes[index, :3])
+            support[index], count[index] = ConvexHull(points).volume, len(np.unique(label[feet]))
+    return support, count
+
+
 def candidate_floors(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -127,19 +220,22 @@ def candidate_floors(
     cell = cKDTree(fibonacci_directions(direction_cells)).query(hull.equations[:, :3])[1]
     order = np.lexsort((-hull_areas, cell))
     keep = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
-    plane_normals, offsets = hull.equations[keep, :3], hull.equations[keep, 3]
+    plane_normals = hull.equations[keep, :3]
     face_normals, face_areas = normals(corners(vertices, faces))
-    chord = 2.0 * np.sin(np.radians(angle_threshold_deg) / 2.0)
-    pairs = cKDTree(face_normals).sparse_distance_matrix(cKDTree(plane_normals), chord, output_type="ndarray")
-    face, plane = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    depth = -(np.einsum("kcj,kj->kc", vertices[faces[face]], plane_normals[plane]) + offsets[plane, None])
-    touching = depth.max(axis=1) <= plane_tolerance_mm
-    contact = np.bincount(plane[touching], weights=face_areas[face[touching]], minlength=len(plane_normals))
+    planes = hull.equations[keep]
+    face, plane = touching_faces(vertices, faces, face_normals, planes, angle_threshold_deg, plane_tolerance_mm)
+    contact = np.bincount(plane, weights=face_areas[face], minlength=len(plane_normals))
     centre = centre_of_mass(vertices, faces)
     hull_points = hull.points[hull.vertices]
+    tipping = np.array([tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm) for down in plane_normals])
+    stable = np.flatnonzero(tipping > 0.0)
+    support, count = feet_support_mm2(vertices, faces, face_normals, planes[stable], plane_tolerance_mm)
+    feet = np.zeros(len(plane_normals), dtype=np.int64)
+    feet[stable] = np.where(support > contact[stable], count, 0)
+    contact[stable] = np.maximum(contact[stable], support)
     return [
-        Floor(down, float(area), tipping_angle_deg(hull_points, down, centre, plane_tolerance_mm))
-        for down, area in zip(plane_normals, contact)
+        Floor(down, float(area), float(tilt), int(n))
+        for down, area, tilt, n in zip(plane_normals, contact, tipping, feet)
     ]
 
 
