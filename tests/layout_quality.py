@@ -1,7 +1,9 @@
 """One layout per mesh at test size (about 4k vertices, 60 Tx and 60 Rx candidates at one Rx angle,
 the 21 x 12 board), for the tests that bound layout quality. Run as a script to print the figures
-over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN] [MESH ...]``
-(``--rings``: the ring family with its corridor at TURN instead of the dipole loops)."""
+over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN | --families] [MESH ...]``
+(``--rings``: the ring family with its corridor at TURN instead of the dipole loops; ``--families``:
+per mesh the best branch of each family as the default pipeline sweeps them, dipole angles
+``DIPOLE_ANGLES`` and ring corridors ``RING_TURNS``, by ``layout.pick_best``'s rule)."""
 from __future__ import annotations
 
 import functools
@@ -14,8 +16,9 @@ from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+from retrotouch.nodes.layout.pick import PickParams, best_branch
 from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
-from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
+from retrotouch.nodes.layout.sweep import AngleLayout, OptimizeParams, optimize
 
 BUNNY = str(sample_mesh_path("bunny.obj"))
 SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is_dir() else []
@@ -38,17 +41,39 @@ def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None
             "sensing_area_mm2": samples.sensing_area_mm2}
 
 
+DIPOLE_ANGLES = (-40, -20, 0, 20, 40)
+RING_TURNS = (0.0, 0.25, 0.5, 0.75)
+
+
+def best_of_family(path: str, family: str) -> dict | None:
+    """The metrics of the family's best branch on the mesh at ``path`` (None when none is feasible)."""
+    branches = [{"rx_angle_deg": a} for a in DIPOLE_ANGLES] if family == "dipole" else [{"ring_turn": t} for t in RING_TURNS]
+    candidates = []
+    for branch in branches:
+        m = layout_metrics(path, **branch)
+        candidates.append(AngleLayout(family, 0.0, m["feasible"], m["message"], None, m))
+    if not any(c.feasible for c in candidates):
+        return None
+    pick = PickParams()
+    return candidates[best_branch(candidates, pick.radius_tolerance_mm, pick.mean_tolerance)].metrics
+
+
 SUMMARY = ("cells", "channel_pairs", "voronoi_cv_all_crossings", "voronoi_cv_pads", "coverage_radius_mm",
            "min_same_layer_clearance_mm", "phase1_gap", "sensing_area_mm2")
 
 if __name__ == "__main__":
     args = sys.argv[1:]
     turn = float(args.pop(args.index("--rings") + 1)) if "--rings" in args else None
-    args = [a for a in args if a != "--rings"]
+    families = "--families" in args
+    args = [a for a in args if a not in ("--rings", "--families")]
     for path in [BUNNY] + (args or SHARED):
         try:
-            m = layout_metrics(path, ring_turn=turn)
-            row = {k: m.get(k) for k in SUMMARY} if m["feasible"] else {"message": m["message"]}
+            if families:
+                best = {f: best_of_family(path, f) for f in ("dipole", "rings")}
+                row = {f: m and {k: m.get(k) for k in SUMMARY} for f, m in best.items()}
+            else:
+                m = layout_metrics(path, ring_turn=turn)
+                row = {k: m.get(k) for k in SUMMARY} if m["feasible"] else {"message": m["message"]}
         except Exception as exc:  # the figures of the other meshes still count
             row = {"error": f"{type(exc).__name__}: {exc}"}
         print(json.dumps({"mesh": Path(path).stem, **row}), flush=True)
