@@ -109,6 +109,14 @@ def local_search(
     multi = np.zeros((ntx, nrx), dtype=bool)
     multi[problem.multi_pairs[:, 0], problem.multi_pairs[:, 1]] = True
 
+    def layer_nearest(layer, other):
+        """(K, curves of ``layer``): each sample's nearest distance over the crossings of each curve
+        with the ``other`` layer's selected curves (inf without any)."""
+        if not other:
+            return np.full((len(Dpad), ntx if layer == "tx" else nrx), np.inf)
+        cols = pair[:, other] if layer == "tx" else pair[other, :].T
+        return Dpad[:, cols].min(axis=2)
+
     def nearest_of(T, R):
         if len(T) == 0 or len(R) == 0:
             return np.full(len(Dpad), np.inf)
@@ -125,6 +133,7 @@ def local_search(
             limit = n_drive if layer == "tx" else n_sense
             usable = problem.tx_usable if layer == "tx" else problem.rx_usable
             conf = tx_conf if layer == "tx" else rx_conf
+            reach = layer_nearest(layer, other)  # a curve's crossings with the other layer's selection
             removals = list(own) + ([None] if len(own) < limit else [])
             for out in removals:
                 kept = [c for c in own if c != out]
@@ -137,9 +146,8 @@ def local_search(
                 cands = np.flatnonzero(ok)
                 if len(cands) == 0 or not other:
                     continue
-                base = nearest_of(kept, other) if layer == "tx" else nearest_of(other, kept)
-                cols = pair[np.ix_(cands, other)] if layer == "tx" else pair[np.ix_(other, cands)].T
-                new = np.minimum(base[:, None], Dpad[:, cols].min(axis=2))
+                base = reach[:, kept].min(axis=1) if kept else np.full(len(Dpad), np.inf)
+                new = np.minimum(base[:, None], reach[:, cands])
                 radius, total = _score(new, resolution_mm, secondary, power)
                 i = np.lexsort((total, radius))[0]
                 if (radius[i], total[i]) < best[0]:
