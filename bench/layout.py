@@ -2,9 +2,9 @@
 
 Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
 diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
-(both layers) -> ``curves.trace_tx`` -> per angle -50..50 step 10 ``curves.trace_rx`` +
-``curves.crossings`` (``--family rings``: ``curves.trace_rings`` per corridor position 0, 0.25, 0.5,
-0.75 instead of the angles), all called as plain functions.
+(both layers) -> ``curves.trace_tx`` -> the default pipeline's branches: per angle -40..40 step 20
+``curves.trace_rx`` and per corridor position 0, 0.25, 0.5, 0.75 ``curves.trace_rings``, each with
+``curves.crossings`` (``--family dipole`` or ``rings``: one family only), all called as plain functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
 fields, shared by all branches) + ``layout.optimize`` for the 11 angles on ``--jobs`` processes
@@ -56,11 +56,11 @@ from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surfac
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
-ANGLES = tuple(range(-50, 51, 10))
+ANGLES = tuple(range(-40, 41, 20))
 CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)
 
 
-def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "dipole"):
+def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "both"):
     mesh = load_mesh(LoadParams(path=mesh_path))
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
@@ -69,12 +69,13 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "d
     tx_field = connection(ConnectionParams(layer="tx"), mesh, regions)
     rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
+    families = []
+    if family in ("dipole", "both"):
+        families += [trace_rx(TraceRxParams(angle_deg=a), mesh, regions, rx_field)["curves"] for a in ANGLES]
+    if family in ("rings", "both"):
+        families += [trace_rings(TraceRingsParams(corridor_turn=t), mesh, regions, tx_field, tx)["curves"] for t in CORRIDOR_TURNS]
     branches = []
-    for value in ANGLES if family == "dipole" else CORRIDOR_TURNS:
-        if family == "dipole":
-            rx = trace_rx(TraceRxParams(angle_deg=value), mesh, regions, rx_field)["curves"]
-        else:
-            rx = trace_rings(TraceRingsParams(corridor_turn=value), mesh, regions, tx_field, tx)["curves"]
+    for rx in families:
         cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
         branches.append((rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"]))
     return mesh, regions, tx, branches
@@ -95,7 +96,7 @@ def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, r
     """Phase 1 of one branch through each solver in turn: per solver, per stage seconds and report."""
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
     problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end,
-                                bound, params.tx_free_start_mm, params.rx_free_end_mm)
+                                bound, params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
     out = {}
     for solver in solvers:
         start = time.perf_counter()
@@ -129,7 +130,7 @@ def solver_comparison(mesh, regions, tx, branches, jobs: int, solvers: tuple[str
     for b, r in zip(branches, runs):
         cells = "  ".join(f"{s}: " + " | ".join(f"{sec:.1f}s {st['objective']:.3f}/{st['bound']:.3f} gap {st['gap']:.3f}"
                                                   for sec, st in zip(r[s]["stage_seconds"], r[s]["stages"])) for s in solvers)
-        print(f"  {np.rad2deg(b[0].angle):+5.0f}  {cells}")
+        print(f"  {b[0].family:6s} {np.rad2deg(b[0].angle):+5.0f}  {cells}")
     return {"phase1_seconds_by_solver": seconds, "phase1_gap_by_solver": gaps,
             "phase1_same_objective": {"stages_with_same_objective": same, "branches": len(runs)}}
 
@@ -157,8 +158,9 @@ def main() -> None:
     parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
     parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
     parser.add_argument("--solvers", default="cpsat,highs", help="phase-1 solvers to compare (comma list; empty: none)")
-    parser.add_argument("--family", choices=("dipole", "rings"), default="dipole",
-                        help="Rx candidates: dipole loops per angle (the paper) or rings around the Tx pole per corridor")
+    parser.add_argument("--family", choices=("both", "dipole", "rings"), default="both",
+                        help="Rx candidates: both families as in the default pipeline, dipole loops per angle (the "
+                             "paper) or rings around the Tx pole per corridor")
     args = parser.parse_args()
 
     start = time.perf_counter()
@@ -171,13 +173,14 @@ def main() -> None:
     if not args.no_ablation:
         without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
         m_off = without["metrics"]
-    chosen_branch = branches[[round(float(np.rad2deg(b[0].angle))) for b in branches].index(round(m["chosen_angle_deg"]))]
+    names = [(b[0].family, round(float(np.rad2deg(b[0].angle)))) for b in branches]
+    chosen_branch = branches[names.index((m["rx_family"], round(m["chosen_angle_deg"])))]
     reference_cv = candidate_cv_reference(mesh, regions.sensing_faces, tx, chosen_branch[1], m["pads"])
     solvers = tuple(s for s in args.solvers.split(",") if s)
     comparison = solver_comparison(mesh, regions, tx, branches, args.jobs, solvers) if solvers else {}
     print(f"curves (prep) {curves_s:.1f} s; samples {samples_s:.1f} s; sweep {sweep_s:.1f} s; "
           f"sweep without secondary {sweep_off_s:.1f} s")
-    print(f"chosen angle {m['chosen_angle_deg']:+.0f} deg: Voronoi CV {m['voronoi_cv']:.3f} "
+    print(f"chosen branch {m['rx_family']} {m['chosen_angle_deg']:+.0f} deg: Voronoi CV {m['voronoi_cv']:.3f} "
           f"(without secondary {m_off['voronoi_cv']}, angle {m_off['chosen_angle_deg']}), "
           f"{m['pads']} pads of {m['cells']} cells, radius {m['coverage_radius_mm']:.1f} mm, "
           f"mean {m['mean_distance_mm']:.2f} mm, min pad spacing {m['min_pad_spacing_mm']:.1f} mm")
@@ -191,6 +194,7 @@ def main() -> None:
         "samples_seconds": round(samples_s, 2),
         "curves_seconds": round(curves_s, 2),
         "jobs": args.jobs,
+        "chosen_rx_family": m["rx_family"],
         "chosen_angle_deg": m["chosen_angle_deg"],
         "voronoi_cv": m["voronoi_cv"],
         "voronoi_cv_pads": m["voronoi_cv_pads"],

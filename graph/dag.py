@@ -38,7 +38,7 @@ def _label(pipeline: Pipeline, name: str, states: dict[str, str]) -> list[str]:
 
 def _edges(pipeline: Pipeline) -> list[tuple[str, str, str]]:
     return [(ref.node, name, input_name + ("[*]" if ref.fan_in else ""))
-            for name, decl in pipeline.nodes.items() for input_name, ref in decl.inputs.items()]
+            for name, decl in pipeline.nodes.items() for input_name, refs in decl.inputs.items() for ref in refs]
 
 
 def to_mermaid(pipeline: Pipeline, states: dict[str, str] | None = None) -> str:

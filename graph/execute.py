@@ -167,7 +167,7 @@ def build_tasks(plan: Plan, run_id: str) -> dict[str, tuple[TaskSpec, list[str |
                     slots[id(up)] = len(args)
                     args.append(task_name(up) if up.runs else up.cached)  # type: ignore[arg-type]
                 items.append((slots[id(up)], output, len(up.decl.spec.outputs) == 1))
-            inputs.append((name, inst.decl.inputs[name].fan_in, tuple(items)))
+            inputs.append((name, any(ref.fan_in for ref in inst.decl.inputs[name]), tuple(items)))
         spec = TaskSpec(inst.id, inst.decl.spec.name, inst.params.model_dump(mode="json"), inst.key,
                         plan.store.root, inst.decl.cache, run_id, current(), extra, tuple(inputs))
         tasks[task_name(inst)] = (spec, args)

@@ -9,6 +9,7 @@ Format (see README.md for the full reference)::
       scaled: {type: mesh.scale, inputs: {mesh: load}, params: {diagonal_mm: "${diagonal_mm}"}}
       sweep:  {type: mesh.remesh, inputs: {mesh: scaled}, map: {target_edge_mm: [2, 3, 4]}}
       pick:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, cache: recompute}
+      both:   {type: some.reduce, inputs: {meshes: ["sweep[*]", "other[*]"]}}   # several fan-ins, in order
 
 Every problem is reported as one line ``file:line:col: message`` (or ``-S PATH=VALUE: message`` for
 an override) through :class:`PipelineError`, a :class:`UserError`.
@@ -180,7 +181,7 @@ class NodeDecl:
 
     name: str
     spec: NodeSpec
-    inputs: dict[str, InputRef]
+    inputs: dict[str, tuple[InputRef, ...]]  # one ref, or several fan-ins handed on as one list
     params: dict[str, Any]  # interpolated, not yet validated
     map: dict[str, list[Any]]  # param -> values (several keys: product, in the order written)
     cache: str
@@ -257,21 +258,31 @@ def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec])
     return NodeDecl(name, spec, inputs, params, mapped, cache, path)
 
 
-def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, InputRef]:
+def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, tuple[InputRef, ...]]:
     path: Path = ("nodes", name)
     inputs_raw = _expect(doc, path + ("inputs",), raw or {}, dict, f"node {name!r}: inputs")
-    inputs: dict[str, InputRef] = {}
-    for input_name, ref_text in inputs_raw.items():
+    inputs: dict[str, tuple[InputRef, ...]] = {}
+    for input_name, ref_value in inputs_raw.items():
         ipath = path + ("inputs", input_name)
         if input_name not in spec.inputs:
             allowed = ", ".join(spec.inputs) or "none"
             raise doc.fail(ipath, f"node {name!r} ({spec.name}): unknown input {input_name!r}"
                                   f"{did_you_mean(input_name, spec.inputs)} (inputs: {allowed})", key=True)
-        m = _REF.match(ref_text) if isinstance(ref_text, str) else None
-        if not m:
-            raise doc.fail(ipath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output' "
-                                  f"or either with [*], got {ref_text!r}")
-        inputs[input_name] = InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), ipath)
+        several = isinstance(ref_value, list)
+        refs = []
+        for i, ref_text in enumerate(ref_value if several else [ref_value]):
+            rpath = ipath + (i,) if several else ipath
+            m = _REF.match(ref_text) if isinstance(ref_text, str) else None
+            if not m:
+                raise doc.fail(rpath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output', "
+                                      f"either with [*], or a list of fan-ins, got {ref_text!r}")
+            if several and not m.group(3):
+                raise doc.fail(rpath, f"node {name!r}: input {input_name!r} lists several nodes, so each must "
+                                      f"fan in: write {ref_text}[*]")
+            refs.append(InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), rpath))
+        if not refs:
+            raise doc.fail(ipath, f"node {name!r}: input {input_name!r} lists no node")
+        inputs[input_name] = tuple(refs)
     for input_name in spec.inputs:
         if input_name not in inputs:
             raise doc.fail(path, f"node {name!r} ({spec.name}): input {input_name!r} is not connected; "
@@ -303,19 +314,21 @@ def _declare_map(doc: Document, name: str, spec: NodeSpec, params: dict[str, Any
 def _resolve_references(doc: Document, decls: dict[str, NodeDecl]) -> None:
     """Check every input names an existing node and output; fill in the output of one-output nodes."""
     for decl in decls.values():
-        for input_name, ref in decl.inputs.items():
-            if ref.node not in decls:
-                raise doc.fail(ref.path, f"node {decl.name!r}: input {input_name!r} refers to unknown node "
-                                         f"{ref.node!r}{did_you_mean(ref.node, decls)}")
-            outputs = decls[ref.node].spec.outputs
-            if ref.output and ref.output not in outputs:
-                raise doc.fail(ref.path, f"node {ref.node!r} has no output {ref.output!r}"
-                                         f"{did_you_mean(ref.output, outputs)} (outputs: {', '.join(outputs)})")
-            if not ref.output:
-                if len(outputs) != 1:
+        for input_name, refs in decl.inputs.items():
+            resolved = []
+            for ref in refs:
+                if ref.node not in decls:
+                    raise doc.fail(ref.path, f"node {decl.name!r}: input {input_name!r} refers to unknown node "
+                                             f"{ref.node!r}{did_you_mean(ref.node, decls)}")
+                outputs = decls[ref.node].spec.outputs
+                if ref.output and ref.output not in outputs:
+                    raise doc.fail(ref.path, f"node {ref.node!r} has no output {ref.output!r}"
+                                             f"{did_you_mean(ref.output, outputs)} (outputs: {', '.join(outputs)})")
+                if not ref.output and len(outputs) != 1:
                     raise doc.fail(ref.path, f"node {ref.node!r} has outputs {', '.join(outputs)}; "
                                              f"write {ref.node}.<output>")
-                decl.inputs[input_name] = dataclasses.replace(ref, output=outputs[0])
+                resolved.append(ref if ref.output else dataclasses.replace(ref, output=outputs[0]))
+            decl.inputs[input_name] = tuple(resolved)
 
 
 def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
@@ -326,7 +339,7 @@ def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
         if state.get(name) == 2:
             return
         state[name] = 1
-        for ref in decls[name].inputs.values():
+        for ref in (r for refs in decls[name].inputs.values() for r in refs):
             if state.get(ref.node) == 1:
                 chain = trail + [name]
                 cycle = chain[chain.index(ref.node):] + [ref.node]

@@ -144,10 +144,10 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     versions: dict[str, str] = {}
     for name, decl in pipeline.nodes.items():
         inherited: list[Axis] = []
-        for ref in decl.inputs.values():
+        for ref in (r for refs in decl.inputs.values() for r in refs):
             if not ref.fan_in:
                 inherited += [a for a in axes[ref.node] if a not in inherited]
-        for input_name, ref in decl.inputs.items():
+        for input_name, ref in ((n, r) for n, refs in decl.inputs.items() for r in refs):
             if ref.fan_in and not [a for a in axes[ref.node] if a not in inherited]:
                 raise doc.fail(ref.path, f"node {name!r}: input {input_name!r} fans in {ref.node}[*], but "
                                          f"{ref.node!r} has no branches beyond this node's own; drop [*]")
@@ -167,15 +167,8 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             raw.update({a.param: a.values[i] for a, i in zip(node_axes, idx) if a.owner == name})
             params = _validate(pipeline, decl, raw, {a.param: i for a, i in zip(node_axes, idx) if a.owner == name})
             inputs: dict[str, list[tuple[Instance, str]]] = {}
-            for input_name, ref in decl.inputs.items():
-                up_axes = axes[ref.node]
-                if not ref.fan_in:
-                    up_idx = tuple(idx[node_axes.index(a)] for a in up_axes)
-                    inputs[input_name] = [(by_branch[ref.node][up_idx], ref.output)]
-                else:
-                    fixed = {up_axes.index(a): idx[node_axes.index(a)] for a in up_axes if a in node_axes}
-                    inputs[input_name] = [(inst, ref.output) for up_idx, inst in by_branch[ref.node].items()
-                                          if all(up_idx[p] == v for p, v in fixed.items())]
+            for input_name, refs in decl.inputs.items():
+                inputs[input_name] = [up for ref in refs for up in _upstream(ref, axes, node_axes, idx, by_branch)]
             label = ",".join(f"{short[a.id]}={_format_value(v)}" for a, v in zip(node_axes, branch.values()))
             files = _file_hashes(params, decl, pipeline)
             key = instance_key(
@@ -188,6 +181,18 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     plan = Plan(pipeline, ordered, store)
     _decide(plan)
     return plan
+
+
+def _upstream(ref, axes: dict[str, list[Axis]], node_axes: list[Axis], idx: tuple[int, ...],
+              by_branch: dict[str, dict[tuple[int, ...], Instance]]) -> list[tuple[Instance, str]]:
+    """The ``(instance, output)`` pairs ``ref`` hands to the branch ``idx`` of a node with ``node_axes``:
+    the upstream branch on the same axes values, or with ``[*]`` every branch that agrees on the shared axes."""
+    up_axes = axes[ref.node]
+    if not ref.fan_in:
+        return [(by_branch[ref.node][tuple(idx[node_axes.index(a)] for a in up_axes)], ref.output)]
+    fixed = {up_axes.index(a): idx[node_axes.index(a)] for a in up_axes if a in node_axes}
+    return [(inst, ref.output) for up_idx, inst in by_branch[ref.node].items()
+            if all(up_idx[p] == v for p, v in fixed.items())]
 
 
 def restrict(plan: Plan, targets: list[str]) -> Plan:

@@ -1,6 +1,7 @@
 """One layout per mesh at test size (about 4k vertices, 60 Tx and 60 Rx candidates at one Rx angle,
 the 21 x 12 board), for the tests that bound layout quality. Run as a script to print the figures
-over the bunny and ../shared/meshes: ``python tests/layout_quality.py``."""
+over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN] [MESH ...]``
+(``--rings``: the ring family with its corridor at TURN instead of the dipole loops)."""
 from __future__ import annotations
 
 import functools
@@ -11,6 +12,7 @@ from pathlib import Path
 from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
 from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
@@ -20,11 +22,15 @@ SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is
 
 
 @functools.lru_cache(maxsize=None)
-def layout_metrics(path: str, rx_angle_deg: float = 0.0) -> dict:
-    """The ``layout.optimize`` metrics of one branch on the mesh at ``path`` (prepared as the curve tests do)."""
+def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None) -> dict:
+    """The ``layout.optimize`` metrics of one branch on the mesh at ``path`` (prepared as the curve
+    tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at ``ring_turn``."""
     mesh, regions, _, tx_field, rx_field = prepared(path, 4000)
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]
-    rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
+    if ring_turn is None:
+        rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
+    else:
+        rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn), mesh, regions, tx_field, tx)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     candidate = optimize(OptimizeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
@@ -36,9 +42,12 @@ SUMMARY = ("cells", "channel_pairs", "voronoi_cv_all_crossings", "voronoi_cv_pad
            "min_same_layer_clearance_mm", "phase1_gap", "sensing_area_mm2")
 
 if __name__ == "__main__":
-    for path in [BUNNY] + (sys.argv[1:] or SHARED):
+    args = sys.argv[1:]
+    turn = float(args.pop(args.index("--rings") + 1)) if "--rings" in args else None
+    args = [a for a in args if a != "--rings"]
+    for path in [BUNNY] + (args or SHARED):
         try:
-            m = layout_metrics(path)
+            m = layout_metrics(path, ring_turn=turn)
             row = {k: m.get(k) for k in SUMMARY} if m["feasible"] else {"message": m["message"]}
         except Exception as exc:  # the figures of the other meshes still count
             row = {"error": f"{type(exc).__name__}: {exc}"}

@@ -134,3 +134,36 @@ def test_cli_reports_one_line_and_exit_code_2(tmp_path, cli, test_nodes):
     result = cli("run", "missing.yaml")
     assert result.returncode == 2 and result.stderr.strip() == \
         "retrotouch: error: cannot read pipeline missing.yaml: No such file or directory"
+
+
+SEVERAL = GOOD.replace('''  tot:
+    type: t.sum
+    inputs: {xs: "plus[*]"}
+''', '''  times:
+    type: t.add
+    inputs: {x: src}
+    map: {delta: [10, 20, 30]}
+  tot:
+    type: t.sum
+    inputs: {xs: ["plus[*]", "times[*]"]}
+''')
+
+
+def test_a_list_of_fan_ins_hands_every_branch_in_the_order_written(tmp_path, test_nodes):
+    path = tmp_path / "p.yaml"
+    path.write_text(SEVERAL)
+    plan = make_plan(str(path), [], str(tmp_path))
+    tot = plan.instances[-1]
+    assert [u.id for u, _ in tot.inputs["xs"]] == ["plus[delta=1]", "plus[delta=2]", "times[delta=10]",
+                                                   "times[delta=20]", "times[delta=30]"]
+    swapped = SEVERAL.replace('["plus[*]", "times[*]"]', '["times[*]", "plus[*]"]')
+    path.write_text(swapped)
+    assert make_plan(str(path), [], str(tmp_path)).instances[-1].key != tot.key
+
+
+def test_a_list_of_inputs_must_fan_in_each(tmp_path, test_nodes):
+    msg = error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', '["plus[*]", "times"]'))
+    assert msg.startswith("p.yaml:19:30: node 'tot': input 'xs' lists several nodes, so each must fan in: write times[*]")
+    msg = error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', '["plus[*]", "tims[*]"]'))
+    assert "input 'xs' refers to unknown node 'tims'; did you mean 'times'?" in msg
+    assert "lists no node" in error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', "[]"))

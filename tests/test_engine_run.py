@@ -281,3 +281,14 @@ def test_processes_scheduler_from_the_cli(tmp_path, cli, test_nodes):
     result = cli("run", "p.yaml", "--scheduler", "processes", "--out", "out")
     assert result.returncode == 0, result.stderr
     assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL
+
+
+def test_a_reduce_over_two_mapped_nodes_sums_both(tmp_path, test_nodes):
+    text = SWEEP.replace('tot:   {type: t.sum, inputs: {xs: "plus[*]"}}',
+                         'more:  {type: t.add, inputs: {x: src}, map: {delta: [100, 200]}}\n'
+                         '  tot:   {type: t.sum, inputs: {xs: ["plus[*]", "more[*]"]}}')
+    assert text != SWEEP
+    run_pipeline(pipeline_file(tmp_path, text), [], out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"),
+                 scheduler="sync")
+    more_total = sum(3 * s + 3 * delta for s in (1, 2, 3) for delta in (100, 200))  # (0 + 1 + 2) s + 3 delta
+    assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL + more_total

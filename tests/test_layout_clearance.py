@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from retrotouch.nodes.data.types import CurveSet
-from retrotouch.nodes.layout.clearance import clearance_profile, close_pairs, free_end_trims, resample, trim_free_ends
+from retrotouch.nodes.layout.clearance import (clearance_profile, close_pairs, free_end_trims, parallel_pairs, resample,
+                                                trim_free_ends)
 
 
 def lines(offsets_mm: list[float], length_mm: float = 50.0, rows: int = 26, face_of_row=None) -> CurveSet:
@@ -130,3 +131,17 @@ def test_two_short_curves_side_by_side_conflict_whatever_the_free_length():
     curves = lines([0.0, 1.0], length_mm=10.0)
     for free_end in ("start", "end"):
         assert close_pairs(curves, EVERYWHERE, 2.0, free_mm=60.0, free_end=free_end).tolist() == [[0, 1]]
+
+
+def test_a_tx_laid_along_an_rx_conflicts_and_a_crossing_does_not():
+    tx = lines([0.0, 20.0])  # two Tx lines along x, 50 mm long
+    along = dataclasses.replace(lines([0.4], length_mm=30.0), layer="rx")  # 30 mm along Tx 0, 0.4 mm off
+    across_points = np.stack([np.full(26, 25.0), np.linspace(-5.0, 25.0, 26), np.zeros(26)], axis=1)  # crosses both at 90 deg
+    steep_points = np.stack([np.linspace(20.0, 30.0, 26), np.linspace(-5.0, 25.0, 26), np.zeros(26)], axis=1)  # about 18 deg off y
+    rx = CurveSet(layer="rx", points=np.vstack([along.points, across_points, steep_points]), faces=np.zeros(78, dtype=np.int64),
+                  bary=np.full((78, 3), 1 / 3), offsets=np.array([0, 26, 52, 78]), lengths_mm=np.array([30.0, 30.0, 31.6]),
+                  end_reason=np.zeros(3, dtype=np.int8), angle=0.0)
+    assert parallel_pairs(tx, rx, EVERYWHERE, 1.0, 10.0).tolist() == [[0, 0]]
+    # the same Rx only 8 mm long along Tx 0 stays below a 10 mm run
+    short = dataclasses.replace(lines([0.4], length_mm=8.0), layer="rx")
+    assert len(parallel_pairs(tx, short, EVERYWHERE, 1.0, 10.0)) == 0

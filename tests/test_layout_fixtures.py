@@ -70,7 +70,8 @@ def _curve_set(mesh: Mesh, layer: str, charts: list[np.ndarray], angle: float) -
     lengths = np.array([np.linalg.norm(np.diff(points[offsets[i]:offsets[i + 1]], axis=0), axis=1).sum()
                         for i in range(len(charts))])
     return CurveSet(layer=layer, points=points, faces=faces, bary=bary, offsets=offsets, lengths_mm=lengths,
-                    end_reason=np.full(len(charts), int(CurveEnd.BASE), dtype=np.int8), angle=angle)
+                    end_reason=np.full(len(charts), int(CurveEnd.BASE), dtype=np.int8), angle=angle,
+                    family="dipole" if layer == "rx" else "field")
 
 
 def _segment_hits(p: np.ndarray, q: np.ndarray) -> list[tuple[int, int, float, float]]:

@@ -123,5 +123,5 @@ def test_metrics_and_pick(run):
 def test_all_infeasible_branches_give_a_user_error(run):
     _, (a, _), _, _ = run
     bad = dataclasses.replace(a, feasible=False, layout=None, message="no pad placement")
-    with pytest.raises(UserError, match="no Rx angle gives a feasible layout"):
+    with pytest.raises(UserError, match="no branch gives a feasible layout"):
         pick_best(PickParams(print_table=False), [bad])

@@ -11,7 +11,7 @@ def branch(angle, radius, mean, cv, secondary=True, feasible=True):
     metrics = {"coverage_radius_mm": radius, "power_mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
                "pads": 10, "tx_channels": 21, "rx_channels": 12, "relaxations": [],
                "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0, "deterministic_time": 0.5}], "resolution_mm": 0.5}}
-    return AngleLayout(angle, feasible, "ok" if feasible else "no pads", None, metrics)
+    return AngleLayout("dipole", angle, feasible, "ok" if feasible else "no pads", None, metrics)
 
 
 def test_radius_ties_within_tolerance_fall_to_the_mean_then_the_cv():

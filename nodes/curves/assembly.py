@@ -66,6 +66,7 @@ def assemble(
         lengths_mm=lengths,
         end_reason=traces.end_reason[kept],
         angle=float(angle),
+        family="dipole" if layer == "rx" else "field",
     )
     end_counts = np.bincount(traces.end_reason, minlength=len(CurveEnd)).astype(np.int64)
     stats = TraceStats(

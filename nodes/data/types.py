@@ -53,7 +53,8 @@ class CurveSet:
     offsets: np.ndarray  # (C + 1,) int64
     lengths_mm: np.ndarray  # (C,) float64, polyline length in mm
     end_reason: np.ndarray  # (C,) int8, CurveEnd codes
-    angle: float  # Rx initial angular offset in radians; 0.0 for Tx
+    angle: float  # Rx initial angular offset (dipole) or corridor position (rings) in radians; 0.0 for Tx
+    family: str = "field"  # "field" (Tx field lines), "dipole" (Rx dipole-field loops) or "rings" (Rx harmonic rings)
 
     @property
     def count(self) -> int:

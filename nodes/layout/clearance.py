@@ -19,6 +19,7 @@ from ..data.types import CurveSet
 
 CONFLICT_STEP_MM = 0.25  # resampling of candidate curves for the conflict pairs
 MEASURE_STEP_MM = 0.1  # resampling of selected traces for the reported clearance
+PARALLEL_RUN_MM = 10.0  # a Tx/Rx pair closer than a trace width along more of the Tx line is laid along, not across
 FreeEnd = Literal["start", "end"]  # the end of a curve that may be cut back (the other one is wired)
 
 
@@ -123,6 +124,26 @@ def _close_keys(points: np.ndarray, curve: np.ndarray, free: np.ndarray, radius:
         hit = (d2 <= radius * radius) & ~(padded_free[p][:, :, None] & padded_free[q][:, None, :])
         found.update(keys[todo][hit.any(axis=(1, 2))].tolist())
     return np.array(sorted(found), dtype=np.int64)
+
+def parallel_pairs(tx: CurveSet, rx: CurveSet, face_mask: np.ndarray, within_mm: float, run_mm: float,
+                   step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:
+    """Distinct ``(P, 2)`` (Tx, Rx) pairs whose centre lines lie within ``within_mm`` of each other
+    (conservatively: sampled distance below ``within_mm + step_mm``) along more than ``run_mm`` of the Tx
+    line inside ``face_mask``: strips laid along each other, not across. A crossing at angle ``a``
+    keeps them that close along ``2 within / sin a``, so only glancing crossings count too."""
+    from scipy.spatial import cKDTree
+
+    tx_points, tx_curve, tx_length, _ = resample(tx, face_mask, step_mm)
+    rx_points, rx_curve, _, _ = resample(rx, face_mask, step_mm)
+    if len(tx_points) == 0 or len(rx_points) == 0:
+        return np.empty((0, 2), dtype=np.int64)
+    near = cKDTree(tx_points).sparse_distance_matrix(cKDTree(rx_points), within_mm + step_mm, output_type="ndarray")
+    point_pair = np.unique(near["i"].astype(np.int64) * rx.count + rx_curve[near["j"]])  # each Tx point once per Rx curve
+    point, rx_of = point_pair // rx.count, point_pair % rx.count
+    pair_key = tx_curve[point] * rx.count + rx_of
+    run = np.bincount(pair_key, weights=tx_length[point], minlength=tx.count * rx.count)
+    long = np.flatnonzero(run > run_mm)
+    return np.stack([long // rx.count, long % rx.count], axis=1).astype(np.int64)
 
 
 def _from_free_end(curves: CurveSet, curve: np.ndarray, arc: np.ndarray, free_end: FreeEnd) -> np.ndarray:

@@ -1,6 +1,7 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
-Branches are taken in order; the best is chosen by (coverage radius within ``radius_tolerance_mm``
+A branch is one Rx family (dipole loops or rings) at one angle; branches of several families arrive
+as one list (``candidates: ["select[*]", "ring_select[*]"]``) and are taken in order; the best is chosen by (coverage radius within ``radius_tolerance_mm``
 of the best, then the power mean of the sample distances when the secondary objective is on, then
 the Voronoi CV of the pads). Every branch gets a row in ``metrics["angles"]`` and the printed table,
 with its notes: a failed branch with its reason, and a feasible branch whose coverage radius
@@ -71,13 +72,14 @@ def _deterministic_time(metrics: dict) -> float | None:
 
 
 def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> list[dict]:
-    """One row per branch: angle, coverage, Voronoi CV (all crossings, pads), cells, clearance,
+    """One row per branch: Rx family, angle, coverage, Voronoi CV (all crossings, pads), cells, clearance,
     phase-1 gap, CP-SAT deterministic time, status and notes."""
     rows = []
     for c, note in zip(candidates, branch_notes(candidates, outlier_factor)):
         m = c.metrics
         stages = m.get("phase1", {}).get("stages", [])
         rows.append({
+            "rx_family": c.family,
             "angle_deg": c.angle_deg,
             "feasible": c.feasible,
             "coverage_radius_mm": m.get("coverage_radius_mm"),
@@ -105,15 +107,15 @@ def print_angle_table(rows: list[dict], best: int) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title="layout per Rx angle (* = chosen)")
-    columns = ("angle", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
+    table = Table(title="layout per branch: Rx family and angle (* = chosen)")
+    columns = ("family", "angle", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
                "status", "gap", "relax", "note")
     for name in columns:
         table.add_column(name, justify="right")
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for i, r in enumerate(rows):
         cells = "-" if r["cells"] is None else f"{r['cells']}/{r['channel_pairs']}"
-        table.add_row(("*" if i == best else "") + fmt(r["angle_deg"], "+.0f"), fmt(r["coverage_radius_mm"], ".2f"),
+        table.add_row(("*" if i == best else "") + r["rx_family"], fmt(r["angle_deg"], "+.0f"), fmt(r["coverage_radius_mm"], ".2f"),
                       fmt(r["mean_distance_mm"], ".2f"), fmt(r["voronoi_cv_all_crossings"], ".3f"),
                       fmt(r["voronoi_cv"], ".3f"), cells, fmt(r["pads"], "d"), fmt(r["min_same_layer_clearance_mm"], ".2f"),
                       r["channels"], fmt(r["deterministic_time"], ".1f"), r["status"], fmt(r["gap"], ".3f"), str(r["relaxations"]),
@@ -123,11 +125,11 @@ def print_angle_table(rows: list[dict], best: int) -> None:
 
 @node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics"))
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
-    """Keep the best Rx-angle branch (radius, secondary, Voronoi CV) and the per-angle table."""
+    """Keep the best branch (radius, secondary, Voronoi CV) and the per-branch table."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     if not feasible:
-        reasons = "; ".join(f"{c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
-        raise UserError(f"no Rx angle gives a feasible layout ({reasons})")
+        reasons = "; ".join(f"{c.family} {c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
+        raise UserError(f"no branch gives a feasible layout ({reasons})")
     best = best_branch(candidates, params.radius_tolerance_mm)
     rows = angle_table(candidates, params.outlier_factor)
     if params.print_table:

@@ -40,7 +40,7 @@ from .problem import (
     merge_pairs,
     same_layer_conflicts,
 )
-from .clearance import clearance_profile, close_pairs, free_end_trims, trim_free_ends
+from .clearance import PARALLEL_RUN_MM, clearance_profile, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
 from .selection import select_curves
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
@@ -107,9 +107,11 @@ def d_min_for(params: OptimizeParams, pad_radius_mm: float) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class AngleLayout:
-    """One Rx-angle branch: its layout (None when infeasible) and its metrics/report."""
+    """One branch of the sweep (an Rx family at one angle): its layout (None when infeasible) and its
+    metrics/report."""
 
-    angle_deg: float
+    family: str  # the Rx family: "dipole" or "rings"
+    angle_deg: float  # the dipole's angle offset, or the rings' corridor position around the Tx pole
     feasible: bool
     message: str
     layout: Layout | None
@@ -131,6 +133,7 @@ def subset_curves(curves: CurveSet, ids: np.ndarray) -> CurveSet:
         lengths_mm=curves.lengths_mm[ids],
         end_reason=curves.end_reason[ids],
         angle=curves.angle,
+        family=curves.family,
     )
 
 
@@ -152,12 +155,16 @@ def selection_problem(
     clearance_bound_mm: float | None = None,
     tx_free_start_mm: float = 0.0,
     rx_free_end_mm: float = 0.0,
+    trace_width_mm: float = TRACE_WIDTH_MM,
 ) -> SelectionProblem:
-    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts, sample distances;
+    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts (a Tx/Rx pair laid
+    along each other, closer than a trace width over more than ``PARALLEL_RUN_MM``, conflicts like a
+    pair crossing twice), sample distances;
     with ``clearance_bound_mm``, same-layer pairs closer than it in the sensing region conflict too
     (not counting the first ``tx_free_start_mm`` of each Tx curve and the last ``rx_free_end_mm`` of
     each Rx curve, which the selected ones may lose)."""
     rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
+    multi = np.unique(np.concatenate([multi, parallel_pairs(tx, rx, samples.sensing_faces, trace_width_mm, PARALLEL_RUN_MM)]), axis=0)
     tx_conflicts, rx_conflicts = same_layer_conflicts(tx_tx), same_layer_conflicts(rx_rx)
     clearance_pairs = (0, 0)
     if clearance_bound_mm is not None:
@@ -216,6 +223,7 @@ def _pads_with_ladder(
 def _branch_report(params: OptimizeParams, angle_deg: float, tx: CurveSet, rx: CurveSet, problem: SelectionProblem) -> dict:
     """The part of a branch's metrics known before solving: angle, objective settings, candidate counts."""
     return {
+        "rx_family": rx.family,
         "angle_deg": angle_deg,
         "secondary": params.secondary,
         "secondary_power": params.secondary_power,
@@ -347,7 +355,7 @@ def optimize(
     geo = geodesics_for(mesh)
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
     problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
-                                params.tx_free_start_mm, params.rx_free_end_mm)
+                                params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
@@ -355,7 +363,7 @@ def optimize(
                                   params.max_model_memberships, params.secondary_power, params.solver,
                                   params.highs_max_nodes)
     except UserError as exc:
-        return AngleLayout(angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
+        return AngleLayout(rx.family, angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
 
     active = selection.active
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
@@ -375,7 +383,7 @@ def optimize(
     if not pads.feasible:
         message = (f"no pad placement even with pad radius {pad_radius:g} mm and fewer curves: lower "
                    f"min_pads_per_curve or d_min_mm, or add smaller relax_pad_radii_mm")
-        return AngleLayout(angle_deg, False, message, None,
+        return AngleLayout(rx.family, angle_deg, False, message, None,
                            {**base, "feasible": False, "message": message, "relaxations": relaxations,
                             "phase1": selection.report, "phase2": pads.report})
 
@@ -389,4 +397,4 @@ def optimize(
     idle = quality.pop("unwired_selected_curves")
     metrics = {**base, "feasible": True, **quality, "phase1": selection.report, "phase2": pads.report,
                "relaxations": relaxations, "unwired_selected_curves": idle}
-    return AngleLayout(angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
+    return AngleLayout(rx.family, angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)

@@ -19,11 +19,16 @@ Then, with heat-method geodesic distances (potpourri3d):
 * ``exclusion_base``: faces grown outward from the base, across edges, while their mean vertex
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
   less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first).
-* ``far_vertex``: the vertex outside base and first exclusion farthest from the base;
+* ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
+  first exclusion farthest from the base; with ``tx_pole="centre"`` the geodesic centre of that
+  free region: the free vertex whose largest distance to the region's ``CENTRE_SAMPLES``
+  farthest-point samples is smallest, so Tx lines fan out to every side of the object;
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
   faces around it.
 """
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 import potpourri3d as pp3d
@@ -93,6 +98,9 @@ class RegionParams(NodeParams):
         60.0, gt=0, le=180, description="first exclusion: max normal deviation from resting direction"
     )
     exclusion_far_mm: float = Field(10.0, ge=0, description="second exclusion: geodesic radius at far point")
+    tx_pole: Literal["far", "centre"] = Field(
+        "far", description="the Tx pole: the point farthest from the base, or the free region's geodesic centre"
+    )
     direction_cells: int = Field(2000, ge=20, description="automatic pose: direction cells (one hull plane each)")
 
     @field_validator("up_axis")
@@ -199,6 +207,22 @@ def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.
     return np.array([centre, int(neighbours[np.argmax(from_boundary[neighbours])])], dtype=np.int64)
 
 
+CENTRE_SAMPLES = 16
+"""Farthest-point samples of the free region whose largest distance the centre Tx pole minimises."""
+
+
+def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
+    """The vertex of ``free`` minimising the largest geodesic distance (mm) to ``CENTRE_SAMPLES``
+    farthest-point samples of ``free``, the first being ``first`` (with distances ``from_first``)."""
+    farthest = [from_first]
+    nearest = from_first[free].copy()
+    for _ in range(CENTRE_SAMPLES - 1):
+        sample = int(free[np.argmax(nearest)])
+        farthest.append(solver.compute_distance(sample))
+        nearest = np.minimum(nearest, farthest[-1][free])
+    return int(free[np.argmin(np.max([d[free] for d in farthest], axis=0))])
+
+
 def pose_note(regions: SurfaceRegions) -> str:
     """The run summary's line: the resting pose, its kind and why it was chosen."""
     return f"resting pose {regions.pose_kind}: {regions.pose_reason}"
@@ -235,6 +259,9 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
     far_vertex = int(free[np.argmax(from_base[free])])
     from_far = solver.compute_distance(far_vertex)
+    if params.tx_pole == "centre":
+        far_vertex = geodesic_centre(solver, free, far_vertex, from_far)
+        from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
     sensing = ~(blocked | exclusion_far)

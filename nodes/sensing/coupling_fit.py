@@ -16,7 +16,9 @@ import numpy as np
 from ..data.board import default_coupling_width_mm
 from ..data.sensing_map import SensingMap
 from ..geometry.surface import SurfaceProjector
+from .baseline import median
 from .coupling_profile import CouplingProfile, ProfileLearner
+from .gain_learning import MIN_SNR, NEAR_PROFILE, GainLearner
 from .plane_fit import TangentPlaneFit
 
 if TYPE_CHECKING:
@@ -27,23 +29,15 @@ COUPLING_MIN_ESTIMATES = 30  # width estimates whose median becomes the coupling
 COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
 AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
 AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
-EXPLAINED_FACTOR = 2.0  # one finger explains a peak whose delta it models within this factor
+SPLIT_SIGMA = 6.0  # noise sigmas a second finger's peak reads above what the first finger's tail can explain
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
-
-
-def median(values: np.ndarray) -> float:
-    """Median of a small 1-D array of finite values (what ``np.median`` returns, at a tenth of its
-    per-call overhead)."""
-    ordered = np.sort(values)
-    middle = len(ordered) // 2
-    return float(ordered[middle]) if len(ordered) % 2 else float((ordered[middle - 1] + ordered[middle]) / 2)
 
 
 class CouplingFit:
     """The coupling model of one sensing map and what it learned so far (width, shape, amplitude)."""
 
     def __init__(self, sensing_map: SensingMap, params: ProcessingParams, projector: SurfaceProjector,
-                 cell_gain: np.ndarray, cell_distance: np.ndarray):
+                 cell_gain: np.ndarray, cell_distance: np.ndarray, measured_gains: bool = False):
         self.map, self.params, self.projector = sensing_map, params, projector
         self.cell_gain, self.cell_distance = cell_gain, cell_distance
         self.pitch = sensing_map.pitch_mm()
@@ -54,6 +48,8 @@ class CouplingFit:
         self.amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
         self._amplitude_count = 0  # well-posed fits seen
         self.coupling = ProfileLearner(CouplingProfile.gaussian(1.0))  # the shape, in units of the width
+        self.gains = (GainLearner(cell_gain, sensing_map.cell_pad, measured=measured_gains)
+                      if params.learn_gains else None)
         self._use_profile()
 
     def _use_profile(self) -> None:
@@ -71,7 +67,8 @@ class CouplingFit:
         ``found``, strongest peak first; entries that are one finger are merged out). Each fit starts
         at its peak crossing (on the touched side, within a pitch of the finger); with several
         touches the first pass fits each one to its own cells (nearest to its peak), peaks whose fits
-        land within ``2 finger_radius`` of a stronger one's are dropped (their area added to it), and
+        land within ``2 finger_radius`` of a stronger one's, or whose delta the strongest finger's
+        tail can explain (:meth:`_separate_fingers`), are dropped (their area added to it), and
         a second pass fits each remaining touch to all deltas minus the other touches' fitted
         coupling, starting from its first fit's point and amplitude. The coupling profile learns from
         single touches and from second-pass fits (a first pass beside another touch carries that
@@ -92,9 +89,11 @@ class CouplingFit:
         if single:
             return
         fits = self._merge_same_finger(found, fits)
-        if len(found) > 1 and self._one_finger_explains(found, delta, sigma):
-            found[0][4] = sum(entry[4] for entry in found)
-            del found[1:]
+        if len(found) > 1:
+            separate = self._separate_fingers(found, fits, delta, sigma)
+            found[0][4] += sum(entry[4] for entry, own in zip(found, separate) if not own)
+            found[:] = [entry for entry, own in zip(found, separate) if own]
+            fits = [fit for fit, own in zip(fits, separate) if own]
         if len(found) == 1:  # merged into one finger after all: fit it to every delta
             entry = found[0]
             refined = self.refine(self.map.cell_points[entry[0]], int(self.map.cell_faces[entry[0]]), delta, sigma,
@@ -122,18 +121,32 @@ class CouplingFit:
             fits = [fits[j] for j in kept]
         return fits
 
-    def _one_finger_explains(self, found: list[list[Any]], delta: np.ndarray, sigma: np.ndarray) -> bool:
-        """Whether one finger fitted to every delta (from the strongest peak, nothing learned) reads
-        within ``EXPLAINED_FACTOR`` of every peak's delta: a finger between crossings of a sparse layout
-        raises several local maxima that no tail bound from a crossing can tell from two fingers."""
-        cell = found[0][0]
-        fit = self.refine(self.map.cell_points[cell], int(self.map.cell_faces[cell]), delta, sigma, update=False)
-        if fit is None:
-            return False
+    def _separate_fingers(self, found: list[list[Any]], fits: list, delta: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """Which entries are fingers of their own (the strongest always): the strongest peak's finger
+        (its first fit) could not have raised a secondary peak whose delta exceeds ``SPLIT_SIGMA``
+        noise sigmas plus twice that finger's coupling there under the heaviest plausible tail,
+        :meth:`tail_envelope` (cell gains known to a factor 2). A finger's tail, or a finger between
+        crossings of a sparse layout, raises local maxima that no bound from a learned
+        Gaussian-like profile tells from a second finger; a second finger reads about the full
+        amplitude at its own crossing."""
+        separate = np.ones(len(found), dtype=bool)
+        if fits[0] is None:
+            return separate
+        point, log_amplitude = fits[0]
         peaks = np.array([entry[0] for entry in found])
-        offsets = self.map.cell_points[peaks] - fit[0]
-        model = self.cell_gain[peaks] * math.exp(fit[3]) * self.profile.at_squared(np.sum(offsets**2, axis=1))[0]
-        return bool(np.all((model >= delta[peaks] / EXPLAINED_FACTOR) & (model <= EXPLAINED_FACTOR * delta[peaks])))
+        squared = np.sum((self.map.cell_points[peaks] - point) ** 2, axis=1)
+        reach = self.cell_gain[peaks] * math.exp(log_amplitude) * self.tail_envelope(squared)
+        separate[1:] = (delta[peaks] > 2.0 * reach + SPLIT_SIGMA * sigma[peaks])[1:]
+        return separate
+
+    def tail_envelope(self, squared: np.ndarray) -> np.ndarray:
+        """The larger of the coupling profile and ``(1 + d^2 / h^2)^(-3/2)`` at squared distances
+        (mm^2): the field of a point charge at height ``h`` over the crossing's plane, with ``h``
+        such that it has the profile's half-maximum distance. It falls as a power law: a real
+        finger's coupling reaches farther than a Gaussian's, and a profile learned from nearby
+        crossings does not know its tail."""
+        height2 = self.profile.half_maximum_mm() ** 2 / (2.0 ** (2.0 / 3.0) - 1.0)
+        return np.maximum(self.profile.at_squared(squared)[0], (1.0 + squared / height2) ** -1.5)
 
     def _refit_beside_others(self, found: list[list[Any]], fits: list, delta: np.ndarray, sigma: np.ndarray) -> None:
         """Second pass: each touch refitted to the deltas minus the other touches' fitted coupling."""
@@ -202,13 +215,31 @@ class CouplingFit:
         plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
         fits = [plane_fit.run(p, f, log_amplitude) for p, f in starts]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
-        if update and self._learn_amplitude(log_amplitude, information) and learn_profile and width_learned:
+        if not (update and self._learn_amplitude(log_amplitude, information) and learn_profile):
+            return point, face, bary, log_amplitude
+        if self.gains is not None:
+            self._learn_gains(near, x - point, log_amplitude, d, noise)
+        if width_learned:
             scale = h * math.exp(log_amplitude)
             offsets = x - point
             squared = np.einsum("ij,ij->i", offsets, offsets) / self.coupling_sigma**2  # in widths
             if self.coupling.add(squared, z / scale, scale * scale):
                 self._use_profile()
         return point, face, bary, log_amplitude
+
+    def _learn_gains(self, cells: np.ndarray, offsets: np.ndarray, log_amplitude: float, values: np.ndarray,
+                     noise: np.ndarray) -> None:
+        """Give the gain learner (:mod:`.gain_learning`) a well-posed single touch's crossings near the
+        fitted finger (``offsets`` from it, mm) that read above ``MIN_SNR`` sigmas, and use its gains
+        (in place: the peak test shares the array) every 10th touch."""
+        profile = self.profile.at_squared(np.einsum("ij,ij->i", offsets, offsets))[0]
+        use = (profile >= NEAR_PROFILE) & (values > MIN_SNR * noise)
+        if not use.any():
+            return
+        model = math.exp(log_amplitude) * profile[use]
+        self.gains.add(cells[use], np.log(values[use] / model), (values[use] / noise[use]) ** 2)
+        if self.gains.touches % 10 == 0:
+            self.cell_gain[:] = self.gains.gains()
 
     def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> bool:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within

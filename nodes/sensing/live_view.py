@@ -245,7 +245,7 @@ class LiveView:
         """Make ``result`` the frame every open page shows next."""
         positive = np.maximum(result.delta, 0.0)
         field = self.processor.contacts.vertex_to_cell @ positive
-        scale = max(float(field.max(initial=0.0)), 10.0 * float(np.median(self.processor.noise)))
+        scale = max(float(field.max(initial=0.0)), 10.0 * float(np.median(self.processor.sigma())))
         heat = np.clip(np.rint(255.0 * field / max(scale, 1e-9)), 0, 255).astype(np.int64)
         payload = json.dumps({
             "seq": self._seq + 1, "t": round(result.t, 3), "heat": heat.tolist(),

@@ -2,15 +2,18 @@
 
 Per frame (``TouchProcessor.process``):
 
-1. **Baseline**: the first ``calibration_frames`` frames (no touch assumed) give each cell's
-   baseline and noise sigma. Afterwards a common-mode term (median relative offset of the quiet
-   cells) removes global drift at once, and each quiet cell's baseline follows the raw counts with
-   time constant ``baseline_tau_s``. Cells near an active touch are *held* (not updated) while
-   touched; a cell held longer than ``max_hold_s`` is re-baselined (a stuck touch fades). A cell
-   reading far below its baseline for ``negative_reset_frames`` frames is re-baselined (a finger
-   that rested on it at start-up).
-2. **Detection**: ``delta = raw - baseline`` in counts (a touch raises counts on FT5x16 raw output).
-   A cell turns on above ``on_sigma`` noise sigmas and stays on above ``off_sigma`` (hysteresis).
+1. **Baseline** (:mod:`.baseline`): over every channel pair the board scans, the first
+   ``calibration_frames`` frames (no touch assumed) give the baselines and noise sigmas; per frame
+   a relative offset common to the board and one offset per Tx row and per Rx column (correlated
+   noise and drift of a drive line or a receiver), estimated from the quiet channels (those without
+   a crossing included), are removed; quiet channels' baselines and noise follow with time
+   constants ``baseline_tau_s`` / ``noise_tau_s``. Cells near an active touch are *held* (not
+   updated) while touched; a cell held longer than ``max_hold_s`` is re-baselined (a stuck touch
+   fades); one reading far below its baseline for ``negative_reset_frames`` frames is re-baselined
+   (a finger that rested on it at start-up).
+2. **Detection**: ``delta = raw - baseline`` minus the common modes, in counts (a touch raises
+   counts on FT5x16 raw output). A cell turns on above ``on_sigma`` of its measured noise sigmas
+   and stays on above ``off_sigma`` (hysteresis).
 3. **Contact areas** (:mod:`.contacts`): the deltas are interpolated over the vertices of a simplified copy of the mesh
    (``contact_mesh_faces``; Gaussian kernel, Nadaraya-Watson); vertices above the off threshold form
    connected components over the mesh edges. Each component is split among its touch peaks (active
@@ -26,8 +29,10 @@ Per frame (``TouchProcessor.process``):
    surface; weak priors (offset ~ N(0, pitch^2), amplitude learned from well-posed touches) keep
    directions that a sparse layout does not resolve bounded. With several touches each one is
    refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
-   whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's are one
-   finger. ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
+   whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's, or that
+   the strongest finger's heaviest plausible (power-law) tail explains, are one finger. With
+   ``learn_gains`` the crossings' gains and the no-pad gain are learned from well-posed single
+   touches (:mod:`.gain_learning`). ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
    with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
    (log-quadratic fits), then the shape, in units of that width, is learned from well-posed single
    touches: a board whose coupling is not a Gaussian (flat top, heavy tail) is localized without
@@ -50,8 +55,10 @@ from pydantic import Field
 from ...graph.node import NodeParams
 from ..data.sensing_map import SensingMap
 from ..geometry.surface import SurfaceProjector
+from ..data.board import NUM_RX, NUM_TX
+from .baseline import Baseline, median
 from .contacts import ContactAreas
-from .coupling_fit import CouplingFit, median
+from .coupling_fit import CouplingFit
 from .tracking import Tracker
 
 SUPPORT_SIGMA = 3.0  # a touch peak needs another crossing within two pitches above this many noise sigmas
@@ -77,6 +84,7 @@ class ProcessingParams(NodeParams):
     refine: bool = Field(True, description="refine the centroid with the coupling fit")
     no_pad_gain: float = Field(0.5, gt=0, description="coupling of a crossing without electrode pad relative to a padded one")
     adapt_coupling: bool = Field(True, description="learn the coupling width, then the profile's shape, from touches")
+    learn_gains: bool = Field(True, description="learn each crossing's gain and the no-pad gain from touches")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
 
@@ -129,7 +137,8 @@ class TouchProcessor:
                           else np.asarray(cell_gain, dtype=np.float64))
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
-        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance)
+        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance,
+                               measured_gains=cell_gain is not None)
         self.contacts = ContactAreas(sensing_map, params.contact_mesh_faces,
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
@@ -140,86 +149,53 @@ class TouchProcessor:
         self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
         self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
         self.tracker = Tracker(params.track_gate_mm)
+        self.channels = Baseline((NUM_TX, NUM_RX), params)
         self.reset()
 
     def reset(self) -> None:
         """Forget baseline, noise and tracks (the next frames recalibrate)."""
-        k = self.map.cell_count
-        self._calibration: list[np.ndarray] = []
-        self.baseline = np.zeros(k)
-        self.noise = np.ones(k)
-        self.active = np.zeros(k, dtype=bool)
-        self._held_since = np.full(k, np.inf)
-        self._below = np.zeros(k, dtype=np.int64)
+        self.channels.reset()
+        self.active = np.zeros(self.map.cell_count, dtype=bool)
+        self._touched = np.zeros(NUM_TX * NUM_RX, dtype=bool)  # channels the common modes leave out
         self.tracker.reset()
         self._last_t: float | None = None
 
     @property
     def calibrated(self) -> bool:
-        return len(self._calibration) >= self.params.calibration_frames
+        return self.channels.calibrated
 
     def process(self, values: np.ndarray, t: float) -> FrameResult:
         """One channel-order board frame ``(21, 12)`` at time ``t`` (s) -> :class:`FrameResult`."""
-        raw = np.asarray(values, dtype=np.float64).ravel()[self.frame_index]
-        valid = raw >= 0
+        full = np.asarray(values, dtype=np.float64).ravel()
+        valid_full = full >= 0
+        k = self.map.cell_count
         if not self.calibrated:
-            return self._calibrate(raw, valid, t)
+            self.channels.calibrate(full)
+            self._last_t = t
+            return FrameResult(t, self.calibrated, (), (), np.zeros(k), np.zeros(k, dtype=bool))
         dt = 0.1 if self._last_t is None else min(max(t - self._last_t, 1e-3), 1.0)
         self._last_t = t
         p = self.params
-        sigma = self.sigma()
-        delta = raw - self.baseline
-        quiet = valid & (np.abs(delta) < p.update_sigma * sigma) & ~self.active & (self.baseline > 0)
-        if np.count_nonzero(quiet) >= 3:
-            common = median(delta[quiet] / self.baseline[quiet])
-            delta = raw - self.baseline * (1.0 + common)
-        delta[~valid] = 0.0
+        sigma_full = self.channels.sigma()
+        delta_full = self.channels.delta(full, valid_full, sigma_full, self._touched)
+        index = self.frame_index
+        delta, sigma, valid = delta_full[index], sigma_full[index], valid_full[index]
         threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
         was_active, self.active = self.active, valid & (delta > threshold)
         touches = self._touches(delta, sigma, was_active) if self.active.any() else []
         tracked, events = self.tracker.track(touches, t)
-        self._update_baseline(raw, delta, valid, sigma, tracked, t, dt)
+        held = None
+        self._touched.fill(False)
+        if tracked:
+            held = self._touched
+            held[index] = self.holds[[touch.peak_cell for touch in tracked]].any(axis=0)
+        self._touched[index[self.active]] = True
+        self.channels.update(full, delta_full, valid_full, sigma_full, held, t, dt)
         return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
-
-    def _calibrate(self, raw: np.ndarray, valid: np.ndarray, t: float) -> FrameResult:
-        self._calibration.append(raw)
-        if self.calibrated:
-            stack = np.array(self._calibration)
-            self.baseline = stack.mean(axis=0)
-            # 20 frames give a sigma within ~+-16 %: start no lower than the pooled median (cells of
-            # one board share their noise floor); the running estimate refines it afterwards.
-            spread = stack.std(axis=0, ddof=1)
-            self.noise = np.maximum(spread, float(np.median(spread)))
-            self._last_t = t
-        k = self.map.cell_count
-        return FrameResult(t, self.calibrated, (), (), np.zeros(k), np.zeros(k, dtype=bool))
 
     def sigma(self) -> np.ndarray:
         """(K,) noise sigma per cell (counts) the thresholds use, floored."""
-        floor = max(self.params.min_noise_counts, 0.5 * median(self.noise))
-        return np.maximum(self.noise, floor)
-
-    def _update_baseline(self, raw, delta, valid, sigma, touches, t, dt) -> None:
-        p = self.params
-        quiet = valid & (np.abs(delta) < p.update_sigma * sigma)
-        if touches:
-            held = self.holds[[touch.peak_cell for touch in touches]].any(axis=0)
-            self._held_since = np.where(held, np.minimum(self._held_since, t), np.inf)
-            stuck = held & (t - self._held_since > p.max_hold_s)
-            self.baseline[stuck] = raw[stuck]
-            self._held_since[stuck] = np.inf
-            quiet &= ~held
-        else:
-            self._held_since.fill(np.inf)
-        alpha = 1.0 - np.exp(-dt / p.baseline_tau_s)
-        self.baseline[quiet] += alpha * (raw[quiet] - self.baseline[quiet])
-        beta = 1.0 - np.exp(-dt / p.noise_tau_s)
-        self.noise[quiet] = np.sqrt((1 - beta) * self.noise[quiet] ** 2 + beta * delta[quiet] ** 2)
-        below = valid & (delta < -p.on_sigma * sigma)
-        self._below = np.where(below, self._below + 1, 0)
-        reset = self._below >= p.negative_reset_frames
-        self.baseline[reset] = raw[reset]
-        self._below[reset] = 0
+        return self.channels.sigma()[self.frame_index]
 
     # ---- contact areas and touch points
 
