@@ -79,9 +79,11 @@ def _int_bounds(bounds: np.ndarray, infinite: int) -> list[int]:
     return out.tolist()
 
 
-def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
-    """The model as a CP-SAT proto, written directly (the same proto as adding each row through
-    ``add_linear_constraint`` of a ``weighted_sum``, built without a Python object per term)."""
+def cpsat_model(model: LinearModel, cost: np.ndarray, hint: np.ndarray):
+    """``min cost @ v`` over ``model`` from ``hint`` as a CP-SAT model, its proto written directly: the
+    same proto as a binary (or the cached constant 0) per column, each row added through
+    ``add_linear_constraint`` of a ``weighted_sum``, and ``add_hint`` per binary, built without a Python
+    object per term. Returns (the CpModel, the CP-SAT variable of each column)."""
     from ortools.sat.python import cp_model
 
     cp = cp_model.CpModel()
@@ -109,6 +111,13 @@ def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     hinted = np.flatnonzero(model.col_hi)
     proto.solution_hint.vars.extend(var[hinted].tolist())
     proto.solution_hint.values.extend(hint[hinted].astype(bool).astype(np.int64).tolist())
+    return cp, var
+
+
+def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
+    from ortools.sat.python import cp_model
+
+    cp, var = cpsat_model(model, cost, hint)
     solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"])
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
