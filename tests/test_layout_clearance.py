@@ -145,3 +145,27 @@ def test_a_tx_laid_along_an_rx_conflicts_and_a_crossing_does_not():
     # the same Rx only 8 mm long along Tx 0 stays below a 10 mm run
     short = dataclasses.replace(lines([0.4], length_mm=8.0), layer="rx")
     assert len(parallel_pairs(tx, short, EVERYWHERE, 1.0, 10.0)) == 0
+
+
+def test_close_pairs_match_every_point_pair_on_wandering_curves():
+    """Random walks that meet, cross, leave the region and come back: the pairs from runs of points
+    are those of comparing every resampled point pair (the rule's definition)."""
+    rng = np.random.default_rng(3)
+    n, rows = 12, 60
+    steps = rng.normal(size=(n, rows, 3)) * [0.6, 0.6, 0.1]
+    points = (np.cumsum(steps, axis=1) + rng.uniform(-6, 6, size=(n, 1, 3))).reshape(-1, 3)
+    faces = rng.integers(0, 2, size=n * rows)  # face 1 is outside the region: curves leave it and come back
+    arcs = np.linalg.norm(np.diff(points.reshape(n, rows, 3), axis=1), axis=2).sum(axis=1)
+    curves = CurveSet(layer="rx", points=points, faces=faces, bary=np.full((len(points), 3), 1 / 3),
+                      offsets=np.arange(n + 1, dtype=np.int64) * rows, lengths_mm=arcs,
+                      end_reason=np.zeros(n, dtype=np.int8), angle=0.0)
+    region = np.array([True, False])
+    for free_mm, free_end in ((0.0, "start"), (15.0, "start"), (15.0, "end")):
+        got = close_pairs(curves, region, 2.0, free_mm, free_end)
+        sampled, curve, _, arc = resample(curves, region, 0.25)
+        from_end = arc if free_end == "start" else curves.lengths_mm[curve] - arc
+        free = from_end < np.minimum(free_mm, 0.5 * curves.lengths_mm[curve])
+        d2 = ((sampled[:, None, :] - sampled[None, :, :]) ** 2).sum(axis=2)
+        hit = (d2 <= 2.25**2) & (curve[:, None] < curve[None, :]) & ~(free[:, None] & free[None, :])
+        expected = np.unique(np.stack([curve[np.nonzero(hit)[0]], curve[np.nonzero(hit)[1]]], axis=1), axis=0)
+        assert len(expected) > 3 and got.tolist() == expected.tolist()

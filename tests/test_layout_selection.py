@@ -151,3 +151,33 @@ def test_layer_radius_bound_never_exceeds_the_proven_optimum(problem, n_drive, n
     high = int(np.ceil(stage["objective"] / result.report["resolution_mm"] - 1e-9))
     bound = layer_radius_bound(problem, q, (n_drive, n_sense), low, high, {"time_limit_s": 1.0, "seed": 0, "workers": 1})
     assert low <= bound <= high
+
+
+def test_cpsat_proto_is_the_one_the_modelling_api_builds(problem):
+    """The phase-1 proto written directly equals the one made row by row through CP-SAT's API (so
+    the solver searches the same model), for stage 1 and for stage 2's model with columns fixed."""
+    from ortools.sat.python import cp_model
+
+    from retrotouch.nodes.layout.mip import build_model
+    from retrotouch.nodes.layout.solvers import cpsat_model
+
+    q = np.ceil(problem.distance / 0.5 - 1e-9).astype(np.int64)
+    model = build_model(problem, 6, 4, q, np.full(len(q), int(np.sort(q, axis=1)[:, 3].max())), 2)
+    fixed = model.radius_fixed(model.r_low + 2)
+    rng = np.random.default_rng(0)
+    for m, cost in ((model, model.radius_objective()), (fixed, fixed.power_objective())):
+        hint = rng.integers(0, 2, m.n_cols) * m.col_hi
+        api = cp_model.CpModel()
+        v = [api.new_bool_var(f"v{i}") if hi else api.new_constant(0) for i, hi in enumerate(m.col_hi.tolist())]
+        for r in range(len(m.row_lo)):
+            cols, vals = m.columns[m.offsets[r]:m.offsets[r + 1]], m.values[m.offsets[r]:m.offsets[r + 1]]
+            lo, hi = m.row_lo[r], m.row_hi[r]
+            api.add_linear_constraint(cp_model.LinearExpr.weighted_sum([v[c] for c in cols.tolist()], vals.tolist()),
+                                      int(lo) if np.isfinite(lo) else cp_model.INT_MIN,
+                                      int(hi) if np.isfinite(hi) else cp_model.INT_MAX)
+        used = np.flatnonzero(cost)
+        api.minimize(cp_model.LinearExpr.weighted_sum([v[i] for i in used.tolist()], cost[used].tolist()))
+        for i in np.flatnonzero(m.col_hi).tolist():
+            api.add_hint(v[i], bool(hint[i]))
+        assert (m.col_hi == 0).any() or m is model
+        assert str(cpsat_model(m, cost, hint)[0].proto) == str(api.proto)

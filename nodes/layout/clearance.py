@@ -62,21 +62,68 @@ def close_pairs(
     step_mm: float = CONFLICT_STEP_MM,
 ) -> np.ndarray:
     """Distinct ``(P, 2)`` curve pairs (ascending) whose centre lines come closer than ``bound_mm``
-    inside ``face_mask`` (conservatively: sampled distance below ``bound_mm + step_mm``), except where
+    inside ``face_mask`` (conservatively: sampled distance at most ``bound_mm + step_mm``), except where
     both points lie in their curves' free zones: within ``free_mm`` of the ``free_end`` (``"start"`` or
     ``"end"``) and in that half of the curve, which :func:`free_end_trims` shortens until they have room."""
-    from scipy.spatial import cKDTree  # heavy: imported when used, not on node discovery
-
     points, curve, _, arc = resample(curves, face_mask, step_mm)
     if len(points) < 2:
         return np.empty((0, 2), dtype=np.int64)
-    pairs = cKDTree(points).query_pairs(bound_mm + step_mm, output_type="ndarray")
-    a, b = curve[pairs[:, 0]], curve[pairs[:, 1]]
-    free = _in_free_zone(curves, curve, arc, free_mm, free_end)[pairs]
-    counted = (a != b) & ~(free[:, 0] & free[:, 1])
-    key = np.unique(np.minimum(a, b)[counted] * curves.count + np.maximum(a, b)[counted])
+    free = _in_free_zone(curves, curve, arc, free_mm, free_end)
+    key = _close_keys(points, curve, free, bound_mm + step_mm, curves.count, step_mm)
     return np.stack([key // curves.count, key % curves.count], axis=1).astype(np.int64)
 
+
+def _chunks(points: np.ndarray, curve: np.ndarray, size: int, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Runs of at most ``size`` consecutive points of one curve without a jump of more than ``step_mm``
+    (where the curve leaves the region): (start of each run, its centre (mean), its bounding radius
+    about the centre)."""
+    jump = np.linalg.norm(np.diff(points, axis=0), axis=1) > step_mm * (1 + 1e-9)
+    new_piece = np.concatenate([[True], (curve[1:] != curve[:-1]) | jump])
+    piece = np.cumsum(new_piece) - 1
+    position = np.arange(len(curve)) - np.flatnonzero(new_piece)[piece]
+    starts = np.flatnonzero(new_piece | (position % size == 0))
+    counts = np.diff(np.append(starts, len(points)))
+    centres = np.add.reduceat(points, starts, axis=0) / counts[:, None]
+    offsets = np.linalg.norm(points - np.repeat(centres, counts, axis=0), axis=1)
+    return starts, centres, np.maximum.reduceat(offsets, starts)
+
+
+def _close_keys(points: np.ndarray, curve: np.ndarray, free: np.ndarray, radius: float, count: int,
+                step_mm: float, size: int = 16, batch: int = 4096) -> np.ndarray:
+    """Sorted keys ``a * count + b`` (a < b) of the curve pairs with two points at most ``radius`` apart
+    (Euclidean), not both ``free``; ``step_mm`` the points' spacing along a curve. Exact: runs of points
+    whose bounding spheres come within ``radius`` (and not both wholly free) are compared point by
+    point, nearest runs first, skipping curve pairs already found."""
+    from scipy.spatial import cKDTree  # heavy: imported when used, not on node discovery
+
+    starts, centres, reach = _chunks(points, curve, size, step_mm)
+    all_free = np.logical_and.reduceat(free, starts)
+    pairs = cKDTree(centres).query_pairs(radius + 2.0 * float(reach.max()), output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    a, b = curve[starts[i]], curve[starts[j]]
+    gap = np.linalg.norm(centres[i] - centres[j], axis=1) - reach[i] - reach[j]
+    near = (a != b) & (gap <= radius) & ~(all_free[i] & all_free[j])
+    i, j, gap = i[near], j[near], gap[near]
+    keys = np.minimum(a, b)[near] * count + np.maximum(a, b)[near]
+    order = np.lexsort((j, i, gap))
+    i, j, keys = i[order], j[order], keys[order]
+    members = starts[:, None] + np.arange(size)  # point rows of each run, -1 past its end
+    ends = np.append(starts[1:], len(points))
+    members = np.where(members < ends[:, None], members, -1)
+    padded = np.vstack([points, np.full((1, 3), 1e18)])  # padding: far away, and free
+    padded_free = np.append(free, True)
+    found: set[int] = set()
+    for lo in range(0, len(keys), batch):
+        todo = np.flatnonzero(~np.isin(keys[lo:lo + batch], list(found))) + lo
+        if len(todo) == 0:
+            continue
+        p, q = members[i[todo]], members[j[todo]]
+        d2 = np.zeros((len(todo), size, size))
+        for axis in range(3):
+            d2 += (padded[p, axis][:, :, None] - padded[q, axis][:, None, :]) ** 2
+        hit = (d2 <= radius * radius) & ~(padded_free[p][:, :, None] & padded_free[q][:, None, :])
+        found.update(keys[todo][hit.any(axis=(1, 2))].tolist())
+    return np.array(sorted(found), dtype=np.int64)
 
 def parallel_pairs(tx: CurveSet, rx: CurveSet, face_mask: np.ndarray, within_mm: float, run_mm: float,
                    step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:

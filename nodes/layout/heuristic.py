@@ -77,6 +77,16 @@ def _score(nearest: np.ndarray, resolution_mm: float, secondary: bool, power: in
     return radius, ((nearest / resolution_mm) ** power).sum(axis=0)
 
 
+def _layer_nearest(Dpad: np.ndarray, pair: np.ndarray, layer: str, other: list) -> np.ndarray:
+    """(K, curves of ``layer``): each sample's nearest distance over the crossings of each curve with the
+    ``other`` layer's selected curves (inf without any); ``pair[a, b]`` is the column of ``Dpad`` of
+    crossing (Tx a, Rx b), its last column inf."""
+    if not other:
+        return np.full((len(Dpad), pair.shape[0] if layer == "tx" else pair.shape[1]), np.inf)
+    cols = pair[:, other] if layer == "tx" else pair[other, :].T
+    return Dpad[:, cols].min(axis=2)
+
+
 def local_search(
     problem: SelectionProblem,
     tx: np.ndarray,
@@ -109,13 +119,9 @@ def local_search(
     multi = np.zeros((ntx, nrx), dtype=bool)
     multi[problem.multi_pairs[:, 0], problem.multi_pairs[:, 1]] = True
 
-    def nearest_of(T, R):
-        if len(T) == 0 or len(R) == 0:
-            return np.full(len(Dpad), np.inf)
-        return Dpad[:, pair[np.ix_(T, R)].ravel()].min(axis=1)
-
     T, R = list(tx), list(rx)
-    current = _score(nearest_of(T, R)[:, None], resolution_mm, secondary, power)
+    start = _layer_nearest(Dpad, pair, "tx", R)[:, T].min(axis=1) if T else np.full(len(Dpad), np.inf)
+    current = _score(start[:, None], resolution_mm, secondary, power)
     current = (current[0][0], current[1][0])
     moves = 0
     while moves < max_moves:
@@ -125,6 +131,7 @@ def local_search(
             limit = n_drive if layer == "tx" else n_sense
             usable = problem.tx_usable if layer == "tx" else problem.rx_usable
             conf = tx_conf if layer == "tx" else rx_conf
+            reach = _layer_nearest(Dpad, pair, layer, other)  # a curve's crossings with the other layer's selection
             removals = list(own) + ([None] if len(own) < limit else [])
             for out in removals:
                 kept = [c for c in own if c != out]
@@ -137,9 +144,8 @@ def local_search(
                 cands = np.flatnonzero(ok)
                 if len(cands) == 0 or not other:
                     continue
-                base = nearest_of(kept, other) if layer == "tx" else nearest_of(other, kept)
-                cols = pair[np.ix_(cands, other)] if layer == "tx" else pair[np.ix_(other, cands)].T
-                new = np.minimum(base[:, None], Dpad[:, cols].min(axis=2))
+                base = reach[:, kept].min(axis=1) if kept else np.full(len(Dpad), np.inf)
+                new = np.minimum(base[:, None], reach[:, cands])
                 radius, total = _score(new, resolution_mm, secondary, power)
                 i = np.lexsort((total, radius))[0]
                 if (radius[i], total[i]) < best[0]:

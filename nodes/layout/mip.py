@@ -104,24 +104,96 @@ class LinearModel:
 
 
 class _Rows:
-    """Accumulates rows ``lo <= sum coef * col <= hi``."""
+    """Accumulates blocks of rows ``lo <= sum coef * col <= hi`` (entries flat, in row order)."""
 
     def __init__(self):
+        self.lengths: list[np.ndarray] = []
         self.cols: list[np.ndarray] = []
         self.vals: list[np.ndarray] = []
-        self.lo: list[float] = []
-        self.hi: list[float] = []
+        self.lo: list[np.ndarray] = []
+        self.hi: list[np.ndarray] = []
 
-    def add(self, cols, vals, lo=-np.inf, hi=np.inf) -> None:
+    def block(self, lengths, cols, vals, lo, hi) -> None:
+        lengths = np.asarray(lengths, dtype=np.int64)
+        self.lengths.append(lengths)
         self.cols.append(np.asarray(cols, dtype=np.int64))
         self.vals.append(np.asarray(vals, dtype=np.int64))
-        self.lo.append(lo)
-        self.hi.append(hi)
+        self.lo.append(np.broadcast_to(np.asarray(lo, dtype=float), lengths.shape))
+        self.hi.append(np.broadcast_to(np.asarray(hi, dtype=float), lengths.shape))
 
-    def pairs(self, left: np.ndarray, right: np.ndarray, vals: tuple[int, int], lo=-np.inf, hi=np.inf) -> None:
-        """One two-column row per (left, right) pair."""
-        for a, b in zip(left.tolist(), right.tolist()):
-            self.add((a, b), vals, lo, hi)
+    def add(self, cols, vals, lo=-np.inf, hi=np.inf) -> None:
+        self.block([len(cols)], cols, vals, [lo], [hi])
+
+    def tuples(self, cols: tuple[np.ndarray, ...], vals: tuple[int, ...], lo=-np.inf, hi=np.inf) -> None:
+        """One row per index ``i`` over the columns ``cols[0][i], cols[1][i], ...`` with ``vals``."""
+        n = len(cols[0])
+        self.block(np.full(n, len(cols)), np.stack(cols, axis=1).reshape(-1), np.tile(vals, n), lo, hi)
+
+    def csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        lengths = np.concatenate(self.lengths)
+        return (np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64), np.concatenate(self.cols),
+                np.concatenate(self.vals), np.concatenate(self.lo), np.concatenate(self.hi))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Shells:
+    """Per sample, its distinct levels within its cap (shells), in sample then level order."""
+
+    sample: np.ndarray  # (S,) sample of each shell
+    level: np.ndarray  # (S,) its level
+    start: np.ndarray  # (S,) first entry of the shell in the flat (sample, crossing) list
+    size: np.ndarray  # (S,) crossings at that level
+    first: np.ndarray  # (S,) bool, the sample's lowest level
+    last: np.ndarray  # (S,) bool, the sample's highest level
+    next_level: np.ndarray  # (S,) the next level of the sample (the level itself for the last)
+
+
+def _shells(entry_sample: np.ndarray, entry_level: np.ndarray) -> _Shells:
+    new = np.concatenate([[True], (entry_sample[1:] != entry_sample[:-1]) | (entry_level[1:] != entry_level[:-1])])
+    start = np.flatnonzero(new)
+    sample, level = entry_sample[start], entry_level[start]
+    first = np.concatenate([[True], sample[1:] != sample[:-1]])
+    last = np.concatenate([sample[1:] != sample[:-1], [True]])
+    next_level = np.where(last, level, np.append(level[1:], 0))
+    return _Shells(sample, level, start, np.diff(np.append(start, len(entry_sample))), first, last, next_level)
+
+
+def _chain_rows(rows: _Rows, shells: _Shells, entry_col: np.ndarray, u_start: int, z_start: int, r_low: int) -> None:
+    """Per shell, in order: the covering row (its crossings, its ``u``, minus the previous ``u``), then
+    unless it is the sample's last, ``u <= previous u`` (not for the first) and ``z >= u`` where the
+    next level exceeds ``r_low``."""
+    more = ~shells.last
+    u = u_start + np.cumsum(more) - 1  # this shell's u column (where more)
+    prev = np.append(0, u[:-1])  # the previous shell's u (where not first)
+    mono = more & ~shells.first
+    link = more & (shells.next_level > r_low)
+    per_shell = 1 + mono + link
+    row0 = np.cumsum(per_shell) - per_shell  # the covering row of each shell
+    length = np.zeros(int(per_shell.sum()), dtype=np.int64)
+    length[row0] = shells.size + more + ~shells.first
+    length[row0[mono] + 1] = 2
+    length[row0[link] + 1 + mono[link]] = 2
+    offsets = np.cumsum(length) - length
+    cols = np.empty(int(length.sum()), dtype=np.int64)
+    vals = np.empty_like(cols)
+    shell_of = np.repeat(np.arange(len(shells.size)), shells.size)
+    at = offsets[row0][shell_of] + np.arange(len(entry_col)) - shells.start[shell_of]
+    cols[at], vals[at] = entry_col, 1
+    end = offsets[row0] + shells.size
+    cols[end[more]], vals[end[more]] = u[more], 1
+    back = ~shells.first
+    cols[end[back] + more[back]], vals[end[back] + more[back]] = prev[back], -1
+    at = offsets[row0[mono] + 1]
+    cols[at], vals[at], cols[at + 1], vals[at + 1] = u[mono], 1, prev[mono], -1
+    at = offsets[row0[link] + 1 + mono[link]]
+    cols[at], vals[at] = z_start + shells.next_level[link] - r_low - 1, 1
+    cols[at + 1], vals[at + 1] = u[link], -1
+    lo = np.full(len(length), -np.inf)
+    hi = np.full(len(length), np.inf)
+    lo[row0] = np.where(shells.first, 1.0, 0.0)
+    hi[row0[mono] + 1] = 0.0
+    lo[row0[link] + 1 + mono[link]] = 0.0
+    rows.block(length, cols, vals, lo, hi)
 
 
 def build_model(problem: SelectionProblem, n_drive: int, n_sense: int, q: np.ndarray, sample_cap: np.ndarray,
@@ -130,19 +202,17 @@ def build_model(problem: SelectionProblem, n_drive: int, n_sense: int, q: np.nda
     quantised distance matrix."""
     n_tx, n_rx = len(problem.tx_usable), len(problem.rx_usable)
     order = np.argsort(q, axis=1, kind="stable")
-    within = [order[k, : int(np.searchsorted(q[k, order[k]], sample_cap[k], side="right"))] for k in range(len(q))]
-    act_crossings = np.unique(np.concatenate(within))
+    counts = (q <= sample_cap[:, None]).sum(axis=1)
+    within = np.arange(q.shape[1])[None, :] < counts[:, None]
+    entry_cross, entry_sample = order[within], np.repeat(np.arange(len(q)), counts)
+    shells = _shells(entry_sample, q[entry_sample, entry_cross])
+    act_crossings = np.unique(entry_cross)
     act_col = np.full(q.shape[1], -1, dtype=np.int64)
     act_col[act_crossings] = n_tx + n_rx + np.arange(len(act_crossings))
-    chains = []  # per sample: levels, shells
-    u_sample, u_level, u_next = [], [], []
-    for k, w in enumerate(within):
-        levels, shell_of = np.unique(q[k, w], return_inverse=True)
-        chains.append((levels, [act_col[w[shell_of == j]] for j in range(len(levels))]))
-        u_sample += [k] * (len(levels) - 1)
-        u_level += levels[:-1].tolist()
-        u_next += levels[1:].tolist()
-    r_low = max(int(levels[0]) for levels, _ in chains)
+    more = ~shells.last
+    u_sample, u_level, u_next = shells.sample[more], shells.level[more], shells.next_level[more]
+    first_levels = shells.level[shells.first]
+    r_low = int(first_levels.max())
     cap = int(sample_cap.max())
     u_start = n_tx + n_rx + len(act_crossings)
     z_start = u_start + len(u_sample)
@@ -151,42 +221,25 @@ def build_model(problem: SelectionProblem, n_drive: int, n_sense: int, q: np.nda
     rows = _Rows()
     rows.add(np.arange(n_tx), np.ones(n_tx), hi=n_drive)
     rows.add(n_tx + np.arange(n_rx), np.ones(n_rx), hi=n_sense)
-    rows.pairs(problem.tx_conflicts[:, 0], problem.tx_conflicts[:, 1], (1, 1), hi=1)
-    rows.pairs(n_tx + problem.rx_conflicts[:, 0], n_tx + problem.rx_conflicts[:, 1], (1, 1), hi=1)
-    rows.pairs(problem.multi_pairs[:, 0], n_tx + problem.multi_pairs[:, 1], (1, 1), hi=1)
+    rows.tuples((problem.tx_conflicts[:, 0], problem.tx_conflicts[:, 1]), (1, 1), hi=1)
+    rows.tuples((n_tx + problem.rx_conflicts[:, 0], n_tx + problem.rx_conflicts[:, 1]), (1, 1), hi=1)
+    rows.tuples((problem.multi_pairs[:, 0], n_tx + problem.multi_pairs[:, 1]), (1, 1), hi=1)
     act_tx, act_rx = problem.cross_tx[act_crossings], n_tx + problem.cross_rx[act_crossings]
     act = act_col[act_crossings]
-    rows.pairs(act, act_tx, (1, -1), hi=0)
-    rows.pairs(act, act_rx, (1, -1), hi=0)
-    for c, a, b in zip(act.tolist(), act_tx.tolist(), act_rx.tolist()):
-        rows.add((c, a, b), (1, -1, -1), lo=-1)
-    u = u_start
-    for levels, shells in chains:
-        for j, shell in enumerate(shells):
-            last = j == len(shells) - 1
-            prev = [] if j == 0 else [u - 1]
-            mine = [] if last else [u]
-            rows.add(np.concatenate([shell, mine, prev]).astype(np.int64),
-                     [1] * len(shell) + [1] * len(mine) + [-1] * len(prev), lo=1 if j == 0 else 0)
-            if not last:
-                if prev:
-                    rows.add((u, u - 1), (1, -1), hi=0)
-                if levels[j + 1] > r_low:
-                    rows.add((z_start + int(levels[j + 1]) - r_low - 1, u), (1, -1), lo=0)
-                u += 1
-    for t in range(z_start, n_cols - 1):
-        rows.add((t, t + 1), (1, -1), lo=0)
+    rows.tuples((act, act_tx), (1, -1), hi=0)
+    rows.tuples((act, act_rx), (1, -1), hi=0)
+    rows.tuples((act, act_tx, act_rx), (1, -1, -1), lo=-1)
+    _chain_rows(rows, shells, act_col[entry_cross], u_start, z_start, r_low)
+    rows.tuples((np.arange(z_start, n_cols - 1), np.arange(z_start + 1, n_cols)), (1, -1), lo=0)
+    offsets, columns, values, row_lo, row_hi = rows.csr()
 
-    lengths = np.array([len(c) for c in rows.cols], dtype=np.int64)
     col_hi = np.ones(n_cols, dtype=np.int64)
     col_hi[np.flatnonzero(~problem.tx_usable)] = 0
     col_hi[n_tx + np.flatnonzero(~problem.rx_usable)] = 0
     return LinearModel(
         n_tx=n_tx, n_rx=n_rx, act_crossings=act_crossings,
         act_tx=problem.cross_tx[act_crossings], act_rx=problem.cross_rx[act_crossings],
-        u_sample=np.array(u_sample, dtype=np.int64), u_level=np.array(u_level, dtype=np.int64),
-        u_next=np.array(u_next, dtype=np.int64), r_low=r_low, cap=cap,
-        offsets=np.concatenate([[0], np.cumsum(lengths)]), columns=np.concatenate(rows.cols),
-        values=np.concatenate(rows.vals), row_lo=np.array(rows.lo, dtype=float), row_hi=np.array(rows.hi, dtype=float),
-        col_hi=col_hi, constant_power_sum=float(sum(int(levels[0]) ** power for levels, _ in chains)), power=power,
+        u_sample=u_sample.astype(np.int64), u_level=u_level.astype(np.int64), u_next=u_next.astype(np.int64),
+        r_low=r_low, cap=cap, offsets=offsets, columns=columns, values=values, row_lo=row_lo, row_hi=row_hi,
+        col_hi=col_hi, constant_power_sum=float(sum(int(level) ** power for level in first_levels.tolist())), power=power,
     )

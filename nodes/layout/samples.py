@@ -95,9 +95,12 @@ class HeatGeodesics:
             sl = slice(start, start + _COLUMNS_PER_BATCH)
             u = _solve(self._heat, self._load(faces[sl], bary[sl]))
             g = (self.grad @ u).reshape(m, 3, -1)
-            norm = np.linalg.norm(g, axis=1, keepdims=True)
-            X = -g / np.maximum(norm, 1e-300)
-            phi = _solve(self._poisson, self.div_operator @ X.reshape(3 * m, -1))
+            norm = g[:, 0] * g[:, 0]  # |g| per face and source, in place (as np.linalg.norm sums)
+            norm += g[:, 1] * g[:, 1]
+            norm += g[:, 2] * g[:, 2]
+            np.maximum(np.sqrt(norm, out=norm), 1e-300, out=norm)
+            np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
+            phi = _solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
             corners = self.faces[faces[sl]]  # (s, 3)
             at_source = np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)
             out[:, sl] = np.maximum(phi - at_source[None, :], 0.0)

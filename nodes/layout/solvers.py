@@ -41,26 +41,87 @@ def solve_stage(model: LinearModel, cost: np.ndarray, hint: np.ndarray, solver: 
     return StageSolution(status, values, objective, bound, work, time.perf_counter() - start)
 
 
-def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
+def _cpsat_variables(col_hi: np.ndarray) -> np.ndarray:
+    """The CP-SAT variable of each column: binaries in column order, every fixed column (``col_hi`` 0)
+    on the one constant 0, made where the first of them stands (as ``new_constant`` caches it)."""
+    fixed = col_hi == 0
+    opens = ~fixed
+    if fixed.any():
+        opens[np.argmax(fixed)] = True
+    index = np.cumsum(opens) - 1
+    if fixed.any():
+        index[fixed] = index[np.argmax(fixed)]
+    return index
+
+
+def _canonical_rows(model: LinearModel, var: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows over CP-SAT variables as CP-SAT stores a weighted sum: terms of one variable merged,
+    zero coefficients dropped, variables ascending. Returns (row offsets, variables, coefficients)."""
+    row = np.repeat(np.arange(len(model.row_lo)), np.diff(model.offsets))
+    v = var[model.columns]
+    order = np.lexsort((v, row))
+    row, v, coef = row[order], v[order], model.values[order]
+    first = np.concatenate([[True], (row[1:] != row[:-1]) | (v[1:] != v[:-1])]) if len(row) else np.zeros(0, bool)
+    starts = np.flatnonzero(first)
+    coef = np.add.reduceat(coef, starts) if len(starts) else coef
+    row, v = row[starts], v[starts]
+    keep = coef != 0
+    row, v, coef = row[keep], v[keep], coef[keep]
+    offsets = np.searchsorted(row, np.arange(len(model.row_lo) + 1))
+    return offsets, v, coef
+
+
+def _int_bounds(bounds: np.ndarray, infinite: int) -> list[int]:
+    """Row bounds as integers, ``infinite`` for the missing ones."""
+    out = np.full(len(bounds), infinite, dtype=np.int64)
+    finite = np.isfinite(bounds)
+    out[finite] = bounds[finite].astype(np.int64)
+    return out.tolist()
+
+
+def cpsat_model(model: LinearModel, cost: np.ndarray, hint: np.ndarray):
+    """``min cost @ v`` over ``model`` from ``hint`` as a CP-SAT model, its proto written directly: the
+    same proto as a binary (or the cached constant 0) per column, each row added through
+    ``add_linear_constraint`` of a ``weighted_sum``, and ``add_hint`` per binary, built without a Python
+    object per term. Returns (the CpModel, the CP-SAT variable of each column)."""
     from ortools.sat.python import cp_model
 
     cp = cp_model.CpModel()
-    v = [cp.new_bool_var(f"v{i}") if hi else cp.new_constant(0) for i, hi in enumerate(model.col_hi.tolist())]
-    for r in range(len(model.row_lo)):
-        lo_, hi_ = model.offsets[r], model.offsets[r + 1]
-        expr = cp_model.LinearExpr.weighted_sum([v[c] for c in model.columns[lo_:hi_].tolist()],
-                                                model.values[lo_:hi_].tolist())
-        lo, hi = model.row_lo[r], model.row_hi[r]
-        cp.add_linear_constraint(expr, int(lo) if np.isfinite(lo) else cp_model.INT_MIN,
-                                 int(hi) if np.isfinite(hi) else cp_model.INT_MAX)
+    proto = cp.proto
+    var = _cpsat_variables(model.col_hi)
+    opens = np.flatnonzero(np.diff(np.concatenate([[-1], var])) > 0)
+    for i in opens.tolist():
+        entry = proto.variables.add()
+        if model.col_hi[i]:
+            entry.name = f"v{i}"
+        entry.domain.extend([0, int(model.col_hi[i])])
+    offsets, v, coef = _canonical_rows(model, var)
+    lo, hi = _int_bounds(model.row_lo, cp_model.INT_MIN), _int_bounds(model.row_hi, cp_model.INT_MAX)
+    v_list, coef_list, bounds = v.tolist(), coef.tolist(), offsets.tolist()
+    for r in range(len(lo)):
+        linear = proto.constraints.add().linear
+        linear.vars.extend(v_list[bounds[r]:bounds[r + 1]])
+        linear.coeffs.extend(coef_list[bounds[r]:bounds[r + 1]])
+        linear.domain.extend([lo[r], hi[r]])
     used = np.flatnonzero(cost)
-    cp.minimize(cp_model.LinearExpr.weighted_sum([v[i] for i in used.tolist()], cost[used].tolist()))
-    for i in np.flatnonzero(model.col_hi).tolist():
-        cp.add_hint(v[i], bool(hint[i]))
+    terms = {}
+    for i, c in zip(var[used].tolist(), cost[used].tolist()):
+        terms[i] = terms.get(i, 0) + c
+    cp.minimize(cp_model.LinearExpr.weighted_sum([cp.get_int_var_from_proto_index(i) for i in terms], list(terms.values())))
+    hinted = np.flatnonzero(model.col_hi)
+    proto.solution_hint.vars.extend(var[hinted].tolist())
+    proto.solution_hint.values.extend(hint[hinted].astype(bool).astype(np.int64).tolist())
+    return cp, var
+
+
+def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dict) -> tuple:
+    from ortools.sat.python import cp_model
+
+    cp, var = cpsat_model(model, cost, hint)
     solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"])
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
-    values = np.array([solver.value(x) for x in v], dtype=np.int64) if has else None
+    values = np.asarray(solver.response_proto.solution, dtype=np.int64)[var] if has else None
     return solver.status_name(status), values, solver.best_objective_bound, {"deterministic_time": work_units(solver)}
 
 
