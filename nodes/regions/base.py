@@ -7,10 +7,10 @@
    ``PATCH_SHARE`` of the largest's area (the feet of a figurine, the legs of an animal, the two
    ends of a lying spoon) the base is the largest patch alone; the other patches stay sensing, as
    part of the one sensing region (a foot cannot join the base without covering the leg between).
-3. **Room for the Rx dipole**: the patch grows ring by ring (faces sharing a vertex with it) around
-   its deepest vertex until some interior vertex is ``min_base_radius_mm`` from the nearest
-   boundary vertex and two adjacent vertices are interior (:func:`grow_for_dipole`). A round or
-   curved bottom gets a contact cap this way, a tiny flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
+3. **Room for the Rx dipole**: the patch grows ring by ring (faces sharing a vertex with it) until
+   some interior vertex is ``min_base_radius_mm`` from the nearest boundary vertex and two
+   adjacent vertices are interior. A round or curved bottom gets a contact cap this way, a tiny
+   flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
    the plane tolerance above the plane is a round bottom's contact cap.
 4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
    plates, dishes, lids, a lying blade): before step 3, the patch takes the whole bottom side, the
@@ -27,8 +27,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from .faces import FaceGraph
@@ -46,9 +44,6 @@ ISLAND_SHARE = 0.05
 """Enclosed faces worth this share of the base area make it a foot ring."""
 CURVED_DEPTH = 0.25
 """A patch whose vertices lie on average deeper than this share of the plane tolerance is curved."""
-GROWTH_REACH = 4.0
-"""The dipole disc grows at most this many ``min_base_radius_mm`` along the surface (edge paths)
-from the base's deepest vertex."""
 MAX_GROWTH_RINGS = 200
 """Ring growth gives up after this many rings (the base is then what it reached)."""
 
@@ -94,31 +89,13 @@ def inradius_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray) -> flo
 
 
 def grow_for_dipole(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Step 3: ``base`` grown ring by ring around its deepest vertex (the one farthest from the
-    vertices off the base) until it gives the dipole room; a ring adds only the faces within
-    ``radius_mm`` plus one edge length of that vertex along the surface (shortest edge paths), one
-    more edge length whenever that adds nothing (past ``GROWTH_REACH`` radii every ring face), so a
-    long or narrow base grows where the dipole goes, not along its whole rim."""
-    inside, _ = graph.vertex_masks(base)
-    on_base, off_base = np.flatnonzero(inside), np.flatnonzero(~inside)
-    if len(off_base) == 0:
-        return base
-    centre = int(on_base[np.argmax(cKDTree(vertices[off_base]).query(vertices[on_base])[0])])
-    lengths = np.linalg.norm(vertices[graph.halfedges[:, 0]] - vertices[graph.halfedges[:, 1]], axis=1)
-    edges = coo_matrix((lengths, (graph.halfedges[:, 0], graph.halfedges[:, 1])), shape=(graph.vertex_count,) * 2)
-    edge = float(lengths.mean())
-    along = dijkstra(edges.tocsr(), indices=centre, limit=GROWTH_REACH * radius_mm)
-    near = along[graph.faces].max(axis=1)
-    limit = radius_mm + edge
+    """Step 3: ``base`` grown ring by ring until it gives the dipole room."""
     for _ in range(MAX_GROWTH_RINGS):
         if graph.has_interior_edge(base) and inradius_mm(vertices, graph, base) >= radius_mm:
             break
-        grown = base | (graph.ring(base) & (near <= limit))
+        grown = graph.ring(base)
         if grown.all():
             break
-        if np.array_equal(grown, base):
-            limit += edge
-            near = near if limit <= GROWTH_REACH * radius_mm else np.zeros_like(near)
         base = grown
     return base
 
