@@ -231,10 +231,11 @@ class CouplingFit:
             return None
         width_learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES
         if update and self.params.adapt_coupling and not width_learned:
-            # Width estimates only from touches many crossings see around the peak (log-linear form).
-            learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
-            if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
-                self._learn_coupling(offsets[near[learn]], self.projector.face_frames[face], d[learn] / g[learn])
+            # Width estimates from touches many crossings see (log-linear form), over every strong
+            # crossing the fit sees: a window in units of a too-narrow initial width would keep out
+            # the crossings that show it is too narrow, most where crossings are sparse or clustered.
+            if np.count_nonzero(strong) >= COUPLING_MIN_CELLS:
+                self._learn_coupling(offsets[near[strong]], self.projector.face_frames[face], d[strong] / g[strong])
         starts = [(point, face)]
         if log_amplitude is None:
             normalised = d / g
