@@ -146,21 +146,23 @@ class CouplingFit:
     def _one_finger_between(self, first: int, second: int, log_amplitude: float, delta: np.ndarray,
                             sigma: np.ndarray) -> bool:
         """Whether one finger of plausible amplitude, fitted to every delta from between two peak
-        crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise sigmas)
-        and lights no crossing near it more than twice its delta plus ``SPLIT_SIGMA`` noise sigmas
-        (two fingers with dark crossings between them are two). A
-        finger in a gap between crossings far apart raises a peak on either side, and the first
-        fits, each seeing only its own peak's crossings, put a weak finger beside each peak. The
-        amplitude is plausible up to ``JOINT_AMPLITUDE_FACTOR`` times the larger of the strongest
-        peak's first fit (``log_amplitude``) and the amplitude prior (or ``JOINT_AMPLITUDE_SIGMAS``
-        of the prior's spread above it, if more): two fingers on crossings far apart would need a
-        finger between them many times stronger than either."""
+        crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise
+        sigmas) and lights no crossing near it more than twice its delta plus ``SPLIT_SIGMA`` noise
+        sigmas (two fingers with dark crossings between them are two). A finger in a gap between
+        crossings far apart raises a peak on either side, and the first fits, each seeing only its
+        own peak's crossings, put a weak finger beside each peak. Plausible: at most
+        ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the
+        factor squared until the width is learned, as a too-narrow initial width makes a finger
+        between crossings need more amplitude), or the amplitude prior plus the larger of
+        ``JOINT_AMPLITUDE_SIGMAS`` spreads and that factor, if more. Two fingers on crossings far
+        apart would need a finger between them many times stronger than either."""
         cells, gains = self.map.cell_points, self.cell_gain
         weights = delta[[first, second]] / gains[[first, second]]
         middle = weights @ cells[[first, second]] / weights.sum()
         points, faces, _ = self.projector.project(middle, self.map.cell_normals[first])
         joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
-        limit = log_amplitude + math.log(JOINT_AMPLITUDE_FACTOR)
+        learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES or not self.params.adapt_coupling
+        limit = log_amplitude + math.log(JOINT_AMPLITUDE_FACTOR) * (1.0 if learned else 2.0)
         if self.amplitude_prior is not None:
             centre, spread = self.amplitude_prior
             limit = max(limit, centre + max(JOINT_AMPLITUDE_SIGMAS * spread, math.log(JOINT_AMPLITUDE_FACTOR)))
