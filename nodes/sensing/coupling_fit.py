@@ -30,6 +30,8 @@ COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width es
 AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
 AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
 SPLIT_SIGMA = 6.0  # noise sigmas a second finger's peak reads above what the first finger's tail can explain
+JOINT_AMPLITUDE_FACTOR = 2.0  # a finger fitted between two peaks may read up to this much above the first fit or prior
+JOINT_AMPLITUDE_SIGMAS = 3.0  # ... or this many of the prior's spreads, if more
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
 
 
@@ -137,7 +139,43 @@ class CouplingFit:
         squared = np.sum((self.map.cell_points[peaks] - point) ** 2, axis=1)
         reach = self.cell_gain[peaks] * math.exp(log_amplitude) * self.tail_envelope(squared)
         separate[1:] = (delta[peaks] > 2.0 * reach + SPLIT_SIGMA * sigma[peaks])[1:]
+        for k in np.flatnonzero(separate[1:]) + 1:
+            separate[k] = not self._one_finger_between(peaks[0], peaks[k], log_amplitude, delta, sigma)
         return separate
+
+    def _one_finger_between(self, first: int, second: int, log_amplitude: float, delta: np.ndarray,
+                            sigma: np.ndarray) -> bool:
+        """Whether one finger of plausible amplitude, fitted to every delta from between two peak
+        crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise
+        sigmas) and lights no crossing near it more than twice its delta plus ``SPLIT_SIGMA`` noise
+        sigmas (two fingers with dark crossings between them are two). A finger in a gap between
+        crossings far apart raises a peak on either side, and the first fits, each seeing only its
+        own peak's crossings, put a weak finger beside each peak. Plausible: at most
+        ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the
+        factor squared until the width is learned, as a too-narrow initial width makes a finger
+        between crossings need more amplitude), or the amplitude prior plus the larger of
+        ``JOINT_AMPLITUDE_SIGMAS`` spreads and that factor, if more. Two fingers on crossings far
+        apart would need a finger between them many times stronger than either."""
+        cells, gains = self.map.cell_points, self.cell_gain
+        weights = delta[[first, second]] / gains[[first, second]]
+        middle = weights @ cells[[first, second]] / weights.sum()
+        points, faces, _ = self.projector.project(middle, self.map.cell_normals[first])
+        joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
+        learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES or not self.params.adapt_coupling
+        limit = log_amplitude + math.log(JOINT_AMPLITUDE_FACTOR) * (1.0 if learned else 2.0)
+        if self.amplitude_prior is not None:
+            centre, spread = self.amplitude_prior
+            limit = max(limit, centre + max(JOINT_AMPLITUDE_SIGMAS * spread, math.log(JOINT_AMPLITUDE_FACTOR)))
+        if joint is None or joint[3] > limit:
+            return False
+        squared = np.sum((cells - joint[0]) ** 2, axis=1)
+        near = (squared <= (3.0 * self.coupling_sigma + self.pitch) ** 2) & np.isfinite(delta)
+        near[[first, second]] = False
+        near = np.concatenate([np.flatnonzero(near), [first, second]])  # the peaks last
+        model = gains[near] * math.exp(joint[3]) * self.profile.at_squared(squared[near])[0]
+        tolerance = SPLIT_SIGMA * sigma[near]
+        explains_peaks = np.all(delta[[first, second]] <= 2.0 * model[-2:] + tolerance[-2:])
+        return bool(explains_peaks and np.all(model <= 2.0 * delta[near] + tolerance))
 
     def tail_envelope(self, squared: np.ndarray) -> np.ndarray:
         """The larger of the coupling profile and ``(1 + d^2 / h^2)^(-3/2)`` at squared distances
@@ -195,10 +233,11 @@ class CouplingFit:
             return None
         width_learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES
         if update and self.params.adapt_coupling and not width_learned:
-            # Width estimates only from touches many crossings see around the peak (log-linear form).
-            learn = strong & (distance2[near] <= (3.0 * self.coupling_sigma) ** 2)
-            if np.count_nonzero(learn) >= COUPLING_MIN_CELLS:
-                self._learn_coupling(offsets[near[learn]], self.projector.face_frames[face], d[learn] / g[learn])
+            # Width estimates from touches many crossings see (log-linear form), over every strong
+            # crossing the fit sees: a window in units of a too-narrow initial width would keep out
+            # the crossings that show it is too narrow, most where crossings are sparse or clustered.
+            if np.count_nonzero(strong) >= COUPLING_MIN_CELLS:
+                self._learn_coupling(offsets[near[strong]], self.projector.face_frames[face], d[strong] / g[strong])
         starts = [(point, face)]
         if log_amplitude is None:
             normalised = d / g

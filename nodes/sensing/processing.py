@@ -30,11 +30,13 @@ Per frame (``TouchProcessor.process``):
    directions that a sparse layout does not resolve bounded. With several touches each one is
    refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
    whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's, or that
-   the strongest finger's heaviest plausible (power-law) tail explains, are one finger. With
+   the strongest finger's heaviest plausible (power-law) tail explains, or that one finger of
+   plausible amplitude fitted between it and the strongest explains (a finger in a gap between
+   crossings far apart, as on ring layouts, raises a peak on either side), are one finger. With
    ``learn_gains`` the crossings' gains and the no-pad gain are learned from well-posed single
    touches (:mod:`.gain_learning`). ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
    with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
-   (log-quadratic fits), then the shape, in units of that width, is learned from well-posed single
+   (log-quadratic fits over every strong crossing the fit sees), then the shape, in units of that width, is learned from well-posed single
    touches: a board whose coupling is not a Gaussian (flat top, heavy tail) is localized without
    the bias of the wrong shape. Without a crossing above 2 sigma near the peak the coarse point stays.
 5. **Tracking** (:mod:`.tracking`): touches are matched to the previous frame's tracks by minimum total distance
