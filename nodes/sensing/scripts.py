@@ -10,7 +10,8 @@ Scripts (``--simulate script.json``) are JSON lists of steps, times in ms, lengt
      {"gesture": "press", "at": "random", "ms": 500}]
 
 ``at`` is a point (projected on the surface), ``{"cell": k}`` (a crossing) or ``"random"`` (inside
-the sensed region). Swipes and pinches follow the surface (tangent marching with re-projection);
+the sensed region: within one coupling width of a crossing, where the nearest crossing reads at
+least 61 % of a centred finger). Swipes and pinches follow the surface (tangent marching with re-projection);
 ``direction`` (3D vector) is optional.
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
+from ..data.board import default_coupling_width_mm
 from ..data.sensing_map import SensingMap
 from ..geometry.surface import SurfaceProjector
 from .virtual_board import BoardParams
@@ -70,14 +72,15 @@ class ScriptBuilder:
         self.rng = np.random.default_rng(seed)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.pitch = sensing_map.pitch_mm()
+        self.reach = params.coupling_sigma_mm or default_coupling_width_mm(params.finger_radius_mm, self.pitch)
         self.cell_tree = cKDTree(sensing_map.cell_points)
         counts = np.array([len(n) for n in self.cell_tree.query_ball_point(sensing_map.cell_points, 1.6 * self.pitch)])
         self.interior_cells = np.flatnonzero(counts >= np.percentile(counts, 50))
 
     def inside(self, points: np.ndarray) -> bool:
-        """Whether every point is within 0.8 pitch of a crossing (the sensed region)."""
+        """Whether every point is within one coupling width of a crossing (the sensed region)."""
         distance, _ = self.cell_tree.query(np.atleast_2d(points))
-        return bool(np.all(distance <= 0.8 * self.pitch))
+        return bool(np.all(distance <= self.reach))
 
     def location(self, spec: Any) -> np.ndarray:
         if isinstance(spec, dict) and "cell" in spec:
