@@ -44,7 +44,6 @@ STOP_MARGIN_MM = 0.5
 """A ring stops this much farther from a leg than trace width + clearance: twice the resampling step
 of phase 1's conservative clearance check, so a ring's end is no conflict with the leg it meets."""
 
-
 LEVEL_GRID = 257
 """Levels of ``u`` at which the Tx lines' arrival distances are measured."""
 
@@ -146,28 +145,28 @@ def reseeded_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, leve
     """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
     level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
     ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own."""
-    from scipy.spatial import cKDTree
-
     vertices = np.unique(tables.faces[sensing])
     nearest = np.full(len(vertices), np.inf)
     chosen = list(levels)
     for level in chosen:
-        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices, cKDTree))
+        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices))
     for _ in range(count):
         level = float(u[vertices[np.argmax(nearest)]])
         if not 0.0 < level < 1.0:
             break
         chosen.append(level)
-        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices, cKDTree))
+        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices))
     return np.sort(np.asarray(chosen))[::-1]
 
 
-def level_distance(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, level: float, vertices: np.ndarray, kdtree) -> np.ndarray:
+def level_distance(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, level: float, vertices: np.ndarray) -> np.ndarray:
     """Distance (mm) of ``vertices`` from the level set ``u = level`` inside ``sensing`` (inf if empty)."""
+    from scipy.spatial import cKDTree
+
     _, p, q = zero_set(tables, u - level, sensing)
     if len(p) == 0:
         return np.full(len(vertices), np.inf)
-    return kdtree(np.vstack([p, q])).query(tables.vertices[vertices])[0]
+    return cKDTree(np.vstack([p, q])).query(tables.vertices[vertices])[0]
 
 
 def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: DirectionField, tx: CurveSet):
