@@ -54,3 +54,15 @@ def test_failed_and_far_worse_branches_carry_their_reason():
     assert notes[0] == "failed: no pads"
     assert notes[1] == notes[2] == ""
     assert notes[3].startswith("far worse: coverage radius 45.0 mm > 1.5 x median 15.0 mm")
+
+
+def test_more_channels_than_the_muca_board_has_are_refused_before_anything_runs():
+    from pydantic import ValidationError
+
+    from retrotouch.nodes.data.board import NUM_RX, NUM_TX
+    from retrotouch.nodes.layout.sweep import OptimizeParams
+
+    assert OptimizeParams(n_drive=NUM_TX, n_sense=NUM_RX).n_drive == 21
+    for wrong in ({"n_drive": NUM_TX + 1}, {"n_sense": NUM_RX + 1}):
+        with pytest.raises(ValidationError, match="less than or equal to"):
+            OptimizeParams(**wrong)

@@ -53,8 +53,8 @@ log = logging.getLogger(__name__)
 
 
 class OptimizeParams(NodeParams):
-    n_drive: int = Field(NUM_TX, ge=1, le=128, description="Tx channels available (N_drive; 21 on the Muca board)")
-    n_sense: int = Field(NUM_RX, ge=1, le=128, description="Rx channels available (N_sense; 12 on the Muca board)")
+    n_drive: int = Field(NUM_TX, ge=1, le=NUM_TX, description="Tx channels available (N_drive; at most the Muca board's 21)")
+    n_sense: int = Field(NUM_RX, ge=1, le=NUM_RX, description="Rx channels available (N_sense; at most the Muca board's 12)")
     secondary: bool = Field(True, description="also minimise the sample distances (off: ablation)")
     secondary_power: int = Field(
         PHASE1_POWER, ge=1, le=8, description="secondary objective: power mean of sample distances (1 = plain mean)"
