@@ -125,6 +125,7 @@ def _close_keys(points: np.ndarray, curve: np.ndarray, free: np.ndarray, radius:
         found.update(keys[todo][hit.any(axis=(1, 2))].tolist())
     return np.array(sorted(found), dtype=np.int64)
 
+
 def parallel_pairs(tx: CurveSet, rx: CurveSet, face_mask: np.ndarray, within_mm: float, run_mm: float,
                    step_mm: float = CONFLICT_STEP_MM) -> np.ndarray:
     """Distinct ``(P, 2)`` (Tx, Rx) pairs whose centre lines lie within ``within_mm`` of each other

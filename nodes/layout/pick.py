@@ -4,9 +4,10 @@ A branch is one Rx family (dipole loops or rings) at one angle; branches of seve
 as one list (``candidates: ["select[*]", "ring_select[*]"]``) and are taken in order. The best has
 the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the
 sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
-then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in ``metrics["angles"]`` and the printed table,
-with its notes: a failed branch with its reason, and a feasible branch whose coverage radius
-exceeds ``outlier_factor`` times the median of the feasible branches as far worse. Units: mm, deg.
+then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in
+``metrics["angles"]`` and the printed table, with its notes: a failed branch with its reason, and a
+feasible branch whose coverage radius exceeds ``outlier_factor`` times the median of the feasible
+branches as far worse. Units: mm, deg.
 """
 from __future__ import annotations
 
@@ -132,7 +133,7 @@ def print_angle_table(rows: list[dict], best: int) -> None:
 
 @node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics"))
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
-    """Keep the best branch (radius, secondary, Voronoi CV) and the per-branch table."""
+    """Keep the best branch (radius, secondary, cells, Voronoi CV) and the per-branch table."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     if not feasible:
         reasons = "; ".join(f"{c.family} {c.angle_deg:+.0f} deg: {c.message}" for c in candidates)

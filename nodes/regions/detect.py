@@ -220,13 +220,11 @@ CENTRE_SAMPLES = 16
 def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
     """The vertex of ``free`` minimising the largest geodesic distance (mm) to ``CENTRE_SAMPLES``
     farthest-point samples of ``free``, the first being ``first`` (with distances ``from_first``)."""
-    farthest = [from_first]
-    nearest = from_first[free].copy()
+    nearest, largest = from_first[free], from_first[free]
     for _ in range(CENTRE_SAMPLES - 1):
-        sample = int(free[np.argmax(nearest)])
-        farthest.append(solver.compute_distance(sample))
-        nearest = np.minimum(nearest, farthest[-1][free])
-    return int(free[np.argmin(np.max([d[free] for d in farthest], axis=0))])
+        distance = solver.compute_distance(int(free[np.argmax(nearest)]))[free]
+        nearest, largest = np.minimum(nearest, distance), np.maximum(largest, distance)
+    return int(free[np.argmin(largest)])
 
 
 def pose_note(regions: SurfaceRegions) -> str:
