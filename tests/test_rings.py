@@ -1,5 +1,5 @@
 """curves.trace_rings: Rx rings around the Tx pole (level sets of the harmonic radial function) with
-legs along a corridor of Tx lines."""
+legs side by side along a spine Tx line."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +8,7 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.rings import (TraceRingsParams, corridor, radial_function, ring_levels, row_values,
-                                           trace_rings)
+from retrotouch.nodes.curves.rings import TraceRingsParams, radial_function, ring_levels, row_values, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.geometry.mesh_tables import build_tables
@@ -40,17 +39,47 @@ def test_rings_cross_most_tx_lines_once_where_dipole_loops_cross_half(families):
     assert np.median(ring_share) >= np.median(dipole_share) + 0.15
 
 
-def test_each_ring_starts_at_the_base_end_of_a_corridor_leg(families):
+def ring_values(mesh, tx_field, rings) -> np.ndarray:
+    """The harmonic radial function at every row of ``rings``."""
+    tables = build_tables(mesh.vertices, mesh.faces)
+    return row_values(tables, radial_function(tables, bunny()[1], tx_field.start_vertex), rings.faces, rings.bary)
+
+
+def test_each_candidate_is_a_leg_from_the_base_then_a_ring(families):
     mesh, tx, tx_field, _, params, rings, _ = families
     assert rings.count >= 20 and rings.layer == "rx"
     assert np.all(rings.end_reason == int(CurveEnd.BASE))
-    leg_ends = tx.points[tx.offsets[corridor(tx, params.n_rings, params.corridor_turn) + 1] - 1]
-    starts = rings.points[rings.offsets[:-1]]
-    assert np.min(np.linalg.norm(starts[:, None] - leg_ends[None], axis=2), axis=1).max() < 1e-6
     assert rings.angle == pytest.approx(2 * np.pi * params.corridor_turn)
+    u = ring_values(mesh, tx_field, rings)
+    levels = []
+    for c in range(rings.count):
+        rows = u[rings.offsets[c] : rings.offsets[c + 1]]
+        level = rows[-1]
+        ring = np.flatnonzero(np.abs(rows - level) < 1e-6)
+        leg = rows[: ring[0] + 1]
+        assert rows[0] == pytest.approx(1.0)  # wired where the sensing region meets the base exclusion
+        assert np.all(ring == np.arange(ring[0], len(rows)))  # then the ring: one level to the end
+        assert leg.min() >= level - 1e-3  # the leg never comes nearer the pole than its ring
+        levels.append(level)
+    assert len(np.unique(np.round(levels, 9))) == rings.count
     lengths = [np.linalg.norm(np.diff(rings.points[a:b], axis=0), axis=1).sum()
                for a, b in zip(rings.offsets[:-1], rings.offsets[1:])]
     np.testing.assert_allclose(rings.lengths_mm, lengths)
+
+
+def test_legs_keep_the_clearance_so_only_rings_of_nearly_one_level_conflict(families):
+    """Same-layer pairs closer than trace width + clearance in the sensing region (phase 1's conflicts)
+    are only rings of nearly equal level (a dead end's reseeded ring beside an evenly spread one), never
+    two legs side by side in the corridor."""
+    from retrotouch.nodes.layout.clearance import close_pairs
+
+    mesh, _, tx_field, _, params, rings, _ = families
+    regions = bunny()[1]
+    u = ring_values(mesh, tx_field, rings)
+    level = u[rings.offsets[1:] - 1]
+    close = close_pairs(rings, regions.sensing_faces, params.trace_width_mm + params.clearance_mm)
+    assert all(abs(level[a] - level[b]) < 0.05 for a, b in close), [(a, b, level[a], level[b]) for a, b in close]
+    assert len(close) <= rings.count // 4
 
 
 def test_the_rings_need_the_tx_field(families):

@@ -12,21 +12,41 @@ along the Tx lines (median over the candidates), neighbouring rings are equally 
 pole to the base; the others pass through the points farthest from the rings before them, which
 lie in dead ends (a second ear) where ``u`` barely changes and the level set makes a long hairpin.
 
-The legs are Tx candidate field lines of a *corridor*: ``n_rings`` consecutive Tx candidates (in
-their angular order around the pole) centred at ``corridor_turn`` of the order. Leg ``k`` gets level
-``c_k``, the levels decreasing along the corridor in the rings' walking direction; ring ``k`` starts
-where its leg first reaches ``u = c_k`` and walks along the level set, keeping the pole on its right,
-until (past its first few mm) it comes within ``trace_width_mm + clearance_mm`` of a leg, or leaves
-the sensing region. The legs it passes first exist only beyond larger levels, so a ring meets no
-leg, and rings are level sets of different values, so they never cross each other. Each candidate
-is oriented to start at the base: the leg reversed, then the ring; ``end_reason`` is the leg's
-(``BASE`` when it is wired at the base). Tx lines inside the corridor run along legs: phase 1 never
-selects a Tx line and an Rx candidate laid along each other (``layout.clearance.parallel_pairs``).
+The legs run side by side in a *corridor* along one Tx candidate line, the *spine*: the candidate at
+``corridor_turn`` of their angular order around the pole (or the nearest one that reaches the base
+and the innermost ring). The innermost ring's leg is the spine itself; the others, from the inside
+out, go to the side of the spine with the fewer legs (the other side if it has no room), each one
+``leg_spacing_mm`` farther out than the last on its side: a leg at offset ``o`` is the level set ``d
+= o`` of the Euclidean distance ``d`` from the spine, from its ring ``u = c_k`` down to where the
+sensing region meets the base exclusion (as the Tx lines end). Distances from one curve are
+1-Lipschitz, so two legs on one side are at least their offsets' difference apart, and the corridor
+is about ``n_rings * leg_spacing_mm`` wide at the base. Ring ``k`` starts where its leg meets ``u =
+c_k`` and walks along the level set away from the spine (keeping the pole on its right on one side,
+on its left on the other) until, past its first few mm, it comes within ``trace_width_mm +
+clearance_mm`` of a leg, or leaves the sensing region: it passes the ends of the legs farther out on
+its side (they belong to rings nearer the base and stop there), goes round the pole and stops at the
+outermost leg on the other side that reaches its level. Rings are level sets of different values and
+legs level sets of different distances, so no two candidates cross. A leg that does not run down to
+the base without coming nearer the pole than its ring (a distance level set that closes around a
+limb, a ring too short to reach the offset) on either side is dropped with its ring. Each candidate
+is oriented to start at the base: the leg reversed, then the ring, ``end_reason`` ``BASE``. Tx lines
+in the corridor run along legs: phase 1 never selects a Tx line and an Rx candidate laid along each
+other (``layout.clearance.parallel_pairs``).
+
+With ``legs="tx_lines"`` (family ``rings_tx``; ``rings`` otherwise) the legs are instead the parts
+beyond their rings' levels of ``n_rings`` consecutive Tx candidates centred at ``corridor_turn``, the
+levels decreasing along the corridor in the rings' walking direction (pole on the right), and
+``end_reason`` is that Tx line's. Nothing keeps those legs apart (phase 1's clearance conflicts
+choose among the rings whose legs come too close), but they take no room beside the Tx lines: on a
+base at the end of a thin limb, where every Tx line runs down the limb, the side-by-side corridor
+leaves the Tx lines no room.
 
 ``angle`` of the CurveSet is the corridor position ``2 pi corridor_turn`` (rad), which names the
 branch. Units: mm, radians.
 """
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -36,7 +56,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.harmonic import harmonic_interpolation
 from ..geometry.mesh_tables import MeshTables, build_tables
-from .assembly import TraceStats, reversed_rows
+from .assembly import TraceStats
 from .connection import DirectionField
 from .rx_seeding import zero_set
 
@@ -44,14 +64,20 @@ STOP_MARGIN_MM = 0.5
 """A ring stops this much farther from a leg than trace width + clearance: twice the resampling step
 of phase 1's conservative clearance check, so a ring's end is no conflict with the leg it meets."""
 
+LEG_SPACING_MM = 3.0
+"""Default distance between neighbouring legs (mm): trace width + clearance + a margin for the
+piecewise-linear distance field and phase 1's conservative clearance check."""
+
 LEVEL_GRID = 257
 """Levels of ``u`` at which the Tx lines' arrival distances are measured."""
 
 
 class TraceRingsParams(NodeParams):
-    n_rings: int = Field(16, ge=1, description="Rx ring candidates = Tx candidates in the corridor")
+    n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
     n_reseeded: int = Field(4, ge=0, description="of those, rings through the points farthest from the others (dead ends)")
     corridor_turn: float = Field(0.0, ge=0, lt=1, description="corridor centre as a fraction of the Tx candidates' angular order")
+    legs: Literal["offset", "tx_lines"] = Field("offset", description="legs side by side along a spine Tx line, or along Tx lines")
+    leg_spacing_mm: float = Field(LEG_SPACING_MM, gt=0, description="offset legs: distance between neighbouring legs (mm)")
     trace_width_mm: float = Field(1.0, gt=0, description="trace width (mm), for where a ring stops")
     clearance_mm: float = Field(1.0, ge=0, description="edge-to-edge clearance (mm), for where a ring stops")
 
@@ -106,11 +132,15 @@ def leg_joint(tx: CurveSet, values: np.ndarray, c: int, level: float) -> tuple[i
     return j, tx.points[lo + j] + t * (tx.points[lo + j + 1] - tx.points[lo + j])
 
 
-def corridor(tx: CurveSet, n_rings: int, turn: float) -> np.ndarray:
-    """Indices of the ``n_rings`` consecutive Tx candidates centred at ``turn`` of their order (wrapping)."""
-    n = min(n_rings, tx.count)
+def spine(tx: CurveSet, u_rows: np.ndarray, turn: float, innermost: float) -> int | None:
+    """The Tx candidate nearest ``turn`` of their order (wrapping) that ends at the base and reaches
+    ``u = innermost``; None if none does."""
     centre = int(round(turn * tx.count))
-    return (centre - n // 2 + np.arange(n)) % tx.count
+    for step in range(tx.count):
+        c = (centre + (step + 1) // 2 * (1 if step % 2 else -1)) % tx.count
+        if tx.end_reason[c] == int(CurveEnd.BASE) and leg_joint(tx, u_rows[tx.offsets[c] : tx.offsets[c + 1]], c, innermost):
+            return c
+    return None
 
 
 def radial_function(tables: MeshTables, regions, pole: int) -> np.ndarray:
@@ -173,34 +203,118 @@ def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: Di
     """(rows per candidate as (faces, bary) arrays, end reasons, the levels of the rings) of the family."""
     u = radial_function(tables, regions, field.start_vertex)
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
-    bound = params.trace_width_mm + params.clearance_mm
     u_rows = row_values(tables, u, tx.faces, tx.bary)
-    candidates = corridor(tx, params.n_rings, params.corridor_turn)
-    n_even = max(len(candidates) - params.n_reseeded, 1)
-    levels = reseeded_levels(tables, u, sensing, ring_levels(tx, u_rows, n_even), len(candidates) - n_even)
-    joints = [leg_joint(tx, u_rows[tx.offsets[c] : tx.offsets[c + 1]], c, level) for c, level in zip(candidates, levels)]
-    legs = [(c, *joint) for c, joint in zip(candidates, joints) if joint is not None]
-    levels = [level for level, joint in zip(levels, joints) if joint is not None]
-    portions = [np.vstack([point[None], tx.points[int(tx.offsets[c]) + j + 1 : int(tx.offsets[c + 1])]]) for c, j, point in legs]
-    leg_points = np.concatenate([resample_polyline(p, 0.25) for p in portions]) if legs else np.empty((0, 3))
-    rows, ends, ring_levels_kept = [], [], []
-    for (c, j, point), level in zip(legs, levels):
-        lo, hi = int(tx.offsets[c]), int(tx.offsets[c + 1])
-        level_faces, p, q = zero_set(tables, u - level, sensing)
-        ring_points, ring_faces = ring_walk(level_faces, p, q, int(tx.faces[lo + j]), point)
-        keep = stop_index(ring_points, leg_points, bound + STOP_MARGIN_MM)
+    n = min(params.n_rings, tx.count)
+    n_even = max(n - params.n_reseeded, 1)
+    levels = reseeded_levels(tables, u, sensing, ring_levels(tx, u_rows, n_even), n - n_even)
+    make_legs = offset_legs if params.legs == "offset" else tx_line_legs
+    legs = make_legs(params, tables, u, sensing, tx, u_rows, levels)
+    all_legs = np.concatenate([resample_polyline(leg[0], 0.25) for leg in legs]) if legs else np.empty((0, 3))
+    rows, ends, kept = [], [], []
+    for leg_points, leg_faces, ring_points, ring_faces, level, end in legs:
+        keep = stop_index(ring_points, all_legs, params.trace_width_mm + params.clearance_mm + STOP_MARGIN_MM)
         if keep < 2:
             continue
-        leg_faces = np.r_[tx.faces[lo + j], tx.faces[lo + j + 1 : hi]]
-        leg_bary = np.vstack([tables.bary_of_points(tx.faces[lo + j : lo + j + 1], point[None]), tx.bary[lo + j + 1 : hi]])
-        back_faces, back_bary = reversed_rows(tables, leg_faces, leg_bary)
+        back_points, back_faces = leg_points[::-1], np.r_[leg_faces[:-1][::-1], leg_faces[:1]]
         faces = np.r_[back_faces[:-1], ring_faces[:keep]]
-        points = np.vstack([tables.points(back_faces[:-1], back_bary[:-1]), ring_points[:keep]])
+        points = np.vstack([back_points[:-1], ring_points[:keep]])
         bary = np.clip(tables.bary_of_points(faces, points), 0.0, 1.0)
         rows.append((faces, bary / bary.sum(axis=1, keepdims=True)))
-        ends.append(int(tx.end_reason[c]))
-        ring_levels_kept.append(level)
-    return rows, np.asarray(ends, dtype=np.int8), np.asarray(ring_levels_kept)
+        ends.append(end)
+        kept.append(level)
+    return rows, np.asarray(ends, dtype=np.int8), np.asarray(kept)
+
+
+def tx_line_leg(tx: CurveSet, u_rows: np.ndarray, c: int, level: float) -> tuple[np.ndarray, np.ndarray, int, np.ndarray] | None:
+    """The part of Tx candidate ``c`` beyond ``u = level``: (points from the joint to the base end, the
+    face of the segment each starts, the row before the joint, the joint), or None if it never gets there."""
+    lo, hi = int(tx.offsets[c]), int(tx.offsets[c + 1])
+    joint = leg_joint(tx, u_rows[lo:hi], c, level)
+    if joint is None:
+        return None
+    j, point = joint
+    return np.vstack([point[None], tx.points[lo + j + 1 : hi]]), np.r_[tx.faces[lo + j : hi - 1], tx.faces[hi - 1]], j, point
+
+
+def tx_line_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sensing: np.ndarray, tx: CurveSet,
+                 u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
+    """Legs along consecutive Tx candidates of a corridor of ``n_rings`` centred at ``corridor_turn`` of
+    their order, the levels decreasing along it in the rings' walking direction (pole on the right):
+    ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
+    n = min(params.n_rings, tx.count)
+    corridor = (int(round(params.corridor_turn * tx.count)) - n // 2 + np.arange(n)) % tx.count
+    legs = []
+    for c, level in zip(corridor, levels):
+        leg = tx_line_leg(tx, u_rows, int(c), level)
+        if leg is None:
+            continue
+        leg_points, leg_faces, j, joint = leg
+        ring_points, ring_faces = ring_walk(*zero_set(tables, u - level, sensing), int(tx.faces[tx.offsets[c] + j]), joint)
+        legs.append((leg_points, leg_faces, ring_points, ring_faces, level, int(tx.end_reason[c])))
+    return legs
+
+
+def offset_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sensing: np.ndarray, tx: CurveSet,
+                u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
+    """Legs side by side along the spine (see the module docstring), from the innermost ring out:
+    ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
+    from scipy.spatial import cKDTree
+
+    c = spine(tx, u_rows, params.corridor_turn, levels[-1])
+    if c is None:
+        return []
+    lo, hi = int(tx.offsets[c]), int(tx.offsets[c + 1])
+    distance = cKDTree(resample_polyline(tx.points[lo:hi], 0.25)).query(tables.vertices)[0]
+    base = int(CurveEnd.BASE)
+    legs, next_offset = [], {True: 1, False: 1}  # per side (True: the pole on the ring's right), in spacings
+    for level in levels[::-1]:
+        spine_points, spine_faces, j, joint = tx_line_leg(tx, u_rows, c, level)
+        level_set = zero_set(tables, u - level, sensing)
+        if not legs:  # the innermost ring's leg is the spine
+            legs.append((spine_points, spine_faces, *ring_walk(*level_set, int(tx.faces[lo + j]), joint), level, base))
+            continue
+        nearer = next_offset[True] <= next_offset[False]
+        for side in (nearer, not nearer):
+            ring_points, ring_faces = ring_walk(*either_way(level_set, side), int(tx.faces[lo + j]), joint)
+            leg = offset_leg(tables, u, distance, sensing, ring_points, ring_faces, next_offset[side] * params.leg_spacing_mm, level)
+            if leg is not None:
+                leg_points, leg_faces, start = leg
+                legs.append((leg_points, leg_faces, np.vstack([leg_points[:1], ring_points[start:]]), ring_faces[start - 1 :], level, base))
+                next_offset[side] += 1
+                break
+    return legs
+
+
+def either_way(chain: tuple[np.ndarray, np.ndarray, np.ndarray], forward: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A chained level set ``(faces, p, q)`` of :func:`zero_set` as it is (``forward``) or walked backwards."""
+    faces, p, q = chain
+    return (faces, p, q) if forward else (faces[::-1], q[::-1], p[::-1])
+
+
+def offset_leg(tables: MeshTables, u: np.ndarray, distance: np.ndarray, sensing: np.ndarray, ring_points: np.ndarray,
+               ring_faces: np.ndarray, offset: float, level: float) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The leg at ``offset`` (mm) from the spine for the ring walked from the spine (``ring_points``,
+    ``ring_faces``): (leg points from the ring to the base, the face of the segment each starts, the
+    first ring row past the leg's start), or None if the ring never gets that far from the spine or
+    the level set ``distance = offset`` from there does not run down to the base without coming back
+    nearer the pole than the ring."""
+    d_ring = row_values(tables, distance, ring_faces, np.clip(tables.bary_of_points(ring_faces, ring_points), 0.0, 1.0))
+    past = np.flatnonzero(d_ring >= offset)
+    if len(past) == 0 or past[0] == 0:
+        return None
+    i = int(past[0])
+    t = (offset - d_ring[i - 1]) / (d_ring[i] - d_ring[i - 1])
+    start = ring_points[i - 1] + t * (ring_points[i] - ring_points[i - 1])
+    chain = zero_set(tables, distance - offset, sensing)
+    best = None
+    for forward in (True, False):
+        points, faces = ring_walk(*either_way(chain, forward), int(ring_faces[i - 1]), start)
+        if len(points) < 2:
+            continue
+        u_leg = row_values(tables, u, faces, np.clip(tables.bary_of_points(faces, points), 0.0, 1.0))
+        if u_leg[-1] > 1.0 - 1e-6 and u_leg.min() > level - 1e-3 and (best is None or len(points) < len(best[0])):
+            best = (points, faces)
+    return None if best is None else (*best, i)
 
 
 def resample_polyline(points: np.ndarray, step_mm: float) -> np.ndarray:
@@ -214,7 +328,7 @@ def resample_polyline(points: np.ndarray, step_mm: float) -> np.ndarray:
     return np.vstack([points[idx] + t[:, None] * seg[idx], points[-1:]])
 
 
-def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float) -> CurveSet:
+def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float, family: str) -> CurveSet:
     """The candidates' rows as one CurveSet (layer rx)."""
     faces = np.concatenate([f for f, _ in rows]) if rows else np.empty(0, dtype=np.int64)
     bary = np.concatenate([b for _, b in rows]) if rows else np.empty((0, 3))
@@ -222,7 +336,7 @@ def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float) -> Curv
     points = tables.points(faces, bary)
     lengths = np.array([np.linalg.norm(np.diff(points[a:b], axis=0), axis=1).sum() for a, b in zip(offsets[:-1], offsets[1:])])
     return CurveSet(layer="rx", points=points, faces=faces, bary=bary, offsets=offsets, lengths_mm=lengths,
-                    end_reason=ends, angle=float(angle), family="rings")
+                    end_reason=ends, angle=float(angle), family=family)
 
 
 @node("curves.trace_rings", params=TraceRingsParams, inputs=("mesh", "regions", "field", "tx"), outputs=("curves", "stats"))
@@ -233,8 +347,8 @@ def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, field: DirectionF
     tables = build_tables(mesh.vertices, mesh.faces)
     rows, ends, _ = ring_curves(params, tables, regions, field, tx)
     angle = 2.0 * np.pi * params.corridor_turn
-    curves = pack(tables, rows, ends, angle)
-    n = len(corridor(tx, params.n_rings, params.corridor_turn))
+    curves = pack(tables, rows, ends, angle, "rings" if params.legs == "offset" else "rings_tx")
+    n = min(params.n_rings, tx.count)
     counts = np.bincount(ends, minlength=len(CurveEnd)).astype(np.int64)
     stats = TraceStats(layer="rx", angle=angle, traced=n, kept=curves.count, dropped=n - curves.count, end_counts=counts,
                        sink_edges=int(counts[CurveEnd.SINK_EDGE]), sink_edge_rate=float(counts[CurveEnd.SINK_EDGE] / max(n, 1)),

@@ -54,7 +54,7 @@ class CurveSet:
     lengths_mm: np.ndarray  # (C,) float64, polyline length in mm
     end_reason: np.ndarray  # (C,) int8, CurveEnd codes
     angle: float  # Rx initial angular offset (dipole) or corridor position (rings) in radians; 0.0 for Tx
-    family: str = "field"  # "field" (Tx field lines), "dipole" (Rx dipole-field loops) or "rings" (Rx harmonic rings)
+    family: str = "field"  # "field" (Tx lines), "dipole" (Rx dipole loops), "rings" / "rings_tx" (Rx rings, legs side by side / on Tx lines)
 
     @property
     def count(self) -> int:

@@ -110,7 +110,7 @@ class AngleLayout:
     """One branch of the sweep (an Rx family at one angle): its layout (None when infeasible) and its
     metrics/report."""
 
-    family: str  # the Rx family: "dipole" or "rings"
+    family: str  # the Rx family: "dipole", "rings" or "rings_tx"
     angle_deg: float  # the dipole's angle offset, or the rings' corridor position around the Tx pole
     feasible: bool
     message: str
