@@ -36,9 +36,9 @@ EXPECTED_POSE = {
 }
 
 FEW_CELLS = {
-    "lying_spoon": "a long thin object: the rings' 16 legs do not fit around the handle (7 x 2 channels, 11 cells, "
-                   "coverage radius 37 mm) and the dipole loops leave the bowl uncovered (27 cells, 87 mm); the "
-                   "rings win on coverage",
+    "lying_spoon": "a long thin object: the rings' 16 legs do not fit around the handle, side by side (6 x 5 "
+                   "channels, 14 cells, coverage radius 28.6 mm) or on Tx lines (7 x 2, 11 cells, 37 mm), and the "
+                   "dipole loops leave the bowl uncovered (27 cells, 87 mm); the side-by-side rings win on coverage",
 }
 """Classes whose layout has fewer than 10 pads or 20 cells at this size (checked strictly: one that
 reaches them fails until it is taken out)."""
