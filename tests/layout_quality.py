@@ -3,7 +3,8 @@ the 21 x 12 board), for the tests that bound layout quality. Run as a script to 
 over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN | --families] [MESH ...]``
 (``--rings``: the ring family with its corridor at TURN instead of the dipole loops; ``--families``:
 per mesh the best branch of each family as the default pipeline sweeps them, dipole angles
-``DIPOLE_ANGLES`` and ring corridors ``RING_TURNS``, by ``layout.pick_best``'s rule)."""
+``DIPOLE_ANGLES`` and ring corridors ``RING_TURNS`` with either kind of legs, and the best of all, by
+``layout.pick_best``'s rule)."""
 from __future__ import annotations
 
 import functools
@@ -25,15 +26,16 @@ SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is
 
 
 @functools.lru_cache(maxsize=None)
-def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None) -> dict:
+def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None, ring_legs: str = "offset") -> dict:
     """The ``layout.optimize`` metrics of one branch on the mesh at ``path`` (prepared as the curve
-    tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at ``ring_turn``."""
+    tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at
+    ``ring_turn`` and ``ring_legs`` legs."""
     mesh, regions, _, tx_field, rx_field = prepared(path, 4000)
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]
     if ring_turn is None:
         rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
     else:
-        rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn), mesh, regions, tx_field, tx)["curves"]
+        rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn, legs=ring_legs), mesh, regions, tx_field, tx)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     candidate = optimize(OptimizeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
@@ -45,13 +47,20 @@ DIPOLE_ANGLES = (-40, -20, 0, 20, 40)
 RING_TURNS = (0.0, 0.25, 0.5, 0.75)
 
 
-def best_of_family(path: str, family: str) -> dict | None:
-    """The metrics of the family's best branch on the mesh at ``path`` (None when none is feasible)."""
-    branches = [{"rx_angle_deg": a} for a in DIPOLE_ANGLES] if family == "dipole" else [{"ring_turn": t} for t in RING_TURNS]
+FAMILY_BRANCHES = {
+    "dipole": [{"rx_angle_deg": a} for a in DIPOLE_ANGLES],
+    "rings": [{"ring_turn": t} for t in RING_TURNS],
+    "rings_tx": [{"ring_turn": t, "ring_legs": "tx_lines"} for t in RING_TURNS],
+}
+
+
+def best_of(path: str, families: tuple[str, ...]) -> dict | None:
+    """The metrics of the best branch of ``families`` on the mesh at ``path`` (None when none is feasible)."""
     candidates = []
-    for branch in branches:
-        m = layout_metrics(path, **branch)
-        candidates.append(AngleLayout(family, 0.0, m["feasible"], m["message"], None, m))
+    for family in families:
+        for branch in FAMILY_BRANCHES[family]:
+            m = layout_metrics(path, **branch)
+            candidates.append(AngleLayout(family, 0.0, m["feasible"], m["message"], None, m))
     if not any(c.feasible for c in candidates):
         return None
     pick = PickParams()
@@ -69,7 +78,7 @@ if __name__ == "__main__":
     for path in [BUNNY] + (args or SHARED):
         try:
             if families:
-                best = {f: best_of_family(path, f) for f in ("dipole", "rings")}
+                best = {f: best_of(path, (f,)) for f in FAMILY_BRANCHES} | {"all": best_of(path, tuple(FAMILY_BRANCHES))}
                 row = {f: m and {k: m.get(k) for k in SUMMARY} for f, m in best.items()}
             else:
                 m = layout_metrics(path, ring_turn=turn)
