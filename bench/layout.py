@@ -1,13 +1,14 @@
-"""Layout benchmark: the 11-angle sweep of both optimisation phases on a ~20k-vertex mesh.
+"""Layout benchmark: the 13-branch sweep of both optimisation phases on a ~20k-vertex mesh.
 
 Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
 diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
 (both layers) -> ``curves.trace_tx`` -> the default pipeline's branches: per angle -40..40 step 20
-``curves.trace_rx`` and per corridor position 0, 0.25, 0.5, 0.75 ``curves.trace_rings``, each with
-``curves.crossings`` (``--family dipole`` or ``rings``: one family only), all called as plain functions.
+``curves.trace_rx`` and per corridor position 0, 0.25, 0.5, 0.75 and kind of legs ``curves.trace_rings``,
+each with ``curves.crossings`` (``--family dipole`` or ``rings``: one family only), all called as plain
+functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
-fields, shared by all branches) + ``layout.optimize`` for the 11 angles on ``--jobs`` processes
+fields, shared by all branches) + ``layout.optimize`` for the 13 branches on ``--jobs`` processes
 (joblib/loky; each process factorises the heat operators once) + ``layout.pick_best``. The sweep is
 run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``; skipped with
 ``--no-ablation``).
@@ -58,6 +59,7 @@ from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_
 
 ANGLES = tuple(range(-40, 41, 20))
 CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)
+RING_LEGS = ("offset", "tx_lines")
 
 
 def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "both"):
@@ -73,7 +75,8 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "b
     if family in ("dipole", "both"):
         families += [trace_rx(TraceRxParams(angle_deg=a), mesh, regions, rx_field)["curves"] for a in ANGLES]
     if family in ("rings", "both"):
-        families += [trace_rings(TraceRingsParams(corridor_turn=t), mesh, regions, tx_field, tx)["curves"] for t in CORRIDOR_TURNS]
+        families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs), mesh, regions, tx_field, tx)["curves"]
+                     for t in CORRIDOR_TURNS for legs in RING_LEGS]
     branches = []
     for rx in families:
         cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
