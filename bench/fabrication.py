@@ -17,8 +17,8 @@ Layouts (``--layout``, ``auto`` tries the first three in this order):
   default pipeline's ``layout.pick_best`` layout of each, run only up to that node (``-S mesh=...
   -S diagonal_mm=... -S vertices=...``; ``--sizes FILE.json`` maps a file's stem to its diagonal in
   mm, default ``--diagonal-mm``); ``shapes`` adds one generated shape per class of
-  ``tests/shapes.py`` at its natural size; one row per mesh (a mesh the pipeline fails on is listed
-  under ``failed``).
+  ``tests/shapes.py`` at its natural size; one row per mesh (a mesh the pipeline or a fab node fails on
+  is listed under ``failed``).
 
 The written SVGs are parsed back and checked with shapely (overlaps, smallest gap, fit on the mat),
 independently of the nester's own verification. Prints a table, then as its LAST line one JSON
@@ -50,6 +50,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from fab_layouts import greedy_pads, section_layout  # noqa: E402
 
+from retrotouch.graph.errors import UserError  # noqa: E402
 from retrotouch.nodes.mesh import loading as mesh_io  # noqa: E402
 from retrotouch.nodes.mesh import repair as mesh_repair  # noqa: E402
 from retrotouch.nodes.fab.assembly_guide import Params as GuideParams  # noqa: E402
@@ -301,7 +302,12 @@ def main() -> None:
 
     rows = []
     for name, mesh, layout in layouts(args.layout, args):
-        rows.append(measure(name, mesh, layout, args))
+        try:
+            rows.append(measure(name, mesh, layout, args))
+        except UserError as error:  # a fab node refuses this layout: a failure of the object, listed
+            print(f"{name}: {error}", file=sys.stderr, flush=True)
+            args.failed.append(name)
+            continue
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     columns = ["object", "faces", "parts", "joints", "mat", "sheets", "nest_seconds", "rotations", "used_length_mm",
                "material_use", "min_gap_mm", "overlaps", "off_mat", "longest_trace_mm"] + (
