@@ -266,7 +266,8 @@ def layouts(choice: list[str], args):
         elif item == "shapes":
             import shapes
 
-            folder = Path(tempfile.mkdtemp(prefix="retrotouch-fab-shapes-"))
+            folder = Path(tempfile.gettempdir()) / "retrotouch-fab-shapes"  # one path: cached layouts are reused
+            folder.mkdir(exist_ok=True)
             meshes += [(f"shape:{name}", str(shapes.write_shape(name, folder)), shapes.diagonal_mm(name))
                        for name in shapes.CLASSES]
         elif item.startswith("builtin:") or path.suffix.lower() in MESH_SUFFIXES:
