@@ -12,7 +12,13 @@ Layouts (``--layout``, ``auto`` tries the first three in this order):
   own mesh nodes;
 * one or more output folders (``--out`` of ``retrotouch run``): each run's ``layout.pick_best``
   layout and mesh, loaded from the cache it recorded in ``manifest.json`` (same pipeline and ``-S``
-  overrides, nothing recomputed when the run is cached); one row per folder.
+  overrides, nothing recomputed when the run is cached); one row per folder;
+* one or more mesh files (``.ply``, ``.obj``, ...; or a folder of them, or ``builtin:bunny``): the
+  default pipeline's ``layout.pick_best`` layout of each, run only up to that node (``-S mesh=...
+  -S diagonal_mm=... -S vertices=...``; ``--sizes FILE.json`` maps a file's stem to its diagonal in
+  mm, default ``--diagonal-mm``); ``shapes`` adds one generated shape per class of
+  ``tests/shapes.py`` at its natural size; one row per mesh (a mesh the pipeline or a fab node fails on
+  is listed under ``failed``).
 
 The written SVGs are parsed back and checked with shapely (overlaps, smallest gap, fit on the mat),
 independently of the nester's own verification. Prints a table, then as its LAST line one JSON
@@ -21,8 +27,8 @@ min_gap_mm, overlaps for the worst object (most sheets, slowest nest, lowest use
 smallest gap), with per-object rows under ``objects`` and the medians. ``--profile`` prints the top
 cProfile entries of fab.nest and fab.assembly_guide.
 
-Usage: python bench/fabrication.py [--layout auto|real|traced|synthetic|DIR...] [--mat auto] [--guide] [--profile]
-       [--out DIR] [--cache-dir DIR]
+Usage: python bench/fabrication.py [--layout auto|real|traced|synthetic|DIR|MESH...] [--mat auto] [--guide]
+       [--profile] [--out DIR] [--cache-dir DIR] [--vertices N] [--diagonal-mm D] [--sizes FILE.json]
 """
 from __future__ import annotations
 
@@ -44,6 +50,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from fab_layouts import greedy_pads, section_layout  # noqa: E402
 
+from retrotouch.graph.errors import UserError  # noqa: E402
 from retrotouch.nodes.mesh import loading as mesh_io  # noqa: E402
 from retrotouch.nodes.mesh import repair as mesh_repair  # noqa: E402
 from retrotouch.nodes.fab.assembly_guide import Params as GuideParams  # noqa: E402
@@ -61,7 +68,8 @@ from retrotouch.nodes.fab.unfold import unfold  # noqa: E402
 
 def run_layout(pipeline: str, overrides: list[str], cache_dir: str | None, out_dir: str | None = None):
     """(mesh, layout) of a pipeline's ``layout.pick_best`` and the mesh its consumers read: from the
-    cache when the run is there, else run (into ``out_dir``, a temporary folder when None)."""
+    cache when the run is there, else run up to ``layout.pick_best`` (into ``out_dir``, a temporary
+    folder when None)."""
     from retrotouch.graph.app import configure
     from retrotouch.graph.runner import make_plan, run_pipeline
     from retrotouch.nodes.app import APP
@@ -74,7 +82,8 @@ def run_layout(pipeline: str, overrides: list[str], cache_dir: str | None, out_d
     upstream, output = consumer.inputs["mesh"][0]
     if store.lookup(pick.key) is None or store.lookup(upstream.key) is None:
         with tempfile.TemporaryDirectory() as scratch:
-            run_pipeline(pipeline, overrides, out_dir=out_dir or scratch, scheduler="sync", cache_dir=cache_dir)
+            run_pipeline(pipeline, overrides, out_dir=out_dir or scratch, scheduler="sync", cache_dir=cache_dir,
+                         targets=[pick.node])
 
     def value(instance, name):
         loaded = store.load(store.lookup(instance.key))
@@ -96,6 +105,17 @@ def folder_layout(folder: Path, cache_dir: str | None = None):
     of the run's own cache when given)."""
     manifest = json.loads((folder / "manifest.json").read_text())
     return run_layout(manifest["pipeline"]["path"], manifest["overrides"], cache_dir or manifest["cache_dir"])
+
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb")
+
+
+def mesh_layout(mesh: str, args, diagonal: float | None = None):
+    """(mesh, layout) of the default pipeline on a mesh file (or builtin mesh) at its size."""
+    sizes = json.loads(Path(args.sizes).read_text()) if args.sizes else {}
+    diagonal = diagonal or float(sizes.get(Path(mesh).stem, args.diagonal_mm))
+    overrides = [f"mesh={mesh}", f"diagonal_mm={diagonal:g}"] + ([f"vertices={args.vertices}"] if args.vertices else [])
+    return run_layout(str(REPO / "pipelines" / "retrofit.yaml"), overrides, args.cache_dir)
 
 
 def traced_layout():
@@ -217,14 +237,15 @@ def measure(name: str, mesh, layout, args) -> dict:
             print(f"--- {name}: fab.assembly_guide profile ({timings['guide']:.1f} s)\n{guide_profile}")
     if args.out:
         for file, content in files.items():
-            target = args.out / (name if len(args.layout) > 1 else "") / file
+            target = args.out / (name if len(args.layout) > 1 or Path(args.layout[0]).is_dir() else "") / file
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(content)
     return row
 
 
-def layouts(choice: list[str], cache_dir: str | None):
+def layouts(choice: list[str], args):
     """(name, mesh, layout) for each requested layout (module docstring)."""
+    cache_dir = args.cache_dir
     builders = {"real": lambda: real_layout(cache_dir), "traced": traced_layout, "synthetic": synthetic_layout}
     if choice == ["auto"]:
         for name in ("real", "traced", "synthetic"):
@@ -237,24 +258,58 @@ def layouts(choice: list[str], cache_dir: str | None):
                 yield name, *found
                 return
         raise SystemExit("no layout available")
+    meshes = []  # (name, mesh file, diagonal or None)
     for item in choice:
+        path = Path(item)
         if item in builders:
             yield item, *builders[item]()
+        elif item == "shapes":
+            import shapes
+
+            folder = Path(tempfile.gettempdir()) / "retrotouch-fab-shapes"  # one path: cached layouts are reused
+            folder.mkdir(exist_ok=True)
+            meshes += [(f"shape:{name}", str(shapes.write_shape(name, folder)), shapes.diagonal_mm(name))
+                       for name in shapes.CLASSES]
+        elif item.startswith("builtin:") or path.suffix.lower() in MESH_SUFFIXES:
+            meshes.append((path.stem.removeprefix("builtin:"), item, None))
+        elif path.is_dir() and not (path / "manifest.json").exists():
+            meshes += [(p.stem, str(p), None) for p in sorted(path.iterdir()) if p.suffix.lower() in MESH_SUFFIXES]
         else:
-            yield Path(item).name, *folder_layout(Path(item), cache_dir)
+            yield path.name, *folder_layout(path, cache_dir)
+    for name, mesh, diagonal in meshes:
+        try:
+            found = mesh_layout(mesh, args, diagonal)
+        except Exception as error:  # noqa: BLE001 - the pipeline fails on some meshes: list them, go on
+            print(f"{name}: no layout ({type(error).__name__}: {str(error)[:200]})", file=sys.stderr, flush=True)
+            args.failed.append(name)
+            continue
+        yield name, *found
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--layout", nargs="+", default=["auto"], help="auto, real, traced, synthetic or output folders")
+    parser.add_argument("--layout", nargs="+", default=["auto"],
+                        help="auto, real, traced, synthetic, output folders, mesh files or folders of meshes")
     parser.add_argument("--mat", default="auto", choices=["auto", "12x12", "12x24"])
     parser.add_argument("--guide", action="store_true", help="also time the assembly guide PDF")
     parser.add_argument("--profile", action="store_true", help="print the top profile entries of nest (and guide)")
     parser.add_argument("--out", type=Path, help="write the sheets (and guide) into this folder")
-    parser.add_argument("--cache-dir", help="engine cache for real / folder layouts (default: the run's own)")
+    parser.add_argument("--cache-dir", help="engine cache for real / folder / mesh layouts (default: the run's own)")
+    parser.add_argument("--vertices", type=int, help="mesh layouts: remeshing target (default: the pipeline's)")
+    parser.add_argument("--diagonal-mm", type=float, default=170.0, help="mesh layouts: bounding-box diagonal (mm)")
+    parser.add_argument("--sizes", help="mesh layouts: JSON file, mesh stem -> bounding-box diagonal (mm)")
     args = parser.parse_args()
+    args.failed = []
 
-    rows = [measure(name, mesh, layout, args) for name, mesh, layout in layouts(args.layout, args.cache_dir)]
+    rows = []
+    for name, mesh, layout in layouts(args.layout, args):
+        try:
+            rows.append(measure(name, mesh, layout, args))
+        except UserError as error:  # a fab node refuses this layout: a failure of the object, listed
+            print(f"{name}: {error}", file=sys.stderr, flush=True)
+            args.failed.append(name)
+            continue
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     columns = ["object", "faces", "parts", "joints", "mat", "sheets", "nest_seconds", "rotations", "used_length_mm",
                "material_use", "min_gap_mm", "overlaps", "off_mat", "longest_trace_mm"] + (
         ["guide_seconds"] if args.guide else [])
@@ -273,6 +328,7 @@ def main() -> None:
         "min_gap_mm": min(row["min_gap_mm"] for row in rows),
         "overlaps": sum(row["overlaps"] for row in rows),
         "off_mat": sum(row["off_mat"] for row in rows),
+        "failed": args.failed,
         "median": {k: median(k) for k in ("sheets", "nest_seconds", "material_use", "joints")},
         "objects": rows,
     }

@@ -138,3 +138,52 @@ def test_a_trace_longer_than_any_mat_never_fails_late():
     whole = outline(OutlineParams(fit_mat="none"), unfolded_from_polylines(polylines))
     with pytest.raises(UserError, match="Tx00 is 6\\d\\d x \\d+ mm flat and does not fit the 292.1 x 596.9 mm sheet"):
         nest(params, whole)  # without splitting even the 12 x 24 mat is too short: said before any nesting
+
+
+def ring_layout(scale: float = 1.0):
+    """What the rings layout unfolds to: 12 wide Rx arcs (circles of 30-129 mm radius, 300 to 190
+    degrees, times ``scale``) and 21 straight Tx of 120-220 mm (times ``scale``), pads every 30 mm;
+    outlined and split to fit the 12 x 12 mat."""
+    def arc(radius: float, turn_deg: float) -> np.ndarray:
+        t = np.radians(np.linspace(0.0, turn_deg, 200))
+        points = radius * np.stack([np.cos(t), np.sin(t)], axis=1)
+        return points - points[-1]
+
+    polylines = [arc(scale * (30 + 9 * k), 300 - 10 * k) for k in range(12)]
+    polylines += [straight(scale * (120 + 5 * k), 60) for k in range(21)]
+    lengths = [np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in polylines]
+    marks = [(c, s, True) for c, length in enumerate(lengths) for s in np.arange(10.0, length - 5, 30.0)]
+    return outline(OutlineParams(), unfolded_from_polylines(polylines, marks))
+
+
+def test_long_arcs_of_a_rings_layout_pack_on_two_sheets():
+    """Issue 16: wide arcs (up to 1.2 m of a 290-degree ring) and 330 mm Tx fit two 12 x 12 sheets."""
+    outlines = ring_layout(scale=1.5)
+    assert outlines.joints == outlines.count - 33 >= 1  # the longest rings were split to fit the mat
+    params = Params(mat="12x12")
+    nested = nest(params, outlines)
+    assert nested.nester == "raster", nested.fallback_reason
+    assert nested.sheet_count <= 2
+    check_layout(outlines, nested, params)
+
+
+def test_a_pass_stops_once_worse_than_the_best_and_only_then():
+    from retrotouch.nodes.fab.mats import usable_sides
+    from retrotouch.nodes.fab.nesting import _strip_score
+    from retrotouch.nodes.fab.raster_nest import Part, raster_nest
+
+    outlines = ring_layout(scale=0.8)
+    polygons = [outlines.polygon(i) for i in range(outlines.count)]
+    long_side, short_side = usable_sides(292.1, 160.0, 1.0)
+    parts = [Part(p, 1.0, 0.5, long_side, short_side) for p in polygons]
+    order = sorted(range(len(parts)), key=lambda i: -polygons[i].minimum_rotated_rectangle.area)
+
+    def run(beaten_by):
+        return raster_nest(parts, long_side, short_side, 1.0, 0.5, 72, 4, order, beaten_by)
+
+    full = run(None)
+    sheets, length = _strip_score(full, polygons)
+    assert sheets == 2  # the bound below is then checked on the sheet count and on the last strip
+    assert run((sheets, length)) == full  # not worse than the bound: the same placement
+    assert run((sheets, length * 0.99)) is None
+    assert run((sheets - 1, np.inf)) is None

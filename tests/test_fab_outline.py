@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import shapely
 import trimesh
 from fab_layouts import mesh_from_trimesh, section_layout
 from shapely.geometry import LineString, Point, Polygon
@@ -191,3 +192,23 @@ def test_trace_longer_than_the_mat_is_split_into_pieces_that_fit(fit_mat):
 def test_fit_mat_none_keeps_the_trace_whole():
     outlines = outline(Params(fit_mat="none"), unfolded_from_polylines([long_arc()]))
     assert outlines.count == 1 and outlines.joints == 0
+
+
+def test_small_pocket_between_tab_bend_and_pad_is_filled():
+    """The cat's first ring (170 mm, 8000 vertices) leaves its base downwards and turns right within
+    1.5 mm: the tab, that bend and a pad enclose a 0.4 mm2 pocket, which failed the run."""
+    bend = np.array([[4.60, -2.49], [4.61, -1.94], [4.13, -1.76], [3.80, -2.08], [3.03, -2.11], [2.83, -2.04],
+                     [1.51, -1.75], [1.36, -1.69], [-0.02, -1.42], [-0.14, -1.37], [-0.18, -1.36], [-0.16, -1.27],
+                     [-0.12, -1.08], [0.0, 0.0]])
+    line = np.vstack([np.stack([np.linspace(60, 5, 30), np.full(30, -4.0)], axis=1), bend])
+    unfolded = unfolded_from_polylines([line], [(0, 58.8, True)], pad_offset=1.0)
+    with pytest.raises(UserError, match="not one closed polygon without holes"):
+        outline(Params(fill_hole_mm2=1e-6), unfolded)
+    outlines = outline(Params(), unfolded)
+    polygon = outlines.polygon(0)
+    assert outlines.count == 1 and polygon.is_valid and len(polygon.interiors) == 0
+    pieces = shapely.unary_union([Polygon(outlines.tab[0]), LineString(line).buffer(0.5, quad_segs=8),
+                                  Point(outlines.pad_xy[0]).buffer(unfolded.pad_radius_mm, quad_segs=8),
+                                  Point(outlines.landmark_xy[0]).buffer(1.0, quad_segs=8)])
+    assert len(pieces.interiors) == 1 and polygon.buffer(1e-3).contains(pieces)
+    assert 0 < polygon.area - pieces.area <= 8.0  # only the pocket was added

@@ -11,9 +11,11 @@ then 12 x 24 in). The primary nester is :mod:`.raster_nest` (deterministic botto
 ``pixel_mm`` grid, along a strip that runs along the sheet's longer side): it runs with 72, 96, ...
 up to ``max_rotations`` trial angles per part and stops as soon as a pass no longer saves a sheet
 or shortens the last sheet's strip by ``min_gain``, so its work grows with the parts and with how
-much more angles still help. The fallback (``nester: shelf``, or when the raster result fails the
-check) is shelf packing of minimum rotated bounding boxes, first fit by decreasing height. Every
-result is verified with shapely: parts inside their sheet, no overlaps, every gap >= ``spacing_mm``.
+much more angles still help (a pass stops as soon as its placement so far is worse than the best
+pass's: it would end worse and stop the passes). The fallback (``nester: shelf``, or when the
+raster result fails the check) is shelf packing of minimum rotated bounding boxes, first fit by
+decreasing height. Every result is verified with shapely: parts inside their sheet, no overlaps,
+every gap >= ``spacing_mm``.
 """
 from __future__ import annotations
 
@@ -143,7 +145,9 @@ def _raster(polygons: list[Polygon], params: Params, long_side: float, short_sid
     best, best_score, best_rotations = None, None, 0
     for rotations in range(3 * ROTATION_STEP, params.max_rotations + 1, ROTATION_STEP):
         strip = raster_nest(parts, long_side, short_side, params.spacing_mm, params.pixel_mm, rotations,
-                            params.finalists, order)
+                            params.finalists, order, best_score)
+        if strip is None:  # already worse than the best: it would end worse and stop the passes
+            break
         score = _strip_score(strip, polygons)
         if best is not None and (score[0] > best_score[0] or (
                 score[0] == best_score[0] and score[1] > (1 - params.min_gain) * best_score[1])):

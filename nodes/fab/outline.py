@@ -11,6 +11,9 @@ outside, base end at the origin) becomes one closed polygon without holes, the u
   as glyph outlines (the label layer, drawn with a pen, never cut). The tab is where the wire is
   soldered, so the name is at hand when wiring.
 
+Pockets these shapes enclose of up to ``fill_hole_mm2`` (e.g. between the tab, a sharp first bend and
+a pad) are filled: too small to cut, and copper of the same trace.
+
 Self-overlap: a trace whose flat outline would touch itself (two stretches of the trace, far apart
 along it, closer than their radii plus ``self_clearance_mm``) is split into pieces that do not,
 numbered from the base end (``Tx03.1``, ``Tx03.2``...; every piece gets its own named tab at its
@@ -50,6 +53,9 @@ class Params(NodeParams):
     fit_mat: Literal["12x12", "12x24", "none"] = Field(
         "12x12", description="split traces into pieces that fit this mat (inside the default margin); none = never")
     arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
+    fill_hole_mm2: float = Field(
+        8.0, gt=0, description="holes of a part up to this area (mm2) are filled: pockets between the tab, a sharp "
+                               "bend and a pad, too small to cut")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,8 +281,8 @@ def _piece(params: Params, unfolded: UnfoldedTraces, c: int, discs: tuple, u0: f
     for m in pads:
         shapes.append(Point(unfolded.pad_xy[m]).buffer(unfolded.pad_radius_mm, quad_segs=params.arc_segments))
     shape = shapely.unary_union(shapes)
-    if shape.geom_type == "Polygon":  # drop zero-area slivers where union boundaries touch
-        shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > 1e-6])
+    if shape.geom_type == "Polygon":  # fill pockets too small to cut (copper of one trace: no short)
+        shape = Polygon(shape.exterior, [h for h in shape.interiors if Polygon(h).area > params.fill_hole_mm2])
     if shape.geom_type != "Polygon" or not shape.is_valid or len(shape.interiors) > 0:
         raise UserError(
             f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "

@@ -18,7 +18,9 @@ arithmetic (the same operations as ``shapely.affinity.rotate``, so the same numb
 rotated outline is longer or wider than the usable area are dropped before rasterizing; each sheet
 keeps its coarse grid and its occupied column extent up to date as parts are added; an angle is
 searched only for positions that end no further right than the current last finalist (ranking,
-narrowest angles first) or the current best (exact placement), since no other can win.
+narrowest angles first) or the current best (exact placement), since no other can win; a pass
+given the score to beat stops as soon as its placement so far is worse (more sheets, or a longer
+last strip), since more parts cannot make it better.
 """
 from __future__ import annotations
 
@@ -239,9 +241,11 @@ def _own_angles(polygon: Polygon, long_side: float, short_side: float) -> np.nda
 
 
 def raster_nest(parts: list[Part], long_side: float, short_side: float, spacing: float, pixel: float,
-                rotations: int, finalists: int, order: list[int]) -> list[tuple[int, float, tuple[float, float]]]:
+                rotations: int, finalists: int, order: list[int],
+                beaten_by: tuple[int, float] | None = None) -> list[tuple[int, float, tuple[float, float]]] | None:
     """(sheet, rotation deg, strip translation) per part (made with the same sizes), placing parts
-    in ``order``.
+    in ``order``; None as soon as the placement so far is worse than ``beaten_by`` (sheets, extent
+    of the last sheet's parts along the strip, mm): placing more parts can only make it worse.
 
     Each part's angles (``rotations`` evenly spaced ones and its own angles) are first ranked on a
     grid of ``COARSE`` times the cell size; the ``finalists`` best are then placed exactly on the
@@ -249,6 +253,7 @@ def raster_nest(parts: list[Part], long_side: float, short_side: float, spacing:
     pad = int(np.ceil((occupied_radius(spacing, pixel) + BUFFER_SLACK_MM) / pixel)) + 2
     even = np.arange(rotations) * (360.0 / rotations)
     sheets: list[Sheet] = []
+    extents: list[list[float]] = []  # per sheet: [lowest x, highest x] of its parts' outlines (mm)
     result = {}
     for i in order:
         part = parts[i]
@@ -256,6 +261,7 @@ def raster_nest(parts: list[Part], long_side: float, short_side: float, spacing:
         for k in range(len(sheets) + 1):
             if k == len(sheets):
                 sheets.append(Sheet(long_side, short_side, pixel, pad))
+                extents.append([np.inf, -np.inf])
             sheet = sheets[k]
             chosen = _ranked_angles(part, sheet, angles, finalists)
             fine = part.rasters(np.asarray(chosen), pixel, True, long_side, short_side)
@@ -268,7 +274,11 @@ def raster_nest(parts: list[Part], long_side: float, short_side: float, spacing:
             if found:
                 *_, a, raster, col, row = found[0]
                 result[i] = (k, a, sheet.occupy(raster, col, row))
+                bounds, shift = raster[2], result[i][2][0]
+                extents[k] = [min(extents[k][0], bounds[0] + shift), max(extents[k][1], bounds[2] + shift)]
                 break
             if not sheet.cells.any():
                 raise ValueError(f"part {i} fits no empty sheet at any of {rotations} rotations")
+        if beaten_by is not None and (len(sheets), extents[-1][1] - extents[-1][0]) > beaten_by:
+            return None
     return [result[i] for i in range(len(parts))]
