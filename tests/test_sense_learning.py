@@ -92,3 +92,20 @@ def test_a_calibration_touch_a_pitch_off_its_crossing_counts_and_two_pitches_do_
         assert (session._touch is not None) == counts
         if counts:
             assert session._touch[0] == session.next
+
+
+def test_a_touch_is_not_lost_to_a_quiet_neighbour_with_a_small_gain(bunny):
+    """A finger in a sparse region turns on one crossing (14 noise sigmas); a neighbour without a
+    pad (gain 0.3) reads 5 sigmas, more than the first once divided by its gain, but stays below
+    the on threshold: the active crossing is the touch's peak, so the touch does not drop."""
+    processor = TouchProcessor(bunny)
+    neighbours = processor.peak_neighbours
+    cell = next(k for k in range(bunny.cell_count) if np.any(neighbours[:, k] != k))
+    neighbour = int(next(n for n in neighbours[:, cell] if n != cell))
+    processor.cell_gain[neighbour] = 0.3
+    sigma = np.full(bunny.cell_count, 5.0)
+    delta = np.zeros(bunny.cell_count)
+    delta[cell], delta[neighbour] = 14 * 5.0, 5 * 5.0
+    processor.active = delta > processor.params.on_sigma * sigma
+    was_active = processor.active.copy()
+    assert processor._peaks(delta, sigma, was_active).tolist() == [cell]
