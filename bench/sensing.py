@@ -162,6 +162,8 @@ def main() -> None:
          f"{spread['presses_without_one_touch_down']} / {spread['ghost_touches']}",
          f"of {spread['presses']} presses; false at rest {spread['false_touches_at_rest']}; SNR {spread['snr_mean']:.1f}; "
          f"eval {spread_s:.1f} s"),
+        ("  missed by nearest crossing <10 / 10-15 / >=15 mm",
+         " / ".join(str(n) for n in spread["missed_presses_by_nearest_crossing"].values()), "presses"),
         ("  after --calibrate", f"{spread_calibrated['localization_error_mm_mean']:.3f} / "
          f"{spread_calibrated['localization_error_mm_max']:.3f} mm", f"median {spread_calibrated['localization_error_mm_median']:.3f}; "
          f"missed / not one / ghosts {spread_calibrated['missed_presses']} / "
@@ -233,8 +235,9 @@ def main() -> None:
                                     "false_touches_at_rest_eval": spread["false_touches_at_rest"],
                                     "rest_frames": at_rest_mismatched["frames"], **{key: spread.get(key) for key in (
             "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
-            "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",
-            "snr_mean", "snr_p2p_mean", "nearest_crossing_mm_max", "presses")}},
+            "localization_error_mm_rmse", "missed_presses", "missed_presses_by_nearest_crossing",
+            "presses_without_one_touch_down", "ghost_touches", "snr_mean", "snr_p2p_mean", "nearest_crossing_mm_max",
+            "presses")}},
         "spread_mismatched_board_calibrated": {**{key: spread_calibrated.get(key) for key in (
             "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
             "localization_error_mm_rmse", "missed_presses", "presses_without_one_touch_down", "ghost_touches",

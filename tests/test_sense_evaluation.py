@@ -90,6 +90,8 @@ def test_strict_scoring_counts_split_presses_ghosts_and_false_touches(bunny):
     frames = [Frame(np.zeros((21, 12)), k / 10, k) for k in range(100)]
     summary = evaluate(frames, labels, ScriptedProcessor(sensing_map, frames_touches)).summary()
     assert summary["presses"] == 3 and summary["missed_presses"] == 1
+    # The missed press's location is a crossing: not a layout gap.
+    assert summary["missed_presses_by_nearest_crossing"] == {"under_10_mm": 1, "10_to_15_mm": 0, "15_mm_or_more": 0}
     assert summary["presses_without_one_touch_down"] == 2 and summary["ghost_touches"] == 1
     assert summary["false_touches_at_rest"] == 1
     assert summary["localization_error_mm_max"] == pytest.approx(4.0)

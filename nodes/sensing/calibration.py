@@ -14,7 +14,9 @@ touches estimates what the processing otherwise assumes:
 
 The operator touches the crossings as they are on the object (where the traces cross), never the
 evaluation's locations. A touch counts for the crossing it is prompted for when the processing puts
-it within ``0.6`` pitch of that crossing (or of one of the next three: the operator skipped some)
+it within ``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator
+skipped some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the
+board yet, so a tighter reach turns away most touches of a layout whose median pitch is small)
 and it stays down for ``min_frames`` frames after ``settle_ms``. The result is a versioned JSON
 file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
 """
@@ -46,7 +48,7 @@ class CalibParams(NodeParams):
     rounds: int = Field(2, ge=1, description="touches per crossing")
     settle_ms: float = Field(150.0, ge=0, description="frames this soon after a touch-down are not used")
     min_frames: int = Field(3, ge=1, description="frames a touch must last after settling to count")
-    reach_pitch: float = Field(0.6, gt=0, description="a touch counts for a crossing within this many pitches")
+    reach_pitch: float = Field(1.2, gt=0, description="a touch counts for a crossing within this many pitches")
     width_snr: float = Field(6.0, gt=0, description="a neighbour enters the width estimate above this many noise sigmas")
 
 

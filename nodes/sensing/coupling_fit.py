@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 NORMAL_RIDGE = 0.05  # ridge on the width fit's normal component, relative to the in-plane information
 COUPLING_MIN_ESTIMATES = 30  # width estimates whose median becomes the coupling width
+COUPLING_RUNNING_FROM = 3  # from this many estimates on, their running median is the width until then
 COUPLING_MIN_CELLS = 7  # crossings with signal a touch needs to give a width estimate
 AMPLITUDE_WINDOW = 300  # well-posed fits whose amplitudes make up the amplitude prior
 AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prior applies
@@ -308,9 +309,11 @@ class CouplingFit:
         """One estimate of the coupling width from a touch's strong crossings at ``offsets`` (k, 3) (mm)
         from its peak crossing, with gain-normalised deltas ``normalised`` (counts): with ``y_i`` the
         offsets in the face ``frame`` (rows t1, t2, n), ``log d_i = c + b.y_i / s^2 - a |y_i|^2`` is linear
-        in (c, b, a) and ``s = sqrt(1 / (2 a))``. The median of the first ``COUPLING_MIN_ESTIMATES``
-        estimates, kept within half to twice the initial width, becomes the width for good: the
-        profile's shape is learned in units of it from then on."""
+        in (c, b, a) and ``s = sqrt(1 / (2 a))``. From ``COUPLING_RUNNING_FROM`` estimates on their
+        median, kept within half to twice the initial width, is the width (the initial width, from
+        the median pitch, is too narrow where crossings are far apart, as on ring layouts: the first
+        touches should not wait for it); the median of the first ``COUPLING_MIN_ESTIMATES`` becomes
+        the width for good: the profile's shape is learned in units of it from then on."""
         full = np.empty((len(normalised), 5))
         full[:, 0] = 1.0
         full[:, 1:4] = offsets @ frame.T / self.coupling_sigma**2
@@ -325,7 +328,7 @@ class CouplingFit:
         if a <= 0:
             return
         self._width_estimates.append(float(np.sqrt(1.0 / (2.0 * a))))
-        if len(self._width_estimates) == COUPLING_MIN_ESTIMATES:
+        if len(self._width_estimates) >= COUPLING_RUNNING_FROM:
             learned = median(np.array(self._width_estimates))
             self.coupling_sigma = min(max(learned, 0.5 * self.initial_coupling_sigma), 2.0 * self.initial_coupling_sigma)
             self._use_profile()

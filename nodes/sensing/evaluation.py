@@ -95,9 +95,18 @@ class EvalReport:
                 "presses_without_one_touch_down": int(np.count_nonzero(self.touch_downs != 1)),
                 "ghost_touches": int(np.maximum(self.touch_downs - 1, 0).sum()),
                 "false_touches_at_rest": self.false_touches_at_rest,
+                "missed_presses_by_nearest_crossing": self.missed_by_nearest_crossing(),
                 "crossings_seen_min": min((loc["crossings_seen"] for loc in self.locations), default=0),
                 "nearest_crossing_mm_max": max((loc["nearest_crossing_mm"] for loc in self.locations), default=0.0),
                 "frames": self.frames, **self.choice}
+
+
+    def missed_by_nearest_crossing(self) -> dict[str, int]:
+        """Missed presses by how far their location lies from the nearest crossing (mm): a finger
+        15 mm or more from every crossing may raise no crossing above the noise (a layout limit)."""
+        bands = {"under_10_mm": (0.0, 10.0), "10_to_15_mm": (10.0, 15.0), "15_mm_or_more": (15.0, np.inf)}
+        return {name: sum(loc["touch_downs"].count(0) for loc in self.locations
+                          if low <= loc["nearest_crossing_mm"] < high) for name, (low, high) in bands.items()}
 
 
 @dataclasses.dataclass

@@ -10,8 +10,10 @@ on top of the starting gains (the sensing map's pad / no-pad default or a calibr
 measurement) counted as ``prior_touches`` touches. A crossing's gain is the weighted mean of its
 log estimates once it has ``MIN_TOUCHES`` touches' worth of weight; the gains are then rescaled
 so the median learned padded crossing stays at 1 (the touch amplitude ``A`` carries the overall
-scale), and the crossings without a pad and without enough touches take the median of those
-learned (the no-pad gain, estimated rather than assumed).
+scale), and the crossings without a pad and without enough touches take the no-pad gain,
+estimated rather than assumed: the weighted mean of every log estimate of every crossing without a
+pad, once they add up to ``MIN_TOUCHES`` touches' worth (each such crossing may see too few touches
+for a gain of its own, but together they tell how much less a crossing without a pad reads).
 
 Units: gains relative to a padded crossing, log counts.
 """
@@ -42,6 +44,7 @@ class GainLearner:
         self.weight = np.full(len(self.start), prior_touches * WEIGHT_CAP)
         self.moment = self.weight * np.log(self.start)
         self.learned = np.zeros(len(self.start))  # touches' worth of weight from touches, no prior
+        self.learned_moment = np.zeros(len(self.start))  # weighted log estimates from touches, no prior
         self.touches = 0
 
     def add(self, cells: np.ndarray, log_ratios: np.ndarray, weights: np.ndarray) -> None:
@@ -52,6 +55,7 @@ class GainLearner:
         self.weight[cells] = self.fade * self.weight[cells] + weights
         self.moment[cells] = self.fade * self.moment[cells] + weights * np.clip(log_ratios, *LOG_RANGE)
         self.learned[cells] = self.fade * self.learned[cells] + weights / WEIGHT_CAP
+        self.learned_moment[cells] = self.fade * self.learned_moment[cells] + weights * np.clip(log_ratios, *LOG_RANGE)
         self.touches += 1
 
     def gains(self) -> np.ndarray:
@@ -59,10 +63,11 @@ class GainLearner:
         log_gain = self.moment / self.weight
         known = self.learned >= MIN_TOUCHES
         padded = known & self.pad
-        if np.count_nonzero(padded) >= 3:
-            log_gain = log_gain - float(np.median(log_gain[padded]))
-        gains = np.where(known, np.exp(log_gain), self.start)
-        no_pad = known & ~self.pad
-        if np.count_nonzero(no_pad) >= 3 and not self.measured:
-            gains = np.where(~known & ~self.pad, float(np.median(gains[no_pad])), gains)
+        shift = float(np.median(log_gain[padded])) if np.count_nonzero(padded) >= 3 else 0.0
+        gains = np.where(known, np.exp(log_gain - shift), self.start)
+        no_pad = ~self.pad & (self.learned > 0)
+        pooled = float(self.learned[no_pad].sum())
+        if pooled >= MIN_TOUCHES and not self.measured:
+            no_pad_gain = np.exp(self.learned_moment[no_pad].sum() / (pooled * WEIGHT_CAP) - shift)
+            gains = np.where(~known & ~self.pad, no_pad_gain, gains)
         return gains

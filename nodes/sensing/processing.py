@@ -17,10 +17,10 @@ Per frame (``TouchProcessor.process``):
 3. **Contact areas** (:mod:`.contacts`): the deltas are interpolated over the vertices of a simplified copy of the mesh
    (``contact_mesh_faces``; Gaussian kernel, Nadaraya-Watson); vertices above the off threshold form
    connected components over the mesh edges. Each component is split among its touch peaks (active
-   cells whose gain-normalised deltas are local maxima and are not explained by a stronger peak's
-   coupling tail under the current coupling profile); the intensity-weighted, area-weighted centroid
-   of each part, projected on the surface, is the coarse touch point, and the part's area above half
-   of its peak intensity is the contact area.
+   cells whose gain-normalised deltas are local maxima among the active cells and are not explained
+   by a stronger peak's coupling tail under the current coupling profile); the intensity-weighted,
+   area-weighted centroid of each part, projected on the surface, is the coarse touch point, and the
+   part's area above half of its peak intensity is the contact area.
 4. **Sub-cell refinement** (``refine``; :mod:`.coupling_fit`, :mod:`.plane_fit`): the coupling model ``delta_i = g_i A K(|p - x_i|)``
    (``g_i`` = 1 with a pad, ``no_pad_gain`` without, or per crossing as ``sense --calibrate`` measured
    them, :mod:`.calibration`; ``K`` the radial coupling profile,
@@ -202,9 +202,12 @@ class TouchProcessor:
     # ---- contact areas and touch points
 
     def _peaks(self, delta: np.ndarray, sigma: np.ndarray, was_active: np.ndarray) -> np.ndarray:
-        """Active cells that are local maxima and not explained by a stronger peak's coupling tail,
-        both on gain-normalised deltas ``delta / g`` (a crossing without a pad reads less for the same
-        finger: two padded crossings on either side of a finger over pad-less ones are not two touches).
+        """Active cells that are local maxima among the active cells and not explained by a stronger
+        peak's coupling tail, both on gain-normalised deltas ``delta / g`` (a crossing without a pad
+        reads less for the same finger: two padded crossings on either side of a finger over pad-less
+        ones are not two touches). A cell below the on threshold is no peak and hides none: its noise
+        over a small gain would otherwise outweigh the one crossing a finger in a sparse region turns
+        on, and the touch would drop for a frame and come back as a second touch-down.
 
         A candidate must exceed twice the tail bound (:class:`.CouplingFit`) of every stronger peak,
         and, unless it was on in the previous frame, another crossing within two pitches must read
@@ -213,7 +216,8 @@ class TouchProcessor:
         """
         supported = was_active | self.support[delta > SUPPORT_SIGMA * sigma].any(axis=0)
         delta = delta / self.cell_gain
-        candidates = np.flatnonzero(self.active & supported & (delta >= delta[self.peak_neighbours].max(axis=0)))
+        on = np.where(self.active, delta, -np.inf)
+        candidates = np.flatnonzero(self.active & supported & (delta >= on[self.peak_neighbours].max(axis=0)))
         candidates = candidates[np.argsort(-delta[candidates])]
         kept: list[tuple[int, float]] = []  # (cell, normalised delta), strongest first
         for c, value in zip(candidates.tolist(), delta[candidates].tolist()):
