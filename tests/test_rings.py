@@ -67,6 +67,20 @@ def test_each_candidate_is_a_leg_from_the_base_then_a_ring(families):
     np.testing.assert_allclose(rings.lengths_mm, lengths)
 
 
+def test_tx_line_legs_start_at_the_base_ends_of_corridor_tx_lines(families):
+    mesh, tx, tx_field, _, params, _, _ = families
+    regions = bunny()[1]
+    rings = trace_rings(params.model_copy(update={"legs": "tx_lines"}), mesh, regions, tx_field, tx)["curves"]
+    assert rings.family == "rings_tx" and rings.count >= 10
+    centre = int(round(params.corridor_turn * tx.count))
+    corridor = (centre - params.n_rings // 2 + np.arange(params.n_rings)) % tx.count
+    leg_ends = tx.points[tx.offsets[corridor + 1] - 1]
+    starts = rings.points[rings.offsets[:-1]]
+    assert np.min(np.linalg.norm(starts[:, None] - leg_ends[None], axis=2), axis=1).max() < 1e-6
+    np.testing.assert_array_equal(rings.end_reason, tx.end_reason[
+        corridor[np.argmin(np.linalg.norm(starts[:, None] - leg_ends[None], axis=2), axis=1)]])
+
+
 def test_legs_keep_the_clearance_so_only_rings_of_nearly_one_level_conflict(families):
     """Same-layer pairs closer than trace width + clearance in the sensing region (phase 1's conflicts)
     are only rings of nearly equal level (a dead end's reseeded ring beside an evenly spread one), never
