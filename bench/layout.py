@@ -216,6 +216,7 @@ def main() -> None:
         "cells": m["cells"],
         "channels": [m["tx_channels"], m["rx_channels"]],
         "coverage_radius_mm": m["coverage_radius_mm"],
+        "coverage_radius_vertices_mm": m["coverage_radius_vertices_mm"],
         "mean_distance_mm": m["mean_distance_mm"],
         "mean_distance_mm_without_secondary": m_off["mean_distance_mm"],
         "min_pad_spacing_mm": m["min_pad_spacing_mm"],

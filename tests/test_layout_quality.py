@@ -66,6 +66,9 @@ def test_layout_quality_is_no_worse_than_the_measured_worst_case(path, family):
     assert m["cells"] >= bounds.min_cells
     assert m["voronoi_cv_all_crossings"] <= bounds.max_cv_all
     assert m["coverage_radius_mm"] <= bounds.max_radius_mm
+    # the samples' coverage radius, checked over every vertex of the region, is never smaller
+    # (to the heat method's 1 mm: samples and vertices are sources in turn)
+    assert m["coverage_radius_vertices_mm"] >= m["coverage_radius_mm"] - 1.0
 
 
 @pytest.mark.skipif(not SHARED, reason="no shared meshes in ../shared/meshes")
