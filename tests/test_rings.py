@@ -8,9 +8,9 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.rings import TraceRingsParams, radial_function, ring_levels, row_values, trace_rings
+from retrotouch.nodes.curves.rings import TraceRingsParams, radial_function, ring_levels, row_values, spine, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
-from retrotouch.nodes.data.types import CurveEnd
+from retrotouch.nodes.data.types import CurveEnd, CurveSet
 from retrotouch.nodes.geometry.mesh_tables import build_tables
 
 
@@ -153,3 +153,15 @@ def test_rings_cover_the_sensing_region_from_the_pole_to_the_base(families):
     # 30 rings about 5 mm apart along the Tx lines: 95 % of the region lies within 9 mm of the family
     # (rings of geodesic distance from the pole, stopped short of the base, left 16 mm)
     assert np.percentile(distance, 95) < 9.0
+
+
+def test_the_spine_is_the_nearest_tx_line_that_reaches_every_ring_level():
+    """On a thin object a Tx line may end in the base region where it borders the pole's exclusion,
+    with u short of 1 (the sword at 8k vertices): it cannot carry the outer rings' legs."""
+    u_rows = np.r_[0.0, 0.25, 0.5, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0]  # three lines of three rows
+    tx = CurveSet(layer="tx", points=np.c_[np.arange(9.0), np.zeros(9), np.zeros(9)], faces=np.zeros(9, dtype=np.int64),
+                  bary=np.full((9, 3), 1 / 3), offsets=np.array([0, 3, 6, 9]), lengths_mm=np.full(3, 2.0),
+                  end_reason=np.array([CurveEnd.BASE, CurveEnd.SINK_EDGE, CurveEnd.BASE], dtype=np.int8), angle=0.0)
+    assert spine(tx, u_rows, 0.0, np.array([0.9, 0.4, 0.1])) == 2  # line 0 stops at 0.5, line 1 is no base end
+    assert spine(tx, u_rows, 0.0, np.array([0.4, 0.1])) == 0
+    assert spine(tx, u_rows[[0, 1, 2, 3, 4, 4, 6, 7, 7]], 0.0, np.array([0.9])) is None

@@ -14,7 +14,7 @@ lie in dead ends (a second ear) where ``u`` barely changes and the level set mak
 
 The legs run side by side in a *corridor* along one Tx candidate line, the *spine*: the candidate at
 ``corridor_turn`` of their angular order around the pole (or the nearest one that reaches the base
-and the innermost ring). The innermost ring's leg is the spine itself; the others, from the inside
+and every ring's level). The innermost ring's leg is the spine itself; the others, from the inside
 out, go to the side of the spine with the fewer legs (the other side if it has no room), each one
 ``leg_spacing_mm`` farther out than the last on its side: a leg at offset ``o`` is the level set ``d
 = o`` of the Euclidean distance ``d`` from the spine, from its ring ``u = c_k`` down to where the
@@ -132,13 +132,15 @@ def leg_joint(tx: CurveSet, values: np.ndarray, c: int, level: float) -> tuple[i
     return j, tx.points[lo + j] + t * (tx.points[lo + j + 1] - tx.points[lo + j])
 
 
-def spine(tx: CurveSet, u_rows: np.ndarray, turn: float, innermost: float) -> int | None:
+def spine(tx: CurveSet, u_rows: np.ndarray, turn: float, levels: np.ndarray) -> int | None:
     """The Tx candidate nearest ``turn`` of their order (wrapping) that ends at the base and reaches
-    ``u = innermost``; None if none does."""
+    every one of ``levels`` on its way there (on a thin object a Tx line may reach the base region
+    where it borders the pole's exclusion, with ``u`` short of 1); None if none does."""
     centre = int(round(turn * tx.count))
     for step in range(tx.count):
         c = (centre + (step + 1) // 2 * (1 if step % 2 else -1)) % tx.count
-        if tx.end_reason[c] == int(CurveEnd.BASE) and leg_joint(tx, u_rows[tx.offsets[c] : tx.offsets[c + 1]], c, innermost):
+        values = u_rows[tx.offsets[c] : tx.offsets[c + 1]]
+        if tx.end_reason[c] == int(CurveEnd.BASE) and all(leg_joint(tx, values, c, level) for level in levels):
             return c
     return None
 
@@ -260,7 +262,7 @@ def offset_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sen
     ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
     from scipy.spatial import cKDTree
 
-    c = spine(tx, u_rows, params.corridor_turn, levels[-1])
+    c = spine(tx, u_rows, params.corridor_turn, levels)
     if c is None:
         return []
     lo, hi = int(tx.offsets[c]), int(tx.offsets[c + 1])
