@@ -31,6 +31,21 @@ def test_slope_is_the_derivative_in_squared_distance():
     assert np.all(slope < 0) and np.all((value > 0) & (value < 1))
 
 
+def test_farthest_reading_inverts_the_profile():
+    """K reads the value at the returned distance and less just past it, on a Gaussian, on uneven
+    segments with a flat run, and past the reach; the edge cases are inf / -inf."""
+    distances, values = disc_coupling_profile(4.5, WIDTH * np.sqrt(2 * np.log(2)))
+    flat = np.array([1.0, 1.0, 0.8, 0.8, 0.3, 0.05, 0.01])
+    for profile in (CouplingProfile.gaussian(WIDTH), CouplingProfile(distances[::40], values[::40]),
+                    CouplingProfile(np.linspace(0.0, 30.0, len(flat)), flat)):
+        for value in (1.0, 0.999, 0.8, 0.5, 0.3, 0.11, 0.01, 1e-4):
+            d = profile.farthest_reading(value)
+            assert profile.at_distance(d) == pytest.approx(value, rel=1e-9)
+            assert profile.at_distance(d * 1.0001 + 1e-6) < value
+        assert profile.farthest_reading(0.0) == np.inf and profile.farthest_reading(1.01) == -np.inf
+    assert CouplingProfile(np.array([0.0, 5.0, 10.0]), np.array([1.0, 0.5, 0.5])).farthest_reading(0.4) == np.inf
+
+
 def test_refit_recovers_a_disc_profile_from_noisy_pairs():
     """4000 ratios with noise 0.02 drawn from the simulator's disc profile: within 0.01 of it
     everywhere inside the reach."""

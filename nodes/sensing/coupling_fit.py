@@ -33,6 +33,7 @@ AMPLITUDE_MIN_ESTIMATES = 20  # well-posed fits needed before the amplitude prio
 SPLIT_SIGMA = 6.0  # noise sigmas a second finger's peak reads above what the first finger's tail can explain
 JOINT_AMPLITUDE_FACTOR = 2.0  # a finger fitted between two peaks may read up to this much above the first fit or prior
 JOINT_AMPLITUDE_SIGMAS = 3.0  # ... or this many of the prior's spreads, if more
+REACH_MARGIN_MM = 0.01  # slack of the joint refit's distance test against rounding (it only skips hopeless fits)
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
 
 
@@ -156,17 +157,25 @@ class CouplingFit:
         factor squared until the width is learned, as a too-narrow initial width makes a finger
         between crossings need more amplitude), or the amplitude prior plus the larger of
         ``JOINT_AMPLITUDE_SIGMAS`` spreads and that factor, if more. Two fingers on crossings far
-        apart would need a finger between them many times stronger than either."""
+        apart would need a finger between them many times stronger than either; peaks farther apart
+        than such a finger's coupling can reach to explain both are two without a fit."""
         cells, gains = self.map.cell_points, self.cell_gain
-        weights = delta[[first, second]] / gains[[first, second]]
-        middle = weights @ cells[[first, second]] / weights.sum()
-        points, faces, _ = self.projector.project(middle, self.map.cell_normals[first])
-        joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
         learned = len(self._width_estimates) >= COUPLING_MIN_ESTIMATES or not self.params.adapt_coupling
         limit = log_amplitude + math.log(JOINT_AMPLITUDE_FACTOR) * (1.0 if learned else 2.0)
         if self.amplitude_prior is not None:
             centre, spread = self.amplitude_prior
             limit = max(limit, centre + max(JOINT_AMPLITUDE_SIGMAS * spread, math.log(JOINT_AMPLITUDE_FACTOR)))
+        # Before the fit: a finger of amplitude at most exp(limit) that explains a peak reads at least
+        # (delta - tolerance) / (2 g exp(limit)) of it there, so it lies within the profile's reach of
+        # that fraction from the peak; peaks farther apart than the two reaches are two fingers.
+        reaches = [self.profile.farthest_reading((delta[peak] - SPLIT_SIGMA * sigma[peak])
+                                                 / (2.0 * gains[peak] * math.exp(limit))) for peak in (first, second)]
+        if reaches[0] + reaches[1] + REACH_MARGIN_MM < self.cell_distance[first, second]:
+            return False
+        weights = delta[[first, second]] / gains[[first, second]]
+        middle = weights @ cells[[first, second]] / weights.sum()
+        points, faces, _ = self.projector.project(middle, self.map.cell_normals[first])
+        joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
         if joint is None or joint[3] > limit:
             return False
         squared = np.sum((cells - joint[0]) ** 2, axis=1)

@@ -19,6 +19,8 @@ the few crossings right under a finger).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import nnls
 
@@ -63,6 +65,22 @@ class CouplingProfile:
     def at_distance(self, distance: np.ndarray | float) -> np.ndarray:
         """``K`` at distances (mm)."""
         return self.at_squared(np.square(distance))[0]
+
+    def farthest_reading(self, value: float) -> float:
+        """Largest distance (mm) at which ``K >= value`` (``K`` is non-increasing): ``inf`` when
+        ``K`` never falls below ``value`` (``value <= 0``, or a flat tail above it), ``-inf`` when
+        ``value`` exceeds ``K(0) = 1``."""
+        if value > self.values[0]:
+            return -math.inf
+        if value <= 0.0:
+            return math.inf
+        last = int(np.searchsorted(-self.values, -value, side="right")) - 1  # last knot with K >= value
+        segment = min(last, len(self.log_slopes) - 1)  # past the last knot: the tail continues the last segment
+        slope = float(self.log_slopes[segment])
+        if slope >= 0.0:
+            return math.inf
+        squared = (math.log(value) - float(self.log_intercepts[segment])) / slope
+        return math.sqrt(max(squared, float(self.squared[segment])))
 
     def half_maximum_mm(self) -> float:
         """Distance (mm) where ``K`` falls to 1/2."""
