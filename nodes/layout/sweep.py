@@ -107,8 +107,7 @@ def d_min_for(params: OptimizeParams, pad_radius_mm: float) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class AngleLayout:
-    """One branch of the sweep (an Rx family at one angle): its layout (None when infeasible) and its
-    metrics/report."""
+    """One branch of the sweep (an Rx family at one angle): its layout (None if infeasible), metrics."""
 
     family: str  # the Rx family: "dipole", "rings" or "rings_tx"
     angle_deg: float  # the dipole's angle offset, or the rings' corridor position around the Tx pole
@@ -295,7 +294,6 @@ def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fiel
     pads, cells out of the channel pairs available, same-layer clearance on the traces' centre lines."""
     tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
     nearest = problem.distance[:, cells].min(axis=1)  # cells: the candidate crossings that became cells
-    sensing_vertices = np.unique(mesh.faces[samples.sensing_faces])
     cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
     all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.sensing_faces)
     tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
@@ -304,7 +302,7 @@ def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fiel
     closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
     return {
         "coverage_radius_mm": float(nearest.max()),
-        "coverage_radius_vertices_mm": float(cell_fields[sensing_vertices].min(axis=1).max()),
+        "coverage_radius_vertices_mm": float(cell_fields[np.unique(mesh.faces[samples.sensing_faces])].min(axis=1).max()),
         "mean_distance_mm": float(nearest.mean()),
         "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
