@@ -210,7 +210,7 @@ def main() -> None:
         "phase1_gap_worst_branch": max((r["gap"] for r in m["angles"] if r["gap"] is not None), default=None),
         "phase1_global_gap_worst_branch": max((r["global_gap"] for r in m["angles"] if r["global_gap"] is not None),
                                               default=None),
-        "branch_notes": {f"{r['angle_deg']:+.0f}": r["note"] for r in m["angles"] if r["note"]},
+        "branch_notes": {f"{r['rx_family']} {r['angle_deg']:+.0f}": r["note"] for r in m["angles"] if r["note"]},
         "voronoi_cv_without_secondary": m_off["voronoi_cv"],
         "pads": m["pads"],
         "cells": m["cells"],
