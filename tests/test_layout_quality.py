@@ -1,7 +1,7 @@
 """Bounds on layout quality over the bunny and ../shared/meshes (layouts at test size, see
 tests/layout_quality.py), for the dipole loops at 0 deg and the rings (side-by-side legs) with their
 corridor at turn 0. The hard constraint holds everywhere; the quality bounds are the worst case
-measured over the whole set and over several remeshes of each (recorded below) with a 10 % margin,
+measured over the whole set and over several remeshes of each (recorded below) with a 15 % margin,
 so a change that makes any mesh worse than today's worst fails, and so does one that breaks the median."""
 from __future__ import annotations
 
@@ -24,17 +24,18 @@ class Bounds:
     median_radius_mm: float
 
 
-# Measured 2026-12-02 over the 16 meshes (bunny + 15 shared; every one has a layout) on five remeshes
-# of each (unperturbed and RETROTOUCH_TEST_JITTER=1e-6:1..4), CP-SAT on deterministic time only, and
-# for the dipole CI's machine too (median cells 26). Dipole: worst cells 2, worst Voronoi CV over all
-# crossings 2.58, worst coverage radius 116.0 mm; medians per remesh: cells 25-34, radius 50.5-56.0 mm.
-# Rings: worst cells 1, worst CV 1.85, worst radius 157.2 mm (the scorpion, whose best branch is another);
-# medians: cells 72.5-81, radius 33.8-41.3 mm.
+# Measured 2026-12-02 over the 16 meshes (bunny + 15 shared; every one has a layout) on nine or ten remeshes
+# of each (unperturbed, RETROTOUCH_TEST_JITTER=1e-6:1..8, and for the dipole CI's machine, where the
+# same code gives other remeshes), CP-SAT on deterministic time only.
+# Dipole: worst cells 2, worst Voronoi CV over all crossings 2.58, worst coverage radius 116.0 mm;
+# medians per remesh: cells 24-34, radius 50.5-57.6 mm (62.5 on CI's machine).
+# Rings: worst cells 1, worst CV 1.92, worst radius 157.2 mm (the scorpion, whose best branch is another);
+# medians: cells 63-81, radius 33.8-41.6 mm.
 # One object's layout varies that much between remeshes, so the bounds are the worst remesh's with a
-# 10 % margin.
+# 15 % margin.
 FAMILIES = {
-    "dipole": Bounds({"rx_angle_deg": 0.0}, 1, 2.85, 128.0, 22, 61.6),
-    "rings": Bounds({"ring_turn": 0.0}, 1, 2.05, 173.0, 65, 45.5),
+    "dipole": Bounds({"rx_angle_deg": 0.0}, 1, 2.95, 133.0, 20, 72.0),
+    "rings": Bounds({"ring_turn": 0.0}, 1, 2.2, 181.0, 54, 48.0),
 }
 
 
