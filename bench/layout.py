@@ -105,7 +105,7 @@ def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, r
         start = time.perf_counter()
         result = select_curves(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
                                params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
-                               params.secondary_power, solver, params.highs_max_nodes)
+                               params.secondary_power, solver, params.highs_max_nodes, params.relative_gap)
         out[solver] = {"seconds": time.perf_counter() - start, "stage_seconds": result.stage_seconds,
                        "stages": result.report["stages"]}
     return out

@@ -85,11 +85,15 @@ def test_secondary_objective_lowers_the_sample_distances(power):
     assert [s["stage"] for s in off.report["stages"]] == ["coverage_radius"]
 
 
-def test_unusable_curves_are_never_selected(problem):
-    tx_usable = problem.tx_usable.copy()
-    tx_usable[::2] = False
-    result = select_curves(dataclasses.replace(problem, tx_usable=tx_usable), 21, 12, time_limit_s=2.0)
-    assert np.all(tx_usable[result.tx])
+
+def test_secondary_stage_stops_once_within_its_relative_gap():
+    # the plain mean (power 1) on this problem ends 2 work units with a gap of about 0.56
+    problem = random_plane_problem(seed=7)
+    exact, loose = (select_curves(problem, 4, 3, time_limit_s=2.0, power=1, relative_gap=gap).report["stages"][1]
+                    for gap in (0.0, 0.7))
+    assert exact["deterministic_time"] >= 2.0 and exact["gap"] > 0.3 and "stopped_at_relative_gap" not in exact
+    assert loose["deterministic_time"] < exact["deterministic_time"] and loose["gap"] <= 0.7
+    assert loose["status"] == "FEASIBLE" and loose["stopped_at_relative_gap"] == 0.7
 
 
 def test_no_single_crossing_is_a_user_error(problem):

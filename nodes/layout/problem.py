@@ -13,12 +13,14 @@ PHASE1_TIME_LIMIT_S = 1.0  # per CP-SAT solve, deterministic seconds
 PHASE1_RESOLUTION_MM = 0.5  # distance quantisation of the model
 PHASE1_MAX_MEMBERSHIPS = 15000  # (sample, crossing) pairs before a trust region
 PHASE1_POWER = 6  # secondary objective: power mean of the sample distances
+PHASE1_RELATIVE_GAP = 0.02  # the secondary stage stops once proven within this share of its optimum
 
 
-def deterministic_solver(time_limit_s: float, seed: int, workers: int):
+def deterministic_solver(time_limit_s: float, seed: int, workers: int, relative_gap: float = 0.0):
     """A CP-SAT solver whose result is a function of the model only: a deterministic-time limit
     (``time_limit_s``, CP-SAT's work units, not wall seconds) and no wall-clock limit, a fixed seed, and
-    with more than one worker the interleaved search (deterministic for any ``workers``)."""
+    with more than one worker the interleaved search (deterministic for any ``workers``); it stops
+    early once its incumbent is proven within ``relative_gap`` of the optimum (0: prove optimality)."""
     from ortools.sat.python import cp_model  # heavy: imported when solving, not on node discovery
 
     solver = cp_model.CpSolver()
@@ -26,6 +28,7 @@ def deterministic_solver(time_limit_s: float, seed: int, workers: int):
     solver.parameters.interleave_search = workers > 1
     solver.parameters.random_seed = seed
     solver.parameters.max_deterministic_time = time_limit_s
+    solver.parameters.relative_gap_limit = relative_gap
     return solver
 
 

@@ -45,7 +45,9 @@ from the stage-1 solution, to stage 2. Without the secondary objective the local
 radius alone, so nothing in the ablation optimises the mean distance.
 
 Both solvers are deterministic for a fixed input (CP-SAT: deterministic time, fixed seed; HiGHS: one
-thread, fixed seed, a node limit); every stage reports status, objective, bound, gap and the solver's
+thread, fixed seed, a node limit). The secondary stage also stops once its incumbent is proven within
+``relative_gap`` of the optimum (status FEASIBLE, ``stopped_at_relative_gap`` in its report); the
+radius stage has no gap limit. Every stage reports status, objective, bound, gap and the solver's
 reproducible work (CP-SAT's deterministic time, HiGHS's nodes and LP iterations; no wall seconds: they
 would make the report differ between runs). Objectives are integers in the model, so a bound is
 rounded up to the next integer before the gap is taken. Beside the model's bound, each stage reports
@@ -68,6 +70,7 @@ from .mip import LinearModel, build_model
 from .problem import (
     PHASE1_MAX_MEMBERSHIPS,
     PHASE1_POWER,
+    PHASE1_RELATIVE_GAP,
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
     SelectionProblem,
@@ -154,7 +157,7 @@ def _radius_stage(model: LinearModel, problem: SelectionProblem, start: tuple, s
     without an incumbent) and the solver's wall seconds."""
     res = settings["resolution_mm"]
     hint = model.column_values(*start, _nearest_levels(problem, *start, res))
-    solved = solve_stage(model, model.radius_objective(), hint, settings["solver"], settings)
+    solved = solve_stage(model, model.radius_objective(), hint, settings["solver"], {**settings, "relative_gap": 0.0})
     bound = model.r_low + np.ceil(solved.bound - 1e-6)
     objective = model.r_low + (solved.objective if solved.values is not None else float(hint @ model.radius_objective()))
     report = _stage_report("coverage_radius", solved, float(objective * res), float(bound * res))
@@ -171,7 +174,11 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     fixed = model.radius_fixed(radius)
     cost = fixed.power_objective()
     hint = fixed.column_values(tx_sel, rx_sel, _nearest_levels(problem, tx_sel, rx_sel, res))
-    solved = solve_stage(fixed, cost, hint, settings["solver"], settings)
+    # the solvers take the gap on the cost without the constant (samples fixed at the radius): a limit
+    # scaled by (hint + constant) / hint, the hint's cost bounding the solution's, keeps the gap with it
+    hinted = max(float(hint @ cost), 1.0)
+    limit = settings["relative_gap"] * (hinted + fixed.constant_power_sum) / hinted
+    solved = solve_stage(fixed, cost, hint, settings["solver"], {**settings, "relative_gap": limit})
     k = len(problem.distance)
     if solved.values is not None:
         tx_sel, rx_sel = _selection(fixed, solved.values)
@@ -181,6 +188,8 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     mean_objective = (fixed.constant_power_sum + total) / k
     mean_bound = (fixed.constant_power_sum + float(np.ceil(solved.bound - 1e-6))) / k
     report = _stage_report(f"power_mean_distance_p{power}", solved, mean_objective, mean_bound)
+    if report["status"] == "OPTIMAL" and report["gap"] > 0:  # the solver stopped at the gap limit
+        report["status"], report["stopped_at_relative_gap"] = "FEASIBLE", settings["relative_gap"]
     if solved.values is None:
         report["note"] = "no incumbent within the limit: the local search's selection is kept (objective and gap are its)"
     for key in ("objective", "bound"):  # (mean of level**p) -> power mean in mm
@@ -207,6 +216,7 @@ def select_curves(
     power: int = PHASE1_POWER,
     solver: str = "cpsat",
     highs_max_nodes: int = HIGHS_MAX_NODES,
+    relative_gap: float = PHASE1_RELATIVE_GAP,
 ) -> SelectionResult:
     """Solve phase 1 (see the module docstring) with ``solver`` ("cpsat" or "highs") and report every stage."""
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
@@ -222,7 +232,7 @@ def select_curves(
             "memberships": len(model.u_sample) + len(q)}
     settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
                 "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
-                "highs_max_nodes": highs_max_nodes, "restricted": restricted}
+                "highs_max_nodes": highs_max_nodes, "restricted": restricted, "relative_gap": relative_gap}
     stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
     stage_seconds = [seconds]
     limits = (n_drive, n_sense)

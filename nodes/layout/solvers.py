@@ -34,7 +34,7 @@ class StageSolution:
 def solve_stage(model: LinearModel, cost: np.ndarray, hint: np.ndarray, solver: str, settings: dict) -> StageSolution:
     """Minimise ``cost @ v`` over ``model`` from the feasible ``hint`` with ``solver`` ("cpsat" or
     "highs"); ``settings``: ``time_limit_s`` (CP-SAT deterministic time), ``seed``, ``workers``,
-    ``highs_max_nodes``."""
+    ``highs_max_nodes`` and optionally ``relative_gap`` (stop once proven that close to the optimum)."""
     start = time.perf_counter()
     status, values, bound, work = (_cpsat if solver == "cpsat" else _highs)(model, cost, hint, settings)
     objective = None if values is None else float(cost @ values)
@@ -118,7 +118,7 @@ def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     from ortools.sat.python import cp_model
 
     cp, var = cpsat_model(model, cost, hint)
-    solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"])
+    solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"], settings.get("relative_gap", 0.0))
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     values = np.asarray(solver.response_proto.solution, dtype=np.int64)[var] if has else None
@@ -132,6 +132,8 @@ def _highs(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     for name, value in (("output_flag", bool(settings.get("log"))), ("threads", 1), ("random_seed", int(settings["seed"]) % 2**31),
                         ("mip_max_nodes", int(settings["highs_max_nodes"])), ("time_limit", HIGHS_SAFETY_S)):
         h.setOptionValue(name, value)
+    if settings.get("relative_gap"):
+        h.setOptionValue("mip_rel_gap", float(settings["relative_gap"]))
     lp = highspy.HighsLp()
     lp.num_col_, lp.num_row_ = model.n_cols, len(model.row_lo)
     lp.col_cost_ = cost.astype(float)
