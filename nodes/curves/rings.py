@@ -9,8 +9,10 @@ function with constant values on both boundaries of an annulus has no critical p
 level set is one closed curve around the pole, the level sets fill the whole region from the pole
 to the base, and no two of them meet. ``n_rings - n_reseeded`` levels ``c_k`` are spread so that,
 along the Tx lines (median over the candidates), neighbouring rings are equally far apart from the
-pole to the base; the others pass through the points farthest from the rings before them, which
-lie in dead ends (a second ear) where ``u`` barely changes and the level set makes a long hairpin.
+pole to the base (``level_spacing="area"``: so that the bands between them have equal area, fewer
+rings near the pole, where the Tx lines crowd); the others pass through the points farthest from
+the rings before them, which lie in dead ends (a second ear) where ``u`` barely changes and the
+level set makes a long hairpin.
 
 The legs run side by side in a *corridor* along one Tx candidate line, the *spine*: the candidate at
 ``corridor_turn`` of their angular order around the pole (or the nearest one that reaches the base
@@ -75,6 +77,8 @@ LEVEL_GRID = 257
 class TraceRingsParams(NodeParams):
     n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
     n_reseeded: int = Field(4, ge=0, description="of those, rings through the points farthest from the others (dead ends)")
+    level_spacing: Literal["tx_arc", "area"] = Field(
+        "tx_arc", description="the other rings equally far apart along the Tx lines, or bands of equal area between them")
     corridor_turn: float = Field(0.0, ge=0, lt=1, description="corridor centre as a fraction of the Tx candidates' angular order")
     legs: Literal["offset", "tx_lines"] = Field("offset", description="legs side by side along a spine Tx line, or along Tx lines")
     leg_spacing_mm: float = Field(LEG_SPACING_MM, gt=0, description="offset legs: distance between neighbouring legs (mm)")
@@ -187,6 +191,19 @@ class LevelSets:
         return self.cache[key]
 
 
+def area_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, n: int) -> np.ndarray:
+    """``n`` levels of ``u`` in decreasing order that cut the sensing region into bands of equal area
+    (mm^2, faces at their mean ``u``), half a band from either end: a ring near the pole, where the Tx
+    lines crowd, gets as much surface around it as one near the base. Faces where ``u`` is 1 at every
+    corner (enclosed by the base, where no ring reaches) are left out."""
+    face_u = u[tables.faces[sensing]].mean(axis=1)
+    reachable = face_u < 1.0 - 1e-9
+    order = np.argsort(face_u[reachable])
+    cumulative = np.cumsum(tables.areas[sensing][reachable][order])
+    targets = (np.arange(n)[::-1] + 0.5) / n * cumulative[-1]
+    return np.interp(targets, cumulative, face_u[reachable][order])
+
+
 def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.ndarray:
     """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
     level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
@@ -224,7 +241,8 @@ def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: Di
     n = min(params.n_rings, tx.count)
     n_even = max(n - params.n_reseeded, 1)
     u_sets = LevelSets(tables, u, sensing)
-    levels = reseeded_levels(u_sets, ring_levels(tx, u_rows, n_even), n - n_even)
+    even = ring_levels(tx, u_rows, n_even) if params.level_spacing == "tx_arc" else area_levels(tables, u, sensing, n_even)
+    levels = reseeded_levels(u_sets, even, n - n_even)
     make_legs = offset_legs if params.legs == "offset" else tx_line_legs
     legs = make_legs(params, u_sets, tx, u_rows, levels)
     all_legs = np.concatenate([resample_polyline(leg[0], 0.25) for leg in legs]) if legs else np.empty((0, 3))
@@ -254,7 +272,8 @@ def tx_line_leg(tx: CurveSet, u_rows: np.ndarray, c: int, level: float) -> tuple
     return np.vstack([point[None], tx.points[lo + j + 1 : hi]]), np.r_[tx.faces[lo + j : hi - 1], tx.faces[hi - 1]], j, point
 
 
-def tx_line_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
+def tx_line_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_rows: np.ndarray,
+                 levels: np.ndarray) -> list[tuple]:
     """Legs along consecutive Tx candidates of a corridor of ``n_rings`` centred at ``corridor_turn`` of
     their order, the levels decreasing along it in the rings' walking direction (pole on the right):
     ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
@@ -294,7 +313,8 @@ def offset_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_row
         nearer = next_offset[True] <= next_offset[False]
         for side in (nearer, not nearer):
             ring_points, ring_faces = ring_walk(*either_way(level_set, side), int(tx.faces[lo + j]), joint)
-            leg = offset_leg(u_sets.values, distance_sets, ring_points, ring_faces, next_offset[side] * params.leg_spacing_mm, level)
+            offset = next_offset[side] * params.leg_spacing_mm
+            leg = offset_leg(u_sets.values, distance_sets, ring_points, ring_faces, offset, level)
             if leg is not None:
                 leg_points, leg_faces, start = leg
                 legs.append((leg_points, leg_faces, np.vstack([leg_points[:1], ring_points[start:]]), ring_faces[start - 1 :], level, base))
