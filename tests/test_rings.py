@@ -8,7 +8,9 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.rings import TraceRingsParams, radial_function, ring_levels, row_values, spine, trace_rings
+from retrotouch.nodes.curves.rings import (LevelSets, TraceRingsParams, area_levels, radial_function, ring_levels, row_values, spine,
+                                          trace_rings)
+from retrotouch.nodes.curves.rx_seeding import zero_set
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.data.types import CurveEnd, CurveSet
 from retrotouch.nodes.geometry.mesh_tables import build_tables
@@ -167,3 +169,59 @@ def test_the_spine_is_the_nearest_tx_line_that_reaches_every_ring_level():
     assert spine(tx, u_rows, 0.0, np.array([0.9, 0.4, 0.1])) == 2  # line 0 stops at 0.5, line 1 is no base end
     assert spine(tx, u_rows, 0.0, np.array([0.4, 0.1])) == 0
     assert spine(tx, u_rows[[0, 1, 2, 3, 4, 4, 6, 7, 7]], 0.0, np.array([0.9])) is None
+
+
+def band_areas(mesh, regions, u, levels) -> np.ndarray:
+    """Areas (mm^2) of the sensing region between successive ``levels`` (decreasing) and beyond either
+    end, each vertex counted with a third of the area of its sensing faces that rings can reach (``u``
+    below 1 at a corner): an independent discretisation."""
+    tables = build_tables(mesh.vertices, mesh.faces)
+    faces = tables.faces[regions.sensing_faces]
+    reachable = u[faces].min(axis=1) < 1.0 - 1e-9
+    vertex_area = np.zeros(len(u))
+    np.add.at(vertex_area, faces[reachable].ravel(), np.repeat(tables.areas[regions.sensing_faces][reachable] / 3, 3))
+    return np.histogram(u, bins=np.r_[0.0, levels[::-1], 1.0], weights=vertex_area)[0]
+
+
+def test_area_levels_cut_the_region_into_bands_of_equal_area_with_fewer_rings_near_the_pole(families):
+    mesh, tx, tx_field, _, _, _, _ = families
+    regions = bunny()[1]
+    tables = build_tables(mesh.vertices, mesh.faces)
+    u = radial_function(tables, regions, tx_field.start_vertex)
+    levels = area_levels(tables, u, np.asarray(regions.sensing_faces, dtype=bool), 12)
+    assert np.all(np.diff(levels) < 0) and 0 < levels[-1] and levels[0] < 1
+    bands = band_areas(mesh, regions, u, levels)
+    inner = bands[1:-1]  # between rings: one share each; beyond the first and the last ring: half a share
+    np.testing.assert_allclose(inner, inner.mean(), rtol=0.1)
+    np.testing.assert_allclose(bands[[0, -1]], inner.mean() / 2, rtol=0.2)
+    # the Tx-arc spacing crowds its rings near the pole: its innermost band is far smaller
+    arc_levels = ring_levels(tx, row_values(tables, u, tx.faces, tx.bary), 12)
+    assert band_areas(mesh, regions, u, arc_levels)[1] < 0.5 * inner.mean()
+    assert arc_levels[-1] < levels[-1]
+
+
+def test_level_sets_are_computed_once_and_equal_the_zero_set(families):
+    mesh, _, tx_field, _, _, _, _ = families
+    regions = bunny()[1]
+    tables = build_tables(mesh.vertices, mesh.faces)
+    u = radial_function(tables, regions, tx_field.start_vertex)
+    sensing = np.asarray(regions.sensing_faces, dtype=bool)
+    u_sets = LevelSets(tables, u, sensing)
+    first = u_sets(0.5)
+    assert u_sets(np.float64(0.5)) is first  # cached, whatever the float type of the level
+    for cached, direct in zip(first, zero_set(tables, u - 0.5, sensing)):
+        np.testing.assert_array_equal(cached, direct)
+    assert len(first[0]) > 0 and not np.array_equal(u_sets(0.7)[1], first[1])
+
+
+def test_area_spaced_rings_are_legs_then_rings_like_the_default(families):
+    mesh, tx, tx_field, _, params, _, _ = families
+    regions = bunny()[1]
+    rings = trace_rings(params.model_copy(update={"level_spacing": "area"}), mesh, regions, tx_field, tx)["curves"]
+    assert rings.count >= 20 and np.all(rings.end_reason == int(CurveEnd.BASE))
+    u = ring_values(mesh, tx_field, rings)
+    for c in range(rings.count):
+        rows = u[rings.offsets[c] : rings.offsets[c + 1]]
+        ring = np.flatnonzero(np.abs(rows - rows[-1]) < 1e-6)
+        assert rows[0] == pytest.approx(1.0) and np.all(ring == np.arange(ring[0], len(rows)))
+        assert rows[: ring[0] + 1].min() >= rows[-1] - 1e-3

@@ -9,8 +9,10 @@ function with constant values on both boundaries of an annulus has no critical p
 level set is one closed curve around the pole, the level sets fill the whole region from the pole
 to the base, and no two of them meet. ``n_rings - n_reseeded`` levels ``c_k`` are spread so that,
 along the Tx lines (median over the candidates), neighbouring rings are equally far apart from the
-pole to the base; the others pass through the points farthest from the rings before them, which
-lie in dead ends (a second ear) where ``u`` barely changes and the level set makes a long hairpin.
+pole to the base (``level_spacing="area"``: so that the bands between them have equal area, fewer
+rings near the pole, where the Tx lines crowd); the others pass through the points farthest from
+the rings before them, which lie in dead ends (a second ear) where ``u`` barely changes and the
+level set makes a long hairpin.
 
 The legs run side by side in a *corridor* along one Tx candidate line, the *spine*: the candidate at
 ``corridor_turn`` of their angular order around the pole (or the nearest one that reaches the base
@@ -75,6 +77,8 @@ LEVEL_GRID = 257
 class TraceRingsParams(NodeParams):
     n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
     n_reseeded: int = Field(4, ge=0, description="of those, rings through the points farthest from the others (dead ends)")
+    level_spacing: Literal["tx_arc", "area"] = Field(
+        "tx_arc", description="the other rings equally far apart along the Tx lines, or bands of equal area between them")
     corridor_turn: float = Field(0.0, ge=0, lt=1, description="corridor centre as a fraction of the Tx candidates' angular order")
     legs: Literal["offset", "tx_lines"] = Field("offset", description="legs side by side along a spine Tx line, or along Tx lines")
     leg_spacing_mm: float = Field(LEG_SPACING_MM, gt=0, description="offset legs: distance between neighbouring legs (mm)")
@@ -173,32 +177,60 @@ def ring_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
     return np.interp(targets, along, grid)
 
 
-def reseeded_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, levels: np.ndarray, count: int) -> np.ndarray:
+class LevelSets:
+    """The chained level sets (:func:`zero_set`) of piecewise-linear vertex ``values`` inside the
+    ``sensing`` faces, each level computed once: ``level_sets(c)`` is ``values = c``."""
+
+    def __init__(self, tables: MeshTables, values: np.ndarray, sensing: np.ndarray):
+        self.tables, self.values, self.sensing, self.cache = tables, values, sensing, {}
+
+    def __call__(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = float(level)
+        if key not in self.cache:
+            self.cache[key] = zero_set(self.tables, self.values - key, self.sensing)
+        return self.cache[key]
+
+
+def area_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, n: int) -> np.ndarray:
+    """``n`` levels of ``u`` in decreasing order that cut the sensing region into bands of equal area
+    (mm^2, faces at their mean ``u``), half a band from either end: a ring near the pole, where the Tx
+    lines crowd, gets as much surface around it as one near the base. Faces where ``u`` is 1 at every
+    corner (enclosed by the base, where no ring reaches) are left out."""
+    face_u = u[tables.faces[sensing]].mean(axis=1)
+    reachable = face_u < 1.0 - 1e-9
+    order = np.argsort(face_u[reachable])
+    cumulative = np.cumsum(tables.areas[sensing][reachable][order])
+    targets = (np.arange(n)[::-1] + 0.5) / n * cumulative[-1]
+    return np.interp(targets, cumulative, face_u[reachable][order])
+
+
+def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.ndarray:
     """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
     level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
     ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own."""
-    vertices = np.unique(tables.faces[sensing])
+    tables, u = u_sets.tables, u_sets.values
+    vertices = np.unique(tables.faces[u_sets.sensing])
     nearest = np.full(len(vertices), np.inf)
     chosen = list(levels)
     for level in chosen:
-        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices))
+        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
     for _ in range(count):
         level = float(u[vertices[np.argmax(nearest)]])
         if not 0.0 < level < 1.0:
             break
         chosen.append(level)
-        nearest = np.minimum(nearest, level_distance(tables, u, sensing, level, vertices))
+        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
     return np.sort(np.asarray(chosen))[::-1]
 
 
-def level_distance(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, level: float, vertices: np.ndarray) -> np.ndarray:
-    """Distance (mm) of ``vertices`` from the level set ``u = level`` inside ``sensing`` (inf if empty)."""
+def level_distance(u_sets: LevelSets, level: float, points: np.ndarray) -> np.ndarray:
+    """Distance (mm) of ``points`` from the level set ``u = level`` (inf if it is empty)."""
     from scipy.spatial import cKDTree
 
-    _, p, q = zero_set(tables, u - level, sensing)
+    _, p, q = u_sets(level)
     if len(p) == 0:
-        return np.full(len(vertices), np.inf)
-    return cKDTree(np.vstack([p, q])).query(tables.vertices[vertices])[0]
+        return np.full(len(points), np.inf)
+    return cKDTree(np.vstack([p, q])).query(points)[0]
 
 
 def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: DirectionField, tx: CurveSet):
@@ -208,9 +240,11 @@ def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: Di
     u_rows = row_values(tables, u, tx.faces, tx.bary)
     n = min(params.n_rings, tx.count)
     n_even = max(n - params.n_reseeded, 1)
-    levels = reseeded_levels(tables, u, sensing, ring_levels(tx, u_rows, n_even), n - n_even)
+    u_sets = LevelSets(tables, u, sensing)
+    even = ring_levels(tx, u_rows, n_even) if params.level_spacing == "tx_arc" else area_levels(tables, u, sensing, n_even)
+    levels = reseeded_levels(u_sets, even, n - n_even)
     make_legs = offset_legs if params.legs == "offset" else tx_line_legs
-    legs = make_legs(params, tables, u, sensing, tx, u_rows, levels)
+    legs = make_legs(params, u_sets, tx, u_rows, levels)
     all_legs = np.concatenate([resample_polyline(leg[0], 0.25) for leg in legs]) if legs else np.empty((0, 3))
     rows, ends, kept = [], [], []
     for leg_points, leg_faces, ring_points, ring_faces, level, end in legs:
@@ -238,8 +272,8 @@ def tx_line_leg(tx: CurveSet, u_rows: np.ndarray, c: int, level: float) -> tuple
     return np.vstack([point[None], tx.points[lo + j + 1 : hi]]), np.r_[tx.faces[lo + j : hi - 1], tx.faces[hi - 1]], j, point
 
 
-def tx_line_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sensing: np.ndarray, tx: CurveSet,
-                 u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
+def tx_line_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_rows: np.ndarray,
+                 levels: np.ndarray) -> list[tuple]:
     """Legs along consecutive Tx candidates of a corridor of ``n_rings`` centred at ``corridor_turn`` of
     their order, the levels decreasing along it in the rings' walking direction (pole on the right):
     ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
@@ -251,13 +285,12 @@ def tx_line_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, se
         if leg is None:
             continue
         leg_points, leg_faces, j, joint = leg
-        ring_points, ring_faces = ring_walk(*zero_set(tables, u - level, sensing), int(tx.faces[tx.offsets[c] + j]), joint)
+        ring_points, ring_faces = ring_walk(*u_sets(level), int(tx.faces[tx.offsets[c] + j]), joint)
         legs.append((leg_points, leg_faces, ring_points, ring_faces, level, int(tx.end_reason[c])))
     return legs
 
 
-def offset_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sensing: np.ndarray, tx: CurveSet,
-                u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
+def offset_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_rows: np.ndarray, levels: np.ndarray) -> list[tuple]:
     """Legs side by side along the spine (see the module docstring), from the innermost ring out:
     ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
     from scipy.spatial import cKDTree
@@ -266,19 +299,22 @@ def offset_legs(params: TraceRingsParams, tables: MeshTables, u: np.ndarray, sen
     if c is None:
         return []
     lo, hi = int(tx.offsets[c]), int(tx.offsets[c + 1])
+    tables = u_sets.tables
     distance = cKDTree(resample_polyline(tx.points[lo:hi], 0.25)).query(tables.vertices)[0]
+    distance_sets = LevelSets(tables, distance, u_sets.sensing)
     base = int(CurveEnd.BASE)
     legs, next_offset = [], {True: 1, False: 1}  # per side (True: the pole on the ring's right), in spacings
     for level in levels[::-1]:
         spine_points, spine_faces, j, joint = tx_line_leg(tx, u_rows, c, level)
-        level_set = zero_set(tables, u - level, sensing)
+        level_set = u_sets(level)
         if not legs:  # the innermost ring's leg is the spine
             legs.append((spine_points, spine_faces, *ring_walk(*level_set, int(tx.faces[lo + j]), joint), level, base))
             continue
         nearer = next_offset[True] <= next_offset[False]
         for side in (nearer, not nearer):
             ring_points, ring_faces = ring_walk(*either_way(level_set, side), int(tx.faces[lo + j]), joint)
-            leg = offset_leg(tables, u, distance, sensing, ring_points, ring_faces, next_offset[side] * params.leg_spacing_mm, level)
+            offset = next_offset[side] * params.leg_spacing_mm
+            leg = offset_leg(u_sets.values, distance_sets, ring_points, ring_faces, offset, level)
             if leg is not None:
                 leg_points, leg_faces, start = leg
                 legs.append((leg_points, leg_faces, np.vstack([leg_points[:1], ring_points[start:]]), ring_faces[start - 1 :], level, base))
@@ -293,13 +329,14 @@ def either_way(chain: tuple[np.ndarray, np.ndarray, np.ndarray], forward: bool) 
     return (faces, p, q) if forward else (faces[::-1], q[::-1], p[::-1])
 
 
-def offset_leg(tables: MeshTables, u: np.ndarray, distance: np.ndarray, sensing: np.ndarray, ring_points: np.ndarray,
-               ring_faces: np.ndarray, offset: float, level: float) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """The leg at ``offset`` (mm) from the spine for the ring walked from the spine (``ring_points``,
-    ``ring_faces``): (leg points from the ring to the base, the face of the segment each starts, the
+def offset_leg(u: np.ndarray, distance_sets: LevelSets, ring_points: np.ndarray, ring_faces: np.ndarray, offset: float,
+               level: float) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The leg at ``offset`` (mm) from the spine (``distance_sets``: level sets of the distance from it)
+    for the ring walked from the spine (``ring_points``, ``ring_faces``): (leg points from the ring to the base, the face of the segment each starts, the
     first ring row past the leg's start), or None if the ring never gets that far from the spine or
     the level set ``distance = offset`` from there does not run down to the base without coming back
     nearer the pole than the ring."""
+    tables, distance = distance_sets.tables, distance_sets.values
     d_ring = row_values(tables, distance, ring_faces, np.clip(tables.bary_of_points(ring_faces, ring_points), 0.0, 1.0))
     past = np.flatnonzero(d_ring >= offset)
     if len(past) == 0 or past[0] == 0:
@@ -307,7 +344,7 @@ def offset_leg(tables: MeshTables, u: np.ndarray, distance: np.ndarray, sensing:
     i = int(past[0])
     t = (offset - d_ring[i - 1]) / (d_ring[i] - d_ring[i - 1])
     start = ring_points[i - 1] + t * (ring_points[i] - ring_points[i - 1])
-    chain = zero_set(tables, distance - offset, sensing)
+    chain = distance_sets(offset)
     best = None
     for forward in (True, False):
         points, faces = ring_walk(*either_way(chain, forward), int(ring_faces[i - 1]), start)
