@@ -332,10 +332,10 @@ def either_way(chain: tuple[np.ndarray, np.ndarray, np.ndarray], forward: bool) 
 def offset_leg(u: np.ndarray, distance_sets: LevelSets, ring_points: np.ndarray, ring_faces: np.ndarray, offset: float,
                level: float) -> tuple[np.ndarray, np.ndarray, int] | None:
     """The leg at ``offset`` (mm) from the spine (``distance_sets``: level sets of the distance from it)
-    for the ring walked from the spine (``ring_points``, ``ring_faces``): (leg points from the ring to the base, the face of the segment each starts, the
-    first ring row past the leg's start), or None if the ring never gets that far from the spine or
-    the level set ``distance = offset`` from there does not run down to the base without coming back
-    nearer the pole than the ring."""
+    for the ring walked from the spine (``ring_points``, ``ring_faces``): (leg points from the ring to
+    the base, the face of the segment each starts, the first ring row past the leg's start), or None
+    if the ring never gets that far from the spine or the level set ``distance = offset`` from there
+    does not run down to the base without coming back nearer the pole than the ring."""
     tables, distance = distance_sets.tables, distance_sets.values
     d_ring = row_values(tables, distance, ring_faces, np.clip(tables.bary_of_points(ring_faces, ring_points), 0.0, 1.0))
     past = np.flatnonzero(d_ring >= offset)

@@ -118,7 +118,8 @@ def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     from ortools.sat.python import cp_model
 
     cp, var = cpsat_model(model, cost, hint)
-    solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"], settings.get("relative_gap", 0.0))
+    solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"],
+                                  settings.get("relative_gap", 0.0))
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     values = np.asarray(solver.response_proto.solution, dtype=np.int64)[var] if has else None
