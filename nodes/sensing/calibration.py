@@ -36,6 +36,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams
 from ..data.board import default_coupling_width_mm
 from ..data.sensing_map import SensingMap
+from .crossing_positions import locate_crossings, relocated_map
 from .processing import FrameResult, ProcessingParams, TouchProcessor
 
 CALIBRATION_FORMAT = "retrotouch.sensing_calibration/1"
@@ -50,6 +51,7 @@ class CalibParams(NodeParams):
     min_frames: int = Field(3, ge=1, description="frames a touch must last after settling to count")
     reach_pitch: float = Field(1.2, gt=0, description="a touch counts for a crossing within this many pitches")
     width_snr: float = Field(6.0, gt=0, description="a neighbour enters the width estimate above this many noise sigmas")
+    locate_crossings: bool = Field(True, description="estimate where each crossing really is (crossing_positions.py)")
 
 
 def layout_key(sensing_map: SensingMap) -> str:
@@ -71,6 +73,8 @@ class Calibration:
     finger_radius_mm: float
     touches: int
     layout: str  # layout_key of the sensing map
+    cell_points: np.ndarray | None = None  # (K, 3) mm, where the crossings really are (None: the map's)
+    map_points: np.ndarray | None = None  # (K, 3) mm, the map's crossings (to report how far they moved)
 
     def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
         """A touch processor that uses this calibration instead of the default assumptions."""
@@ -79,18 +83,26 @@ class Calibration:
                             "run `retrotouch sense --calibrate` on this layout")
         tuned = params.model_copy(update={"no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
                                           "finger_radius_mm": self.finger_radius_mm})
+        if self.cell_points is not None:
+            sensing_map = relocated_map(sensing_map, self.cell_points)
         return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
 
     def summary(self) -> dict[str, Any]:
         gains = self.cell_gain[self.measured]
+        moved = (None if self.cell_points is None or self.map_points is None
+                 else np.linalg.norm(self.cell_points - self.map_points, axis=1))
         return {"touches": self.touches, "crossings_measured": int(self.measured.sum()),
+                "crossings_moved_mm_median": None if moved is None else round(float(np.median(moved)), 3),
+                "crossings_moved_mm_max": None if moved is None else round(float(np.max(moved)), 3),
                 "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
                 "finger_radius_mm": round(self.finger_radius_mm, 3),
                 "cell_gain_spread": round(float(np.std(np.log(gains))), 4) if len(gains) > 1 else None}
 
     def save(self, path: str | Path) -> None:
         doc = {"format": CALIBRATION_FORMAT, "layout": self.layout, "units": "mm", **self.summary(),
-               "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist()}
+               "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist(),
+               "cell_points": None if self.cell_points is None else np.round(self.cell_points, 4).tolist(),
+               "map_points": None if self.map_points is None else np.round(self.map_points, 4).tolist()}
         Path(path).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
 
@@ -108,8 +120,12 @@ def load_calibration(path: str | Path) -> Calibration:
         gains, measured = np.array(doc["cell_gain"], dtype=np.float64), np.array(doc["measured"], dtype=bool)
         if gains.shape != measured.shape or not np.all(np.isfinite(gains) & (gains > 0)):
             raise ValueError("cell_gain")
+        points, map_points = (None if doc.get(key) is None else np.array(doc[key], dtype=np.float64).reshape(-1, 3)
+                              for key in ("cell_points", "map_points"))
+        if points is not None and (len(points) != len(gains) or not np.all(np.isfinite(points))):
+            raise ValueError("cell_points")
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
-                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]))
+                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points)
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
 
@@ -217,7 +233,11 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     else:
         width, radius = None, defaults.finger_radius_mm
     width = width or default_coupling_width_mm(radius, pitch)
-    return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map))
+    points = None
+    if params.locate_crossings:
+        points = locate_crossings(sensing_map, records, sigma, gain, width).points
+    return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
+                       sensing_map.cell_points.copy())
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),
