@@ -13,11 +13,18 @@ touches estimates what the processing otherwise assumes:
   radius follows from ``s = sqrt(r_f^2 + (pitch/2)^2)``.
 
 The operator touches the crossings as they are on the object (where the traces cross), never the
-evaluation's locations. A touch counts for the crossing it is prompted for when the processing puts
-it within ``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator
-skipped some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the
-board yet, so a tighter reach turns away most touches of a layout whose median pitch is small)
-and it stays down for ``min_frames`` frames after ``settle_ms``. The result is a versioned JSON
+evaluation's locations. A touch that stays down for ``min_frames`` frames after ``settle_ms`` counts,
+when it lifts, for the crossing it is prompted for when the processing puts its mean point within
+``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator skipped
+some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the board
+yet, so a tighter reach turns away most touches of a layout whose median pitch is small), else
+for the one of them that was its peak crossing most often (at a layout's edge the uncalibrated
+processing can put a touch on a crossing 10 mm off).
+
+* **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
+  crossing's position on the surface, with its gain and the coupling profile, to all touches; the
+  processing then uses these points instead of the map's, and the fitted gains of the measured
+  crossings (relative to the median padded one) replace the touched deltas' ratios above. The result is a versioned JSON
 file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
 """
 from __future__ import annotations
@@ -155,8 +162,8 @@ class CalibrationSession:
         self.records: list[tuple[int, np.ndarray]] = []  # (crossing, mean delta (K,) counts)
         self.next = 0  # index into targets
         self.skipped = 0
-        self._touch: tuple[int, int, float] | None = None  # (target index, touch id, touch-down t)
-        self._sum, self._frames = np.zeros(sensing_map.cell_count), 0
+        self._touch: tuple[int, float] | None = None  # (touch id, touch-down t)
+        self._sum, self._point_sum, self._peaks, self._frames = np.zeros(sensing_map.cell_count), np.zeros(3), [], 0
         self._prompt_next()
 
     @property
@@ -175,31 +182,47 @@ class CalibrationSession:
         if self._touch is None:
             self._start(result)
             return
-        index, touch_id, t_down = self._touch
-        if any(touch.id == touch_id for touch in result.touches):
+        touch_id, t_down = self._touch
+        mine = [touch for touch in result.touches if touch.id == touch_id]
+        if mine:
             if result.t - t_down >= self.params.settle_ms / 1000:
                 self._sum += result.delta
+                self._point_sum += mine[0].point
+                self._peaks.append(mine[0].peak_cell)
                 self._frames += 1
             return
-        if self._frames >= self.params.min_frames:
-            self.records.append((int(self.targets[index]), self._sum / self._frames))
-            self.skipped += index - self.next
-            self.next = index + 1
-            self._prompt_next()
-        else:
+        if self._frames < self.params.min_frames:
             self.prompt("that touch was too short: touch the same crossing again and hold it")
-        self._touch, self._sum, self._frames = None, np.zeros(self.map.cell_count), 0
+        else:
+            index = self._target(self._point_sum / self._frames, self._peaks)
+            if index is None:
+                self.prompt("that touch was not on the prompted crossing: touch it again and hold it")
+            else:
+                self.records.append((int(self.targets[index]), self._sum / self._frames))
+                self.skipped += index - self.next
+                self.next = index + 1
+                self._prompt_next()
+        self._touch, self._sum, self._point_sum, self._peaks, self._frames = None, np.zeros(self.map.cell_count), np.zeros(3), [], 0
 
     def _start(self, result: FrameResult) -> None:
-        """A touch-down near the prompted crossing (or one of the next few) starts a calibration touch."""
-        ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
+        """A touch-down starts a candidate calibration touch (its target is decided when it lifts)."""
         for event in result.events:
-            if event["type"] != "touch_down":
-                continue
-            distance = np.linalg.norm(self.map.cell_points[ahead] - np.array(event["point"]), axis=1)
-            if distance.min() <= self.reach:
-                self._touch = (self.next + int(np.argmin(distance)), event["id"], result.t)
+            if event["type"] == "touch_down":
+                self._touch = (event["id"], result.t)
                 return
+
+    def _target(self, point: np.ndarray, peaks: list[int]) -> int | None:
+        """Index into the targets of the crossing a settled touch was on: the prompted one or one of
+        the next few, the nearest to the touch's mean point (mm) within reach, else the one that was
+        the touch's peak crossing most often (the processing does not know the board yet and may
+        place a touch at the layout's edge far off); None when neither."""
+        ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
+        distance = np.linalg.norm(self.map.cell_points[ahead] - point, axis=1)
+        if distance.min() <= self.reach:
+            return self.next + int(np.argmin(distance))
+        peak = int(np.bincount(peaks).argmax())
+        hits = np.flatnonzero(ahead == peak)
+        return self.next + int(hits[0]) if len(hits) else None
 
 
 def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
@@ -235,7 +258,11 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     width = width or default_coupling_width_mm(radius, pitch)
     points = None
     if params.locate_crossings:
-        points = locate_crossings(sensing_map, records, sigma, gain, width).points
+        located = locate_crossings(sensing_map, records, sigma, gain, width)
+        points = located.points
+        fitted = np.exp(located.log_gain)  # free of the aim errors and displacements the touched deltas carry
+        fitted /= float(np.median(fitted[measured & pad] if np.any(measured & pad) else fitted[measured]))
+        gain = np.where(measured, fitted, gain)
     return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
                        sensing_map.cell_points.copy())
 
