@@ -23,8 +23,7 @@ processing can put a touch on a crossing 10 mm off).
 
 * **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
   crossing's position on the surface, with its gain and the coupling profile, to all touches; the
-  processing then uses these points instead of the map's, and the fitted gains of the measured
-  crossings (relative to the median padded one) replace the touched deltas' ratios above. The result is a versioned JSON
+  processing then uses these points instead of the map's (the gains stay the ratios above). The result is a versioned JSON
 file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
 """
 from __future__ import annotations
@@ -258,11 +257,7 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     width = width or default_coupling_width_mm(radius, pitch)
     points = None
     if params.locate_crossings:
-        located = locate_crossings(sensing_map, records, sigma, gain, width)
-        points = located.points
-        fitted = np.exp(located.log_gain)  # free of the aim errors and displacements the touched deltas carry
-        fitted /= float(np.median(fitted[measured & pad] if np.any(measured & pad) else fitted[measured]))
-        gain = np.where(measured, fitted, gain)
+        points = locate_crossings(sensing_map, records, sigma, gain, width).points
     return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
                        sensing_map.cell_points.copy())
 

@@ -59,7 +59,7 @@ def profile(squared: np.ndarray, width: float, tail: float) -> np.ndarray:
 
 def locate_crossings(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
                      gain: np.ndarray, width_mm: float, placement_sigma_mm: float = 3.0,
-                     aim_sigma_mm: float = 1.0, reach_pitch: float = 2.5) -> CrossingFit:
+                     aim_sigma_mm: float = 1.0, reach_pitch: float = 3.0) -> CrossingFit:
     """The joint fit of the module docstring over ``records`` ((touched crossing, mean delta (K,)
     counts) per calibration touch), ``sigma`` (K,) noise sigma (counts), starting from ``gain`` (K,)
     and the Gaussian width ``width_mm``."""
