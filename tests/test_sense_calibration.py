@@ -52,7 +52,7 @@ def test_estimate_recovers_gains_no_pad_gain_and_width_from_noise_free_touches(b
     for cell in range(sensing_map.cell_count):
         d2 = np.sum((points - points[cell]) ** 2, axis=1)
         records.append((cell, 300.0 * gain * np.exp(-d2 / (2 * width**2))))
-    result = estimate(sensing_map, records, np.full(sensing_map.cell_count, 1.0))
+    result = estimate(sensing_map, records, np.full(sensing_map.cell_count, 1.0), CalibParams(locate_crossings=False))
     reference = np.median(gain[pad])
     assert np.allclose(result.cell_gain, gain / reference, rtol=1e-6)
     assert result.no_pad_gain == pytest.approx(np.median(gain[~pad]) / reference, rel=1e-6)
@@ -95,6 +95,8 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     loaded = load_calibration(path)
     assert json.loads(path.read_text())["format"] == "retrotouch.sensing_calibration/1"
     assert np.allclose(loaded.cell_gain, calibration.cell_gain, atol=1e-5) and loaded.layout == calibration.layout
+    assert np.allclose(loaded.cell_points, calibration.cell_points, atol=1e-4)
+    assert loaded.summary()["crossings_moved_mm_median"] == calibration.summary()["crossings_moved_mm_median"]
     loaded.processor(sensing_map)
     other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))
     with pytest.raises(UserError, match="another layout"):
@@ -104,6 +106,10 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     (tmp_path / "bad.json").write_text('{"format": "retrotouch.sensing_calibration/1", "cell_gain": [1, -2]}')
     with pytest.raises(UserError, match="malformed"):
         load_calibration(tmp_path / "bad.json")
+    doc = json.loads(path.read_text())
+    (tmp_path / "short.json").write_text(json.dumps({**doc, "cell_points": doc["cell_points"][:-1]}))
+    with pytest.raises(UserError, match="malformed"):
+        load_calibration(tmp_path / "short.json")
 
 
 def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_path):

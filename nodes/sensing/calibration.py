@@ -13,11 +13,17 @@ touches estimates what the processing otherwise assumes:
   radius follows from ``s = sqrt(r_f^2 + (pitch/2)^2)``.
 
 The operator touches the crossings as they are on the object (where the traces cross), never the
-evaluation's locations. A touch counts for the crossing it is prompted for when the processing puts
-it within ``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator
-skipped some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the
-board yet, so a tighter reach turns away most touches of a layout whose median pitch is small)
-and it stays down for ``min_frames`` frames after ``settle_ms``. The result is a versioned JSON
+evaluation's locations. A touch that stays down for ``min_frames`` frames after ``settle_ms`` counts,
+when it lifts, for the crossing it is prompted for when the processing puts its mean point within
+``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator skipped
+some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the board
+yet, so a tighter reach turns away most touches of a layout whose median pitch is small), else
+for the one of them that was its peak crossing most often (at a layout's edge the uncalibrated
+processing can put a touch on a crossing 10 mm off).
+
+* **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
+  crossing's position on the surface, with its gain and the coupling profile, to all touches; the
+  processing then uses these points instead of the map's (the gains stay the ratios above). The result is a versioned JSON
 file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
 """
 from __future__ import annotations
@@ -36,6 +42,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams
 from ..data.board import default_coupling_width_mm
 from ..data.sensing_map import SensingMap
+from .crossing_positions import locate_crossings, relocated_map
 from .processing import FrameResult, ProcessingParams, TouchProcessor
 
 CALIBRATION_FORMAT = "retrotouch.sensing_calibration/1"
@@ -50,6 +57,7 @@ class CalibParams(NodeParams):
     min_frames: int = Field(3, ge=1, description="frames a touch must last after settling to count")
     reach_pitch: float = Field(1.2, gt=0, description="a touch counts for a crossing within this many pitches")
     width_snr: float = Field(6.0, gt=0, description="a neighbour enters the width estimate above this many noise sigmas")
+    locate_crossings: bool = Field(True, description="estimate where each crossing really is (crossing_positions.py)")
 
 
 def layout_key(sensing_map: SensingMap) -> str:
@@ -71,6 +79,8 @@ class Calibration:
     finger_radius_mm: float
     touches: int
     layout: str  # layout_key of the sensing map
+    cell_points: np.ndarray | None = None  # (K, 3) mm, where the crossings really are (None: the map's)
+    map_points: np.ndarray | None = None  # (K, 3) mm, the map's crossings (to report how far they moved)
 
     def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
         """A touch processor that uses this calibration instead of the default assumptions."""
@@ -79,18 +89,26 @@ class Calibration:
                             "run `retrotouch sense --calibrate` on this layout")
         tuned = params.model_copy(update={"no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
                                           "finger_radius_mm": self.finger_radius_mm})
+        if self.cell_points is not None:
+            sensing_map = relocated_map(sensing_map, self.cell_points)
         return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
 
     def summary(self) -> dict[str, Any]:
         gains = self.cell_gain[self.measured]
+        moved = (None if self.cell_points is None or self.map_points is None
+                 else np.linalg.norm(self.cell_points - self.map_points, axis=1))
         return {"touches": self.touches, "crossings_measured": int(self.measured.sum()),
+                "crossings_moved_mm_median": None if moved is None else round(float(np.median(moved)), 3),
+                "crossings_moved_mm_max": None if moved is None else round(float(np.max(moved)), 3),
                 "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
                 "finger_radius_mm": round(self.finger_radius_mm, 3),
                 "cell_gain_spread": round(float(np.std(np.log(gains))), 4) if len(gains) > 1 else None}
 
     def save(self, path: str | Path) -> None:
         doc = {"format": CALIBRATION_FORMAT, "layout": self.layout, "units": "mm", **self.summary(),
-               "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist()}
+               "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist(),
+               "cell_points": None if self.cell_points is None else np.round(self.cell_points, 4).tolist(),
+               "map_points": None if self.map_points is None else np.round(self.map_points, 4).tolist()}
         Path(path).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
 
@@ -108,8 +126,12 @@ def load_calibration(path: str | Path) -> Calibration:
         gains, measured = np.array(doc["cell_gain"], dtype=np.float64), np.array(doc["measured"], dtype=bool)
         if gains.shape != measured.shape or not np.all(np.isfinite(gains) & (gains > 0)):
             raise ValueError("cell_gain")
+        points, map_points = (None if doc.get(key) is None else np.array(doc[key], dtype=np.float64).reshape(-1, 3)
+                              for key in ("cell_points", "map_points"))
+        if points is not None and (len(points) != len(gains) or not np.all(np.isfinite(points))):
+            raise ValueError("cell_points")
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
-                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]))
+                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points)
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
 
@@ -139,8 +161,8 @@ class CalibrationSession:
         self.records: list[tuple[int, np.ndarray]] = []  # (crossing, mean delta (K,) counts)
         self.next = 0  # index into targets
         self.skipped = 0
-        self._touch: tuple[int, int, float] | None = None  # (target index, touch id, touch-down t)
-        self._sum, self._frames = np.zeros(sensing_map.cell_count), 0
+        self._touch: tuple[int, float] | None = None  # (touch id, touch-down t)
+        self._sum, self._point_sum, self._peaks, self._frames = np.zeros(sensing_map.cell_count), np.zeros(3), [], 0
         self._prompt_next()
 
     @property
@@ -159,31 +181,47 @@ class CalibrationSession:
         if self._touch is None:
             self._start(result)
             return
-        index, touch_id, t_down = self._touch
-        if any(touch.id == touch_id for touch in result.touches):
+        touch_id, t_down = self._touch
+        mine = [touch for touch in result.touches if touch.id == touch_id]
+        if mine:
             if result.t - t_down >= self.params.settle_ms / 1000:
                 self._sum += result.delta
+                self._point_sum += mine[0].point
+                self._peaks.append(mine[0].peak_cell)
                 self._frames += 1
             return
-        if self._frames >= self.params.min_frames:
-            self.records.append((int(self.targets[index]), self._sum / self._frames))
-            self.skipped += index - self.next
-            self.next = index + 1
-            self._prompt_next()
-        else:
+        if self._frames < self.params.min_frames:
             self.prompt("that touch was too short: touch the same crossing again and hold it")
-        self._touch, self._sum, self._frames = None, np.zeros(self.map.cell_count), 0
+        else:
+            index = self._target(self._point_sum / self._frames, self._peaks)
+            if index is None:
+                self.prompt("that touch was not on the prompted crossing: touch it again and hold it")
+            else:
+                self.records.append((int(self.targets[index]), self._sum / self._frames))
+                self.skipped += index - self.next
+                self.next = index + 1
+                self._prompt_next()
+        self._touch, self._sum, self._point_sum, self._peaks, self._frames = None, np.zeros(self.map.cell_count), np.zeros(3), [], 0
 
     def _start(self, result: FrameResult) -> None:
-        """A touch-down near the prompted crossing (or one of the next few) starts a calibration touch."""
-        ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
+        """A touch-down starts a candidate calibration touch (its target is decided when it lifts)."""
         for event in result.events:
-            if event["type"] != "touch_down":
-                continue
-            distance = np.linalg.norm(self.map.cell_points[ahead] - np.array(event["point"]), axis=1)
-            if distance.min() <= self.reach:
-                self._touch = (self.next + int(np.argmin(distance)), event["id"], result.t)
+            if event["type"] == "touch_down":
+                self._touch = (event["id"], result.t)
                 return
+
+    def _target(self, point: np.ndarray, peaks: list[int]) -> int | None:
+        """Index into the targets of the crossing a settled touch was on: the prompted one or one of
+        the next few, the nearest to the touch's mean point (mm) within reach, else the one that was
+        the touch's peak crossing most often (the processing does not know the board yet and may
+        place a touch at the layout's edge far off); None when neither."""
+        ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
+        distance = np.linalg.norm(self.map.cell_points[ahead] - point, axis=1)
+        if distance.min() <= self.reach:
+            return self.next + int(np.argmin(distance))
+        peak = int(np.bincount(peaks).argmax())
+        hits = np.flatnonzero(ahead == peak)
+        return self.next + int(hits[0]) if len(hits) else None
 
 
 def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
@@ -217,7 +255,11 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     else:
         width, radius = None, defaults.finger_radius_mm
     width = width or default_coupling_width_mm(radius, pitch)
-    return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map))
+    points = None
+    if params.locate_crossings:
+        points = locate_crossings(sensing_map, records, sigma, gain, width).points
+    return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
+                       sensing_map.cell_points.copy())
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),
