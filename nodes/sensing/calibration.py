@@ -23,8 +23,10 @@ processing can put a touch on a crossing 10 mm off).
 
 * **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
   crossing's position on the surface, with its gain and the coupling profile, to all touches; the
-  processing then uses these points instead of the map's (the gains stay the ratios above). The result is a versioned JSON
-file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by ``sense --calibration FILE``.
+  processing then uses these points instead of the map's (the gains stay the ratios above).
+
+The result is a versioned JSON file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by
+``sense --calibration FILE``.
 """
 from __future__ import annotations
 
@@ -201,7 +203,8 @@ class CalibrationSession:
                 self.skipped += index - self.next
                 self.next = index + 1
                 self._prompt_next()
-        self._touch, self._sum, self._point_sum, self._peaks, self._frames = None, np.zeros(self.map.cell_count), np.zeros(3), [], 0
+        self._touch, self._sum, self._point_sum, self._peaks = None, np.zeros(self.map.cell_count), np.zeros(3), []
+        self._frames = 0
 
     def _start(self, result: FrameResult) -> None:
         """A touch-down starts a candidate calibration touch (its target is decided when it lifts)."""
