@@ -8,8 +8,8 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.rings import (LevelSets, TraceRingsParams, area_levels, radial_function, ring_levels, row_values, spine,
-                                          trace_rings)
+from retrotouch.nodes.curves.rings import (LevelSets, TraceRingsParams, area_levels, radial_function, ring_levels,
+                                          row_values, spine, trace_rings)
 from retrotouch.nodes.curves.rx_seeding import zero_set
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.data.types import CurveEnd, CurveSet
