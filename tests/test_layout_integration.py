@@ -93,6 +93,21 @@ def test_bunny_sensing_map(bunny_run):
     assert doc["tx_channels"] == picked["layout"].tx.count
 
 
+def test_a_branch_whose_crossings_all_go_with_the_trimming_fails_alone(bunny_run, monkeypatch):
+    """When trimming the selected curves where they crowd takes every crossing (a thin object's branch),
+    that branch reports why and the sweep goes on with the others: no crash of the whole run."""
+    import retrotouch.nodes.layout.sweep as sweep
+
+    mesh, tx, rx, cross, params, candidate, regions = bunny_run
+    monkeypatch.setattr(sweep, "_free_end_trims", lambda params, samples, curves, selected, bound: np.diff(curves.offsets))
+    samples = surface_samples(SamplesParams(count=150), mesh, regions)
+    failed = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    assert not failed.feasible and failed.layout is None and "no Tx/Rx crossing is left" in failed.message
+    picked = pick_best(PickParams(print_table=False), [failed, candidate])
+    assert picked["layout"] is candidate.layout
+    assert picked["metrics"]["angles"][0]["note"].startswith("failed: no Tx/Rx crossing is left")
+
+
 def test_relaxed_pad_radius_travels_with_the_layout(bunny_run):
     from retrotouch.nodes.fab.unfold import Params as UnfoldParams, unfold
 

@@ -368,6 +368,11 @@ def optimize(
         rx_segments = np.diff(rx.offsets)[problem.cross_rx[active]] - 1  # segments per Rx candidate
         active = active[(tx_rx.seg_a[rows] >= tx_first[problem.cross_tx[active]])
                         & (tx_rx.seg_b[rows] < rx_segments - rx_last[problem.cross_rx[active]])]
+    if len(active) == 0:
+        message = ("no Tx/Rx crossing is left once the selected curves are trimmed where they come closer "
+                   "than trace width + clearance: this branch has no layout (the other branches still count)")
+        return AngleLayout(rx.family, angle_deg, False, message, None, {**base, "feasible": False, "message": message,
+                                                                         "phase1": selection.report})
     active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
