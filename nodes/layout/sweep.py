@@ -327,6 +327,11 @@ def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fiel
     }
 
 
+def _failed(rx: CurveSet, angle_deg: float, base: dict, message: str, **report) -> AngleLayout:
+    """A branch without a layout: ``message`` says why; ``base`` and ``report`` go into its metrics."""
+    return AngleLayout(rx.family, angle_deg, False, message, None, {**base, "feasible": False, "message": message, **report})
+
+
 @node(
     "layout.optimize",
     params=OptimizeParams,
@@ -356,7 +361,7 @@ def optimize(
                                   params.max_model_memberships, params.secondary_power, params.solver,
                                   params.highs_max_nodes, params.relative_gap)
     except UserError as exc:
-        return AngleLayout(rx.family, angle_deg, False, str(exc), None, {**base, "feasible": False, "message": str(exc)})
+        return _failed(rx, angle_deg, base, str(exc))
 
     active = selection.active
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
@@ -371,8 +376,7 @@ def optimize(
     if len(active) == 0:
         message = ("no Tx/Rx crossing is left once the selected curves are trimmed where they come closer "
                    "than trace width + clearance: this branch has no layout (the other branches still count)")
-        return AngleLayout(rx.family, angle_deg, False, message, None, {**base, "feasible": False, "message": message,
-                                                                         "phase1": selection.report})
+        return _failed(rx, angle_deg, base, message, phase1=selection.report)
     active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
@@ -381,9 +385,7 @@ def optimize(
     if not pads.feasible:
         message = (f"no pad placement even with pad radius {pad_radius:g} mm and fewer curves: lower "
                    f"min_pads_per_curve or d_min_mm, or add smaller relax_pad_radii_mm")
-        return AngleLayout(rx.family, angle_deg, False, message, None,
-                           {**base, "feasible": False, "message": message, "relaxations": relaxations,
-                            "phase1": selection.report, "phase2": pads.report})
+        return _failed(rx, angle_deg, base, message, relaxations=relaxations, phase1=selection.report, phase2=pads.report)
 
     design = {"pad_radius_mm": float(pad_radius), "d_min_mm": float(d_min_for(params, pad_radius)),
               "trace_width_mm": params.trace_width_mm, "clearance_mm": params.clearance_mm}
