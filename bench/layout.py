@@ -8,8 +8,10 @@ each with ``curves.crossings`` (``--family dipole`` or ``rings``: one family onl
 functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
-fields, shared by all branches) + ``layout.optimize`` for the 13 branches on ``--jobs`` processes
-(joblib/loky; each process factorises the heat operators once) + ``layout.pick_best``. The sweep is
+fields, shared by all branches) + ``layout.coverage`` for the 13 branches on ``--jobs`` processes
+(joblib/loky; each process factorises the heat operators once) + ``layout.screen`` (default
+parameters; ``--no-screen`` finishes every branch) + ``layout.finish`` the same way +
+``layout.pick_best``; ``branches_finished`` says how many the screen kept. The sweep is
 run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``; skipped with
 ``--no-ablation``).
 ``voronoi_cv_fps_all_candidates`` is a reference for what the curve families allow: as many pads
@@ -32,7 +34,7 @@ branches, and how many stages ended on the same objective (then the seconds comp
 same objective): ``phase1_seconds_by_solver``, ``phase1_gap_by_solver``, ``phase1_same_objective``.
 
 Prints the per-angle table; the LAST line is one JSON object. Usage:
-``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z] [--no-ablation]``.
+``python bench/layout.py [--mesh PATH] [--vertices 20000] [--jobs 2] [--up-axis +z] [--no-ablation] [--no-screen]``.
 """
 from __future__ import annotations
 
@@ -43,13 +45,15 @@ import time
 import numpy as np
 from joblib import Parallel, delayed
 
+from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.curves.connection import ConnectionParams, connection
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.problem import candidate_crossings
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
 from retrotouch.nodes.layout.pick import PickParams, pick_best
 from retrotouch.nodes.layout.selection import select_curves
-from retrotouch.nodes.layout.sweep import OptimizeParams, optimize, selection_problem
+from retrotouch.nodes.layout.screen import ScreenParams, screen
+from retrotouch.nodes.layout.sweep import OptimizeParams, coverage, finish, selection_problem
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -84,12 +88,17 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "b
     return mesh, regions, tx, branches
 
 
-def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int):
+def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screened: bool = True):
     start = time.perf_counter()
     samples = surface_samples(SamplesParams(), mesh, regions)
     samples_s = time.perf_counter() - start
+    starts = Parallel(n_jobs=jobs)(
+        delayed(coverage)(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx) for rx, tx_rx, tx_tx, rx_rx in branches
+    )
+    cut = screen(ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None), starts)
     candidates = Parallel(n_jobs=jobs)(
-        delayed(optimize)(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx) for rx, tx_rx, tx_tx, rx_rx in branches
+        delayed(finish)(NodeParams(), mesh, samples, tx, rx, tx_rx, branch, cut)
+        for (rx, tx_rx, _, _), branch in zip(branches, starts)
     )
     picked = pick_best(PickParams(), candidates)
     return picked, time.perf_counter() - start, samples_s
@@ -160,6 +169,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="processes for the angle branches")
     parser.add_argument("--up-axis", default=None, help='regions.detect up_axis override, e.g. "+z"')
     parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
+    parser.add_argument("--no-screen", action="store_true", help="finish every branch (no layout.screen)")
     parser.add_argument("--solvers", default="cpsat,highs", help="phase-1 solvers to compare (comma list; empty: none)")
     parser.add_argument("--family", choices=("both", "dipole", "rings"), default="both",
                         help="Rx candidates: both families as in the default pipeline, dipole loops per angle (the "
@@ -170,11 +180,12 @@ def main() -> None:
     mesh, regions, tx, branches = prepare(args.mesh, args.vertices, args.up_axis, args.family)
     curves_s = time.perf_counter() - start
 
-    with_secondary, sweep_s, samples_s = sweep(OptimizeParams(), mesh, regions, tx, branches, args.jobs)
+    with_secondary, sweep_s, samples_s = sweep(OptimizeParams(), mesh, regions, tx, branches, args.jobs, not args.no_screen)
     m = with_secondary["metrics"]
     m_off, sweep_off_s = {"voronoi_cv": None, "chosen_angle_deg": None, "mean_distance_mm": None}, 0.0
     if not args.no_ablation:
-        without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs)
+        without, sweep_off_s, _ = sweep(OptimizeParams(secondary=False), mesh, regions, tx, branches, args.jobs,
+                                        not args.no_screen)
         m_off = without["metrics"]
     names = [(b[0].family, round(float(np.rad2deg(b[0].angle)))) for b in branches]
     chosen_branch = branches[names.index((m["rx_family"], round(m["chosen_angle_deg"])))]
@@ -194,6 +205,7 @@ def main() -> None:
         "family": args.family,
         "vertices": int(len(mesh.vertices)),
         "sweep_seconds": round(sweep_s, 2),
+        "branches_finished": sum(not r["screened"] for r in m["angles"]),
         "samples_seconds": round(samples_s, 2),
         "curves_seconds": round(curves_s, 2),
         "jobs": args.jobs,

@@ -27,8 +27,8 @@ SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is
 
 @functools.lru_cache(maxsize=None)
 def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None, ring_legs: str = "offset") -> dict:
-    """The ``layout.optimize`` metrics of one branch on the mesh at ``path`` (prepared as the curve
-    tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at
+    """The metrics of one branch, unscreened (``layout.coverage`` + ``layout.finish``), on the mesh at
+    ``path`` (prepared as the curve tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at
     ``ring_turn`` and ``ring_legs`` legs."""
     mesh, regions, _, tx_field, rx_field = prepared(path, 4000)
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]

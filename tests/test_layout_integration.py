@@ -10,9 +10,11 @@ import pytest
 from curves_fixture import bunny
 from test_layout_sensing_map import validate_sensing_map
 
+from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.pick import PickParams, pick_best
-from retrotouch.nodes.layout.sweep import OptimizeParams, optimize
+from retrotouch.nodes.layout.screen import Screen
+from retrotouch.nodes.layout.sweep import OptimizeParams, coverage, finish, optimize
 from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -28,6 +30,19 @@ def bunny_run():
     params = OptimizeParams(n_drive=10, n_sense=6, time_limit_s=1.0, rx_free_end_mm=60.0)  # both free ends
     candidate = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
     return mesh, tx, rx, cross, params, candidate, regions
+
+
+def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips_the_rest(bunny_run):
+    mesh, tx, rx, cross, params, candidate, regions = bunny_run
+    samples = surface_samples(SamplesParams(count=150), mesh, regions)
+    branch = coverage(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    radius = candidate.metrics["coverage_radius_mm"]
+    assert branch.stage.lower_bound_mm < radius  # trimming may only take crossings away
+    skipped = finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(branch.stage.lower_bound_mm - 0.1, ""))
+    assert not skipped.feasible and skipped.layout is None and skipped.metrics["screened"]
+    assert skipped.message.startswith(f"screened out: its coverage radius is at least {branch.stage.lower_bound_mm:.1f} mm")
+    kept = finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(branch.stage.lower_bound_mm, ""))
+    assert kept.feasible and kept.metrics["coverage_radius_mm"] == radius
 
 
 def test_bunny_layout_respects_constraints_and_spacing(bunny_run):

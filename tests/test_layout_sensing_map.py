@@ -1,4 +1,4 @@
-"""layout.optimize -> layout.pick_best -> layout.sensing_map on the synthetic sphere instance."""
+"""layout.coverage + layout.finish -> layout.pick_best -> layout.sensing_map on the synthetic sphere instance."""
 from __future__ import annotations
 
 import dataclasses

@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import pytest
 
+from types import SimpleNamespace
+
 from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, pick_best
+from retrotouch.nodes.layout.screen import ScreenParams, screen
 from retrotouch.nodes.layout.sweep import AngleLayout
 
 
@@ -11,7 +14,8 @@ def branch(angle, radius, mean, cv, secondary=True, feasible=True, cells=50):
     metrics = {"coverage_radius_mm": radius, "power_mean_distance_mm": mean, "voronoi_cv": cv, "secondary": secondary,
                "cells": cells,
                "pads": 10, "tx_channels": 21, "rx_channels": 12, "relaxations": [],
-               "phase1": {"stages": [{"status": "OPTIMAL", "gap": 0.0, "deterministic_time": 0.5}], "resolution_mm": 0.5}}
+               "phase1": {"stages": [{"status": "OPTIMAL", "objective": radius, "gap": 0.0, "deterministic_time": 0.5}],
+                          "resolution_mm": 0.5}}
     return AngleLayout("dipole", angle, feasible, "ok" if feasible else "no pads", None, metrics)
 
 
@@ -38,6 +42,36 @@ def test_infeasible_branches_are_skipped_and_listed():
     assert [r["angle_deg"] for r in rows] == [-10, 0] and [r["feasible"] for r in rows] == [False, True]
     out = pick_best(PickParams(print_table=False), candidates)
     assert out["metrics"]["chosen_angle_deg"] == 0 and len(out["metrics"]["angles"]) == 2
+
+
+def started(radius, lower_bound):
+    stage = None if radius is None else SimpleNamespace(radius_mm=radius, lower_bound_mm=lower_bound)
+    return SimpleNamespace(stage=stage)
+
+
+def test_the_screen_finishes_what_can_still_tie_the_best_stage1_radius_and_at_least_two():
+    branches = [started(20.0, 19.5), started(21.0, 21.4), started(23.5, 22.6), started(30.0, 22.0), started(None, None)]
+    cut = screen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=1), branches)
+    assert cut.threshold_mm == pytest.approx(22.0)  # 20 + 1 + 1
+    assert [cut.keeps(b) for b in branches] == [True, True, False, True, True]  # no stage: finish reports why
+    assert cut.summary.startswith("4 of 5 branches finished")
+    tight = screen(ScreenParams(radius_tolerance_mm=0.0, margin_mm=0.0, keep_at_least=2), branches)
+    assert [tight.keeps(b) for b in branches] == [True, True, False, False, True]  # 21.4 kept as the second
+    every = screen(ScreenParams(margin_mm=None), branches)
+    assert all(every.keeps(b) for b in branches) and every.threshold_mm == float("inf")
+
+
+def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(caplog):
+    shut = AngleLayout("rings", 90.0, False, "screened out", None,
+                       {"screened": True, "coverage_radius_lower_bound_mm": 30.5, "phase1": {"stages": []}})
+    far = AngleLayout("rings", 180.0, False, "screened out", None,
+                      {"screened": True, "coverage_radius_lower_bound_mm": 31.5, "phase1": {"stages": []}})
+    with caplog.at_level("WARNING"):
+        out = pick_best(PickParams(print_table=False), [branch(0, 30.0, 8.0, 0.5), far])
+    assert not caplog.records and out["metrics"]["angles"][1]["note"] == "screened out"
+    with caplog.at_level("WARNING"):
+        pick_best(PickParams(print_table=False), [branch(0, 30.0, 8.0, 0.5), shut, far])
+    assert len(caplog.records) == 1 and "1 screened branch(es) could have tied" in caplog.text
 
 
 def test_gap_is_unknown_when_a_stage_has_no_incumbent():

@@ -1,4 +1,4 @@
-"""Layout quality metrics (paper Table 1): Voronoi uniformity of the pads and friends.
+"""Layout quality metrics (paper Table 1): Voronoi uniformity of the pads and friends, and a branch's figures.
 
 Voronoi CV: every sensing face is assigned to the pad geodesically nearest to its centroid (the
 centroid value of the P1-interpolated heat-method distance field of each pad); the cell area of a
@@ -9,7 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.types import Layout, Mesh
 from ..geometry.triangles import areas, corners
+from .clearance import clearance_profile
+from .problem import SelectionProblem
+from .samples import SurfaceSamples
+from .selection import SelectionResult
 
 
 def voronoi_cell_areas(
@@ -34,3 +39,67 @@ def min_pairwise(distance_mm: np.ndarray) -> float:
     if len(distance_mm) < 2:
         return float("inf")
     return float(distance_mm[np.triu_indices(len(distance_mm), k=1)].min())
+
+
+def phase1_summary(report: dict) -> dict:
+    """Phase 1's worst stage gap on the model's objectives (radius; sum of level**p), the same in mm
+    (radius; power mean), the worst gap against the bounds valid without the trust region
+    (``global_gap``), the solver, and every stage's objective and bound (mm)."""
+    stages = report.get("stages", [])
+
+    def worst(key: str, fallback: str = "gap"):
+        values = [st.get(key, st[fallback]) for st in stages]
+        return None if not stages or any(v is None for v in values) else max(values)
+
+    return {"gap": worst("gap"), "gap_mm": worst("gap_power_mean_mm"), "global_gap": worst("global_gap"),
+            "solver": report.get("solver"),
+            "stages": [{"stage": st["stage"], "status": st["status"], "objective": st["objective"], "bound": st["bound"],
+                        "gap": st["gap"]} for st in stages]}
+
+
+def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProblem, selection: SelectionResult, layout: Layout,
+                   cell_fields: np.ndarray, pad_distance: np.ndarray, cells: np.ndarray, channel_pairs: int, power: int) -> dict:
+    """Quality figures of a branch's layout: coverage, Voronoi CV over all crossings and over the
+    pads, cells out of the ``channel_pairs`` available, same-layer clearance on the traces' centre lines;
+    ``cell_fields`` are the cells' distance fields, ``cells`` the candidate crossings that became cells and
+    ``power`` the secondary objective's."""
+    tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
+    nearest = problem.distance[:, cells].min(axis=1)
+    cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
+    all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.sensing_faces)
+    tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
+    bound = layout.trace_width_mm + layout.clearance_mm
+    clearance = {layer: clearance_profile(curves, samples.sensing_faces, bound) for layer, curves in (("tx", layout.tx), ("rx", layout.rx))}
+    closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
+    return {
+        "coverage_radius_mm": float(nearest.max()),
+        "coverage_radius_vertices_mm": float(cell_fields[np.unique(mesh.faces[samples.sensing_faces])].min(axis=1).max()),
+        "mean_distance_mm": float(nearest.mean()),
+        "power_mean_distance_mm": float(np.mean(nearest**power) ** (1.0 / power)),
+        "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
+        "voronoi_cv_pads": coefficient_of_variation(cell_area) if pad.sum() else None,
+        "voronoi_cv_all_crossings": coefficient_of_variation(all_area) if len(pad) else None,
+        "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
+                                  "max": float(cell_area.max())} if pad.sum() else None,
+        "empty_crossing_cells": int(np.count_nonzero(all_area == 0.0)),
+        "pads": int(pad.sum()),
+        "cells": int(len(pad)),
+        "channel_pairs": int(channel_pairs),
+        "tx_channels": int(len(tx_sel)),
+        "rx_channels": int(len(rx_sel)),
+        "pad_radius_mm": layout.pad_radius_mm,
+        "d_min_mm": layout.d_min_mm,
+        "trace_width_mm": layout.trace_width_mm,
+        "clearance_mm": layout.clearance_mm,
+        "min_pad_spacing_mm": min_pairwise(pad_distance) if pad.sum() > 1 else None,
+        "min_same_layer_clearance_mm": min(closest) if closest else None,
+        "same_layer_clearance": clearance,
+        "phase1_gap": phase1_summary(selection.report)["gap"],
+        "phase1_gap_mm": phase1_summary(selection.report)["gap_mm"],
+        "phase1_global_gap": phase1_summary(selection.report)["global_gap"],
+        "phase1_summary": phase1_summary(selection.report),
+        "curve_lengths_mm": {"tx": [float(v) for v in tx_lengths], "rx": [float(v) for v in rx_lengths],
+                             "total": float(tx_lengths.sum() + rx_lengths.sum())},
+        "unwired_selected_curves": {"tx": [int(a) for a in np.setdiff1d(selection.tx, tx_sel)],
+                                    "rx": [int(b) for b in np.setdiff1d(selection.rx, rx_sel)]},
+    }

@@ -1,15 +1,19 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
 A branch is one Rx family (dipole loops or rings) at one angle; branches of several families arrive
-as one list (``candidates: ["select[*]", "ring_select[*]"]``) and are taken in order. The best has
+as one list (``candidates: ["finish[*]", "ring_finish[*]"]``) and are taken in order. The best has
 the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the
 sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
 then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in
-``metrics["angles"]`` and the printed table, with its notes: a failed branch with its reason, and a
-feasible branch whose coverage radius exceeds ``outlier_factor`` times the median of the feasible
-branches as far worse. Units: mm, deg.
+``metrics["angles"]`` and the printed table, with its notes: a failed branch with its reason, a
+branch ``layout.screen`` left unfinished with its lower bound, and a feasible branch whose coverage
+radius exceeds ``outlier_factor`` times the median of the feasible branches as far worse. A screened
+branch whose lower bound is within ``radius_tolerance_mm`` of the chosen radius could have tied it:
+that is warned about, with the fix. Units: mm, deg.
 """
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 from pydantic import Field
@@ -17,6 +21,8 @@ from pydantic import Field
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from .sweep import AngleLayout
+
+log = logging.getLogger(__name__)
 
 
 class PickParams(NodeParams):
@@ -53,13 +59,15 @@ def best_branch(candidates: list[AngleLayout], radius_tolerance_mm: float, mean_
 
 
 def branch_notes(candidates: list[AngleLayout], outlier_factor: float) -> list[str]:
-    """Per branch: its failure reason, a 'far worse' note when its coverage radius exceeds
+    """Per branch: its failure or screening reason, a 'far worse' note when its coverage radius exceeds
     ``outlier_factor`` times the median of the feasible branches, or ''."""
     radii = [c.metrics["coverage_radius_mm"] for c in candidates if c.feasible]
     median = float(np.median(radii)) if radii else float("nan")
     notes = []
     for c in candidates:
-        if not c.feasible:
+        if c.metrics.get("screened"):
+            notes.append(c.message)
+        elif not c.feasible:
             notes.append(f"failed: {c.message}")
         elif c.metrics["coverage_radius_mm"] > outlier_factor * median:
             notes.append(f"far worse: coverage radius {c.metrics['coverage_radius_mm']:.1f} mm > "
@@ -80,8 +88,8 @@ def _deterministic_time(metrics: dict) -> float | None:
 
 
 def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> list[dict]:
-    """One row per branch: Rx family, angle, coverage, Voronoi CV (all crossings, pads), cells, clearance,
-    phase-1 gap, CP-SAT deterministic time, status and notes."""
+    """One row per branch: Rx family, angle, stage-1 radius, coverage, Voronoi CV (all crossings, pads),
+    cells, clearance, phase-1 gap, CP-SAT deterministic time, status and notes."""
     rows = []
     for c, note in zip(candidates, branch_notes(candidates, outlier_factor)):
         m = c.metrics
@@ -90,6 +98,8 @@ def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> l
             "rx_family": c.family,
             "angle_deg": c.angle_deg,
             "feasible": c.feasible,
+            "screened": bool(m.get("screened")),
+            "stage1_radius_mm": stages[0]["objective"] if stages else None,
             "coverage_radius_mm": m.get("coverage_radius_mm"),
             "mean_distance_mm": m.get("mean_distance_mm"),
             "voronoi_cv": m.get("voronoi_cv"),
@@ -115,15 +125,16 @@ def print_angle_table(rows: list[dict], best: int) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title="layout per branch: Rx family and angle (* = chosen)")
-    columns = ("family", "angle", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
+    table = Table(title="layout per branch: Rx family and angle (* = chosen; r1 = radius after phase 1's first stage)")
+    columns = ("family", "angle", "r1 mm", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
                "status", "gap", "relax", "note")
     for name in columns:
         table.add_column(name, justify="right")
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for i, r in enumerate(rows):
         cells = "-" if r["cells"] is None else f"{r['cells']}/{r['channel_pairs']}"
-        table.add_row(("*" if i == best else "") + r["rx_family"], fmt(r["angle_deg"], "+.0f"), fmt(r["coverage_radius_mm"], ".2f"),
+        table.add_row(("*" if i == best else "") + r["rx_family"], fmt(r["angle_deg"], "+.0f"), fmt(r["stage1_radius_mm"], ".1f"),
+                      fmt(r["coverage_radius_mm"], ".2f"),
                       fmt(r["mean_distance_mm"], ".2f"), fmt(r["voronoi_cv_all_crossings"], ".3f"),
                       fmt(r["voronoi_cv"], ".3f"), cells, fmt(r["pads"], "d"), fmt(r["min_same_layer_clearance_mm"], ".2f"),
                       r["channels"], fmt(r["deterministic_time"], ".1f"), r["status"], fmt(r["gap"], ".3f"), str(r["relaxations"]),
@@ -135,10 +146,17 @@ def print_angle_table(rows: list[dict], best: int) -> None:
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
     """Keep the best branch (radius, secondary, cells, Voronoi CV) and the per-branch table."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
+    screened = [c for c in candidates if c.metrics.get("screened")]
     if not feasible:
         reasons = "; ".join(f"{c.family} {c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
-        raise UserError(f"no branch gives a feasible layout ({reasons})")
+        fix = " (rerun with -S screen.margin_mm=null to finish the screened ones)" if screened else ""
+        raise UserError(f"no branch gives a feasible layout{fix} ({reasons})")
     best = best_branch(candidates, params.radius_tolerance_mm, params.mean_tolerance)
+    reach = candidates[best].metrics["coverage_radius_mm"] + params.radius_tolerance_mm
+    missed = [c for c in screened if c.metrics["coverage_radius_lower_bound_mm"] <= reach]
+    if missed:
+        log.warning("%d screened branch(es) could have tied the chosen one (coverage radius %.1f mm): rerun with a larger "
+                    "-S screen.margin_mm, or null to finish every branch", len(missed), reach - params.radius_tolerance_mm)
     rows = angle_table(candidates, params.outlier_factor)
     if params.print_table:
         print_angle_table(rows, best)

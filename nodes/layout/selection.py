@@ -203,6 +203,95 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     return report, (tx_sel, rx_sel), solved.seconds
 
 
+@dataclasses.dataclass(frozen=True)
+class RadiusStage:
+    """Phase 1 after its radius stage: what finishing it needs, and what screening a branch reads.
+    ``selection`` is stage 1's (Tx ids, Rx ids), or the heuristic start when the solver found none."""
+
+    model: LinearModel
+    selection: tuple[np.ndarray, np.ndarray]
+    solved: bool  # stage 1 returned an incumbent
+    report: dict  # heuristic, stage 1, model size, solver, resolution
+    settings: dict
+    seconds: float  # stage 1's wall seconds (not reproducible: not in the report)
+
+    @property
+    def radius_mm(self) -> float:
+        """Stage 1's coverage radius (mm, quantised up to the resolution)."""
+        return self.report["stages"][0]["objective"]
+
+    @property
+    def lower_bound_mm(self) -> float:
+        """No layout of this branch has a smaller coverage radius (mm): below stage 1's global bound by
+        one resolution step, since a distance at level j lies in ((j - 1) res, j res]."""
+        return self.report["stages"][0]["global_bound"] - self.settings["resolution_mm"]
+
+
+def solve_radius_stage(
+    problem: SelectionProblem,
+    n_drive: int,
+    n_sense: int,
+    secondary: bool = True,
+    resolution_mm: float = PHASE1_RESOLUTION_MM,
+    time_limit_s: float = PHASE1_TIME_LIMIT_S,
+    seed: int = 0,
+    workers: int = 1,
+    max_memberships: int = PHASE1_MAX_MEMBERSHIPS,
+    power: int = PHASE1_POWER,
+    solver: str = "cpsat",
+    highs_max_nodes: int = HIGHS_MAX_NODES,
+) -> RadiusStage:
+    """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
+    ``secondary`` says whether a power-mean stage follows (the start's local search scores it too)."""
+    start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
+    q = _quantised_distances(problem, resolution_mm)
+    q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
+    sample_cap, slack = _sample_caps(q, q_start, max_memberships)
+    model = build_model(problem, n_drive, n_sense, q, sample_cap, power)
+    restricted = slack < int(q_start.max())
+    size = {"columns": model.n_cols, "rows": len(model.row_lo), "nonzeros": len(model.values),
+            "candidate_crossings": int((problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]).sum()),
+            "crossings_in_model": len(model.act_crossings),
+            "trust_region_slack_mm": slack * resolution_mm if restricted else None,
+            "memberships": len(model.u_sample) + len(q)}
+    settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
+                "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
+                "highs_max_nodes": highs_max_nodes, "restricted": restricted, "secondary": secondary}
+    stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
+    if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
+        low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, int(q_start.max()), settings)
+        stage1["global_bound"] = float(low * resolution_mm)
+    else:
+        stage1["global_bound"] = stage1["bound"]
+    stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
+    report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
+    return RadiusStage(model, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
+                       seconds)
+
+
+def finish_selection(problem: SelectionProblem, stage: RadiusStage, relative_gap: float = PHASE1_RELATIVE_GAP) -> SelectionResult:
+    """Phase 1 from its radius stage: the power-mean stage when the stage was solved with
+    ``secondary`` (stopped within ``relative_gap`` of its optimum) and every stage's report."""
+    solver = stage.settings["solver"]
+    tx_sel, rx_sel = stage.selection
+    stages, stage_seconds = list(stage.report["stages"]), [stage.seconds]
+    if not stage.solved:
+        # The heuristic start is feasible, so no incumbent means the solver could not even load it in
+        # time: keep the heuristic selection and say so in the report.
+        source = f"heuristic ({solver} found no incumbent)"
+    else:
+        source = solver
+        if stage.settings["secondary"]:
+            settings = {**stage.settings, "relative_gap": relative_gap}
+            report, (tx_sel, rx_sel), seconds = _power_mean_stage(stage.model, problem, (tx_sel, rx_sel), settings)
+            stages.append(report)
+            stage_seconds.append(seconds)
+    active, nearest = evaluate_selection(problem, tx_sel, rx_sel)
+    report = {**stage.report, "stages": stages, "source": source}
+    return SelectionResult(tx=tx_sel, rx=rx_sel, active=active, nearest_mm=nearest, coverage_radius_mm=float(nearest.max()),
+                           mean_distance_mm=float(nearest.mean()), report=report, stage_seconds=tuple(stage_seconds))
+
+
 def select_curves(
     problem: SelectionProblem,
     n_drive: int,
@@ -219,42 +308,6 @@ def select_curves(
     relative_gap: float = PHASE1_RELATIVE_GAP,
 ) -> SelectionResult:
     """Solve phase 1 (see the module docstring) with ``solver`` ("cpsat" or "highs") and report every stage."""
-    start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
-    q = _quantised_distances(problem, resolution_mm)
-    q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
-    sample_cap, slack = _sample_caps(q, q_start, max_memberships)
-    model = build_model(problem, n_drive, n_sense, q, sample_cap, power)
-    restricted = slack < int(q_start.max())
-    size = {"columns": model.n_cols, "rows": len(model.row_lo), "nonzeros": len(model.values),
-            "candidate_crossings": int((problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]).sum()),
-            "crossings_in_model": len(model.act_crossings),
-            "trust_region_slack_mm": slack * resolution_mm if restricted else None,
-            "memberships": len(model.u_sample) + len(q)}
-    settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
-                "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
-                "highs_max_nodes": highs_max_nodes, "restricted": restricted, "relative_gap": relative_gap}
-    stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
-    stage_seconds = [seconds]
-    limits = (n_drive, n_sense)
-    if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
-        low = layer_radius_bound(problem, q, limits, model.r_low, int(q_start.max()), settings)
-        stage1["global_bound"] = float(low * resolution_mm)
-    else:
-        stage1["global_bound"] = stage1["bound"]
-    stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
-    stages = [stage1]
-    if found is None:
-        # The heuristic start is feasible, so no incumbent means the solver could not even load it in
-        # time: keep the heuristic selection and say so in the report.
-        tx_sel, rx_sel, source = start_tx, start_rx, f"heuristic ({solver} found no incumbent)"
-    else:
-        (tx_sel, rx_sel), source = found, solver
-        if secondary:
-            report, (tx_sel, rx_sel), seconds = _power_mean_stage(model, problem, (tx_sel, rx_sel), settings)
-            stages.append(report)
-            stage_seconds.append(seconds)
-    active, nearest = evaluate_selection(problem, tx_sel, rx_sel)
-    report = {"heuristic": heuristic, "stages": stages, "model": size, "source": source, "solver": solver,
-              "resolution_mm": resolution_mm}
-    return SelectionResult(tx=tx_sel, rx=rx_sel, active=active, nearest_mm=nearest, coverage_radius_mm=float(nearest.max()),
-                           mean_distance_mm=float(nearest.mean()), report=report, stage_seconds=tuple(stage_seconds))
+    stage = solve_radius_stage(problem, n_drive, n_sense, secondary, resolution_mm, time_limit_s, seed, workers,
+                               max_memberships, power, solver, highs_max_nodes)
+    return finish_selection(problem, stage, relative_gap)

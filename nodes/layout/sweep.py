@@ -1,7 +1,9 @@
-"""The layout optimisation per Rx angle (``layout.optimize``, mapped; the pick is :mod:`retrotouch.nodes.layout.pick`).
+"""The layout optimisation per branch: ``layout.coverage`` and ``layout.finish`` (both mapped; between
+them the screen, :mod:`retrotouch.nodes.layout.screen`; the pick is :mod:`retrotouch.nodes.layout.pick`).
 
-``layout.optimize`` runs, for one Rx candidate family (one initial angle): phase 1 curve selection
-(:mod:`retrotouch.nodes.layout.selection`), geodesic distances among the active crossings, phase 2
+A branch is one Rx candidate family (one initial angle). ``layout.coverage`` sets up its phase-1
+problem and solves the radius stage (:mod:`retrotouch.nodes.layout.selection`); ``layout.finish``,
+with the same parameters, the power-mean stage, geodesic distances among the active crossings, phase 2
 pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, and the metrics
 (:mod:`retrotouch.nodes.layout.metrics`, :mod:`retrotouch.nodes.layout.clearance`). With
 ``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
@@ -32,12 +34,13 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
                       SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
-from .clearance import PARALLEL_RUN_MM, clearance_profile, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
-from .selection import select_curves
+from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
+from .screen import BranchStart, Screen
+from .selection import finish_selection, solve_radius_stage
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
 from ..data.types import CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh
-from .metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
+from .metrics import layout_metrics
 from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
 from .samples import HeatGeodesics, SurfaceSamples, geodesics_for
 
@@ -266,79 +269,18 @@ def _free_end_trims(params: OptimizeParams, samples: SurfaceSamples, curves: Cur
     return drop
 
 
-def _phase1_summary(report: dict) -> dict:
-    """Phase 1's worst stage gap on the model's objectives (radius; sum of level**p), the same in mm
-    (radius; power mean), the worst gap against the bounds valid without the trust region
-    (``global_gap``), the solver, and every stage's objective and bound (mm)."""
-    stages = report.get("stages", [])
-
-    def worst(key: str, fallback: str = "gap"):
-        values = [st.get(key, st[fallback]) for st in stages]
-        return None if not stages or any(v is None for v in values) else max(values)
-
-    return {"gap": worst("gap"), "gap_mm": worst("gap_power_mean_mm"), "global_gap": worst("global_gap"),
-            "solver": report.get("solver"),
-            "stages": [{"stage": st["stage"], "status": st["status"], "objective": st["objective"], "bound": st["bound"],
-                        "gap": st["gap"]} for st in stages]}
-
-
-def _layout_metrics(params, mesh, samples, problem, selection, layout, cell_fields, pad_distance, cells) -> dict:
-    """Quality figures of a branch's layout: coverage, Voronoi CV over all crossings and over the
-    pads, cells out of the channel pairs available, same-layer clearance on the traces' centre lines."""
-    tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
-    nearest = problem.distance[:, cells].min(axis=1)  # cells: the candidate crossings that became cells
-    cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
-    all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.sensing_faces)
-    tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
-    bound = layout.trace_width_mm + layout.clearance_mm
-    clearance = {layer: clearance_profile(curves, samples.sensing_faces, bound) for layer, curves in (("tx", layout.tx), ("rx", layout.rx))}
-    closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
-    return {
-        "coverage_radius_mm": float(nearest.max()),
-        "coverage_radius_vertices_mm": float(cell_fields[np.unique(mesh.faces[samples.sensing_faces])].min(axis=1).max()),
-        "mean_distance_mm": float(nearest.mean()),
-        "power_mean_distance_mm": float(np.mean(nearest**params.secondary_power) ** (1.0 / params.secondary_power)),
-        "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,
-        "voronoi_cv_pads": coefficient_of_variation(cell_area) if pad.sum() else None,
-        "voronoi_cv_all_crossings": coefficient_of_variation(all_area) if len(pad) else None,
-        "voronoi_cell_area_mm2": {"mean": float(cell_area.mean()), "min": float(cell_area.min()),
-                                  "max": float(cell_area.max())} if pad.sum() else None,
-        "empty_crossing_cells": int(np.count_nonzero(all_area == 0.0)),
-        "pads": int(pad.sum()),
-        "cells": int(len(pad)),
-        "channel_pairs": int(params.n_drive * params.n_sense),
-        "tx_channels": int(len(tx_sel)),
-        "rx_channels": int(len(rx_sel)),
-        "pad_radius_mm": layout.pad_radius_mm,
-        "d_min_mm": layout.d_min_mm,
-        "trace_width_mm": layout.trace_width_mm,
-        "clearance_mm": layout.clearance_mm,
-        "min_pad_spacing_mm": min_pairwise(pad_distance) if pad.sum() > 1 else None,
-        "min_same_layer_clearance_mm": min(closest) if closest else None,
-        "same_layer_clearance": clearance,
-        "phase1_gap": _phase1_summary(selection.report)["gap"],
-        "phase1_gap_mm": _phase1_summary(selection.report)["gap_mm"],
-        "phase1_global_gap": _phase1_summary(selection.report)["global_gap"],
-        "phase1_summary": _phase1_summary(selection.report),
-        "curve_lengths_mm": {"tx": [float(v) for v in tx_lengths], "rx": [float(v) for v in rx_lengths],
-                             "total": float(tx_lengths.sum() + rx_lengths.sum())},
-        "unwired_selected_curves": {"tx": [int(a) for a in np.setdiff1d(selection.tx, tx_sel)],
-                                    "rx": [int(b) for b in np.setdiff1d(selection.rx, rx_sel)]},
-    }
-
-
-def _failed(rx: CurveSet, angle_deg: float, base: dict, message: str, **report) -> AngleLayout:
+def _failed(family: str, angle_deg: float, base: dict, message: str, **report) -> AngleLayout:
     """A branch without a layout: ``message`` says why; ``base`` and ``report`` go into its metrics."""
-    return AngleLayout(rx.family, angle_deg, False, message, None, {**base, "feasible": False, "message": message, **report})
+    return AngleLayout(family, angle_deg, False, message, None, {**base, "feasible": False, "message": message, **report})
 
 
 @node(
-    "layout.optimize",
+    "layout.coverage",
     params=OptimizeParams,
     inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx"),
-    outputs=("candidate",),
+    outputs=("branch",),
 )
-def optimize(
+def coverage(
     params: OptimizeParams,
     mesh: Mesh,
     samples: SurfaceSamples,
@@ -347,22 +289,49 @@ def optimize(
     tx_rx: Crossings,
     tx_tx: Crossings,
     rx_rx: Crossings,
-) -> AngleLayout:
-    """Phase 1 (curve selection) + phase 2 (pads) + metrics for one Rx-angle branch (see the module docstring)."""
+) -> BranchStart:
+    """Phase 1's problem and radius stage for one branch (see the module docstring); ``layout.finish``
+    completes it with the same parameters."""
     angle_deg = float(np.rad2deg(rx.angle))
-    geo = geodesics_for(mesh)
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
-    problem = selection_problem(geo, samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
+    problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
                                 params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
-        selection = select_curves(problem, params.n_drive, params.n_sense, params.secondary,
-                                  params.resolution_mm, params.time_limit_s, params.seed, params.workers,
-                                  params.max_model_memberships, params.secondary_power, params.solver,
-                                  params.highs_max_nodes, params.relative_gap)
+        stage = solve_radius_stage(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
+                                   params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
+                                   params.secondary_power, params.solver, params.highs_max_nodes)
     except UserError as exc:
-        return _failed(rx, angle_deg, base, str(exc))
+        return BranchStart(params.model_dump(), rx.family, angle_deg, problem, base, None, str(exc))
+    return BranchStart(params.model_dump(), rx.family, angle_deg, problem, base, stage, "ok")
 
+
+@node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "branch", "screen"), outputs=("candidate",))
+def finish(
+    params: NodeParams,
+    mesh: Mesh,
+    samples: SurfaceSamples,
+    tx: CurveSet,
+    rx: CurveSet,
+    tx_rx: Crossings,
+    branch: BranchStart,
+    screen: Screen | None,
+) -> AngleLayout:
+    """Phase 1's power-mean stage + phase 2 (pads) + metrics for a branch the ``screen`` keeps (all
+    when None), with the parameters of its ``layout.coverage``; a branch it drops is reported as
+    screened out with its radius stage."""
+    params, problem = OptimizeParams.model_validate(branch.params), branch.problem
+    angle_deg, base = branch.angle_deg, branch.base
+    if branch.stage is None:
+        return _failed(branch.family, angle_deg, base, branch.message)
+    if screen is not None and not screen.keeps(branch):
+        message = (f"screened out: its coverage radius is at least {branch.stage.lower_bound_mm:.1f} mm, above "
+                   f"{screen.threshold_mm:.1f} mm")
+        return _failed(branch.family, angle_deg, base, message, screened=True,
+                       coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
+    selection = finish_selection(problem, branch.stage, params.relative_gap)
+    geo = geodesics_for(mesh)
+    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
     active = selection.active
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
     rx_last = np.zeros(rx.count, dtype=np.int64)  # rows trimmed from each Rx candidate's end
@@ -376,7 +345,7 @@ def optimize(
     if len(active) == 0:
         message = ("no Tx/Rx crossing is left once the selected curves are trimmed where they come closer "
                    "than trace width + clearance: this branch has no layout (the other branches still count)")
-        return _failed(rx, angle_deg, base, message, phase1=selection.report)
+        return _failed(branch.family, angle_deg, base, message, phase1=selection.report)
     active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
     distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
@@ -385,16 +354,24 @@ def optimize(
     if not pads.feasible:
         message = (f"no pad placement even with pad radius {pad_radius:g} mm and fewer curves: lower "
                    f"min_pads_per_curve or d_min_mm, or add smaller relax_pad_radii_mm")
-        return _failed(rx, angle_deg, base, message, relaxations=relaxations, phase1=selection.report, phase2=pads.report)
+        return _failed(branch.family, angle_deg, base, message, relaxations=relaxations, phase1=selection.report,
+                       phase2=pads.report)
 
     design = {"pad_radius_mm": float(pad_radius), "d_min_mm": float(d_min_for(params, pad_radius)),
               "trace_width_mm": params.trace_width_mm, "clearance_mm": params.clearance_mm}
     layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad, design, tx_first, rx_last)
     kept = np.flatnonzero(keep)[order]
     pad_distance = distance[np.ix_(kept[layout.pad], kept[layout.pad])]
-    quality = _layout_metrics(params, mesh, samples, problem, selection, layout, fields[:, kept], pad_distance,
-                              active[kept])
+    quality = layout_metrics(mesh, samples, problem, selection, layout, fields[:, kept], pad_distance, active[kept],
+                             params.n_drive * params.n_sense, params.secondary_power)
     idle = quality.pop("unwired_selected_curves")
     metrics = {**base, "feasible": True, **quality, "phase1": selection.report, "phase2": pads.report,
                "relaxations": relaxations, "unwired_selected_curves": idle}
-    return AngleLayout(rx.family, angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
+    return AngleLayout(branch.family, angle_deg, True, "ok" if not relaxations else "relaxed", layout, metrics)
+
+
+def optimize(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+             tx_tx: Crossings, rx_rx: Crossings) -> AngleLayout:
+    """One branch start to end, unscreened: ``layout.coverage`` then ``layout.finish`` (plain functions)."""
+    branch = coverage(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+    return finish(NodeParams(), mesh, samples, tx, rx, tx_rx, branch, None)
