@@ -58,6 +58,7 @@ from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, sc
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
@@ -79,7 +80,8 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "b
     if family in ("dipole", "both"):
         families += [trace_rx(TraceRxParams(angle_deg=a), mesh, regions, rx_field)["curves"] for a in ANGLES]
     if family in ("rings", "both"):
-        families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs), mesh, regions, tx_field, tx)["curves"]
+        levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
+        families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs), mesh, regions, levels, tx)["curves"]
                      for t in CORRIDOR_TURNS for legs in RING_LEGS]
     branches = []
     for rx in families:

@@ -15,6 +15,7 @@ from pathlib import Path
 from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.layout.pick import PickParams, best_branch
@@ -28,14 +29,15 @@ SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is
 @functools.lru_cache(maxsize=None)
 def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None, ring_legs: str = "offset") -> dict:
     """The metrics of one branch, unscreened (``layout.coverage`` + ``layout.finish``), on the mesh at
-    ``path`` (prepared as the curve tests do): the dipole family at ``rx_angle_deg``, or the ring family with its corridor at
-    ``ring_turn`` and ``ring_legs`` legs."""
+    ``path`` (prepared as the curve tests do): the dipole family at ``rx_angle_deg``, or the ring family
+    with its corridor at ``ring_turn`` and ``ring_legs`` legs."""
     mesh, regions, _, tx_field, rx_field = prepared(path, 4000)
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]
     if ring_turn is None:
         rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
     else:
-        rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn, legs=ring_legs), mesh, regions, tx_field, tx)["curves"]
+        levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
+        rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn, legs=ring_legs), mesh, regions, levels, tx)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     candidate = optimize(OptimizeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])

@@ -8,8 +8,9 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.rings import (LevelSets, TraceRingsParams, area_levels, radial_function, ring_levels,
-                                          row_values, spine, trace_rings)
+from retrotouch.nodes.curves.ring_levels import (LevelSets, RingLevelsParams, area_levels, radial_function, ring_levels,
+                                                row_values, tx_arc_levels)
+from retrotouch.nodes.curves.rings import TraceRingsParams, spine, trace_rings
 from retrotouch.nodes.curves.rx_seeding import zero_set
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 from retrotouch.nodes.data.types import CurveEnd, CurveSet
@@ -20,10 +21,11 @@ from retrotouch.nodes.geometry.mesh_tables import build_tables
 def families():
     mesh, regions, _, tx_field, rx_field = bunny()
     tx = trace_tx(TraceTxParams(n_curves=100), mesh, regions, tx_field)["curves"]
-    params = TraceRingsParams(n_rings=30, corridor_turn=0.25)
-    rings = trace_rings(params, mesh, regions, tx_field, tx)["curves"]
+    levels = ring_levels(RingLevelsParams(n_rings=30), mesh, regions, tx_field, tx)
+    params = TraceRingsParams(corridor_turn=0.25)
+    rings = trace_rings(params, mesh, regions, levels, tx)["curves"]
     dipole = trace_rx(TraceRxParams(angle_deg=0.0, n_curves=30), mesh, regions, rx_field)["curves"]
-    return mesh, tx, tx_field, rx_field, params, rings, dipole
+    return mesh, tx, tx_field, rx_field, params, rings, dipole, levels
 
 
 def crossed_once_share(mesh, tx, rx, tx_field, rx_field) -> np.ndarray:
@@ -36,7 +38,7 @@ def crossed_once_share(mesh, tx, rx, tx_field, rx_field) -> np.ndarray:
 def test_rings_cross_more_tx_lines_once_than_dipole_loops(families):
     # Medians over nine remeshes of the bunny (unperturbed and RETROTOUCH_TEST_JITTER=1e-6:1..8): rings
     # 0.55-0.675 of the Tx candidates (0.545 on CI's machine), dipole loops 0.405-0.45, at least 0.145 below.
-    mesh, tx, tx_field, rx_field, _, rings, dipole = families
+    mesh, tx, tx_field, rx_field, _, rings, dipole, _ = families
     ring_share = crossed_once_share(mesh, tx, rings, tx_field, rx_field)
     dipole_share = crossed_once_share(mesh, tx, dipole, tx_field, rx_field)
     assert np.median(ring_share) >= 0.5
@@ -50,7 +52,7 @@ def ring_values(mesh, tx_field, rings) -> np.ndarray:
 
 
 def test_each_candidate_is_a_leg_from_the_base_then_a_ring(families):
-    mesh, tx, tx_field, _, params, rings, _ = families
+    mesh, tx, tx_field, _, params, rings, _, _ = families
     assert rings.count >= 20 and rings.layer == "rx"
     assert np.all(rings.end_reason == int(CurveEnd.BASE))
     assert rings.angle == pytest.approx(2 * np.pi * params.corridor_turn)
@@ -72,12 +74,12 @@ def test_each_candidate_is_a_leg_from_the_base_then_a_ring(families):
 
 
 def test_tx_line_legs_start_at_the_base_ends_of_corridor_tx_lines(families):
-    mesh, tx, tx_field, _, params, _, _ = families
+    mesh, tx, tx_field, _, params, _, _, levels = families
     regions = bunny()[1]
-    rings = trace_rings(params.model_copy(update={"legs": "tx_lines"}), mesh, regions, tx_field, tx)["curves"]
+    rings = trace_rings(params.model_copy(update={"legs": "tx_lines"}), mesh, regions, levels, tx)["curves"]
     assert rings.family == "rings_tx" and rings.count >= 10
     centre = int(round(params.corridor_turn * tx.count))
-    corridor = (centre - params.n_rings // 2 + np.arange(params.n_rings)) % tx.count
+    corridor = (centre - levels.count // 2 + np.arange(levels.count)) % tx.count
     leg_ends = tx.points[tx.offsets[corridor + 1] - 1]
     starts = rings.points[rings.offsets[:-1]]
     assert np.min(np.linalg.norm(starts[:, None] - leg_ends[None], axis=2), axis=1).max() < 1e-6
@@ -91,7 +93,7 @@ def test_legs_keep_the_clearance_so_only_rings_of_nearly_one_level_conflict(fami
     two legs side by side in the corridor."""
     from retrotouch.nodes.layout.clearance import close_pairs
 
-    mesh, _, tx_field, _, params, rings, _ = families
+    mesh, _, tx_field, _, params, rings, _, _ = families
     regions = bunny()[1]
     u = ring_values(mesh, tx_field, rings)
     level = u[rings.offsets[1:] - 1]
@@ -101,10 +103,10 @@ def test_legs_keep_the_clearance_so_only_rings_of_nearly_one_level_conflict(fami
 
 
 def test_the_rings_need_the_tx_field(families):
-    mesh, tx, _, rx_field, params, _, _ = families
+    mesh, tx, _, rx_field, _, _, _, _ = families
     regions = bunny()[1]
     with pytest.raises(UserError, match="needs the tx field"):
-        trace_rings(params, mesh, regions, rx_field, tx)
+        ring_levels(RingLevelsParams(), mesh, regions, rx_field, tx)
 
 
 def vertex_neighbour_range(faces: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +120,7 @@ def vertex_neighbour_range(faces: np.ndarray, values: np.ndarray) -> tuple[np.nd
 
 
 def test_the_radial_function_is_0_at_the_pole_1_at_the_base_and_has_no_extremum_between(families):
-    mesh, _, tx_field, _, _, _, _ = families
+    mesh, _, tx_field, _, _, _, _, _ = families
     regions = bunny()[1]
     u = radial_function(build_tables(mesh.vertices, mesh.faces), regions, tx_field.start_vertex)
     pole = np.unique(mesh.faces[regions.exclusion_far])
@@ -131,11 +133,11 @@ def test_the_radial_function_is_0_at_the_pole_1_at_the_base_and_has_no_extremum_
 
 
 def test_ring_levels_are_equally_far_apart_along_the_tx_lines(families):
-    mesh, tx, tx_field, _, _, _, _ = families
+    mesh, tx, tx_field, _, _, _, _, _ = families
     regions = bunny()[1]
     tables = build_tables(mesh.vertices, mesh.faces)
     u_rows = row_values(tables, radial_function(tables, regions, tx_field.start_vertex), tx.faces, tx.bary)
-    levels = ring_levels(tx, u_rows, 16)
+    levels = tx_arc_levels(tx, u_rows, 16)
     assert np.all(np.diff(levels) < 0) and 0 < levels[-1] and levels[0] < 1
     arrival = []  # first row of each Tx line at or beyond each level: an independent, row-exact count
     for c in range(tx.count):
@@ -150,7 +152,7 @@ def test_ring_levels_are_equally_far_apart_along_the_tx_lines(families):
 def test_rings_cover_the_sensing_region_from_the_pole_to_the_base(families):
     from scipy.spatial import cKDTree
 
-    mesh, _, _, _, _, rings, _ = families
+    mesh, _, _, _, _, rings, _, _ = families
     regions = bunny()[1]
     sensing = np.unique(mesh.faces[regions.sensing_faces])
     distance = cKDTree(rings.points).query(mesh.vertices[sensing])[0]
@@ -184,7 +186,7 @@ def band_areas(mesh, regions, u, levels) -> np.ndarray:
 
 
 def test_area_levels_cut_the_region_into_bands_of_equal_area_with_fewer_rings_near_the_pole(families):
-    mesh, tx, tx_field, _, _, _, _ = families
+    mesh, tx, tx_field, _, _, _, _, _ = families
     regions = bunny()[1]
     tables = build_tables(mesh.vertices, mesh.faces)
     u = radial_function(tables, regions, tx_field.start_vertex)
@@ -195,13 +197,13 @@ def test_area_levels_cut_the_region_into_bands_of_equal_area_with_fewer_rings_ne
     np.testing.assert_allclose(inner, inner.mean(), rtol=0.1)
     np.testing.assert_allclose(bands[[0, -1]], inner.mean() / 2, rtol=0.2)
     # the Tx-arc spacing crowds its rings near the pole: its innermost band is far smaller
-    arc_levels = ring_levels(tx, row_values(tables, u, tx.faces, tx.bary), 12)
+    arc_levels = tx_arc_levels(tx, row_values(tables, u, tx.faces, tx.bary), 12)
     assert band_areas(mesh, regions, u, arc_levels)[1] < 0.5 * inner.mean()
     assert arc_levels[-1] < levels[-1]
 
 
 def test_level_sets_are_computed_once_and_equal_the_zero_set(families):
-    mesh, _, tx_field, _, _, _, _ = families
+    mesh, _, tx_field, _, _, _, _, _ = families
     regions = bunny()[1]
     tables = build_tables(mesh.vertices, mesh.faces)
     u = radial_function(tables, regions, tx_field.start_vertex)
@@ -215,9 +217,10 @@ def test_level_sets_are_computed_once_and_equal_the_zero_set(families):
 
 
 def test_area_spaced_rings_are_legs_then_rings_like_the_default(families):
-    mesh, tx, tx_field, _, params, _, _ = families
+    mesh, tx, tx_field, _, params, _, _, _ = families
     regions = bunny()[1]
-    rings = trace_rings(params.model_copy(update={"level_spacing": "area"}), mesh, regions, tx_field, tx)["curves"]
+    area = ring_levels(RingLevelsParams(n_rings=30, level_spacing="area"), mesh, regions, tx_field, tx)
+    rings = trace_rings(params, mesh, regions, area, tx)["curves"]
     assert rings.count >= 20 and np.all(rings.end_reason == int(CurveEnd.BASE))
     u = ring_values(mesh, tx_field, rings)
     for c in range(rings.count):

@@ -7,12 +7,9 @@ around the Tx pole with one *leg* back to the base. The rings are level sets ``u
 exclusion, harmonic in between. The sensing region is an annulus between those two, and a harmonic
 function with constant values on both boundaries of an annulus has no critical point, so every
 level set is one closed curve around the pole, the level sets fill the whole region from the pole
-to the base, and no two of them meet. ``n_rings - n_reseeded`` levels ``c_k`` are spread so that,
-along the Tx lines (median over the candidates), neighbouring rings are equally far apart from the
-pole to the base (``level_spacing="area"``: so that the bands between them have equal area, fewer
-rings near the pole, where the Tx lines crowd); the others pass through the points farthest from
-the rings before them, which lie in dead ends (a second ear) where ``u`` barely changes and the
-level set makes a long hairpin.
+to the base, and no two of them meet. ``u`` and the levels ``c_k``, shared by every corridor, come
+from ``curves.ring_levels`` (:mod:`retrotouch.nodes.curves.ring_levels`, which says how they are
+spread); ``n_rings`` below is their count.
 
 The legs run side by side in a *corridor* along one Tx candidate line, the *spine*: the candidate at
 ``corridor_turn`` of their angular order around the pole (or the nearest one that reaches the base
@@ -53,14 +50,11 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
-from ..geometry.harmonic import harmonic_interpolation
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .assembly import TraceStats
-from .connection import DirectionField
-from .rx_seeding import zero_set
+from .ring_levels import LevelSets, RingLevels, row_values
 
 STOP_MARGIN_MM = 0.5
 """A ring stops this much farther from a leg than trace width + clearance: twice the resampling step
@@ -70,25 +64,12 @@ LEG_SPACING_MM = 3.0
 """Default distance between neighbouring legs (mm): trace width + clearance + a margin for the
 piecewise-linear distance field and phase 1's conservative clearance check."""
 
-LEVEL_GRID = 257
-"""Levels of ``u`` at which the Tx lines' arrival distances are measured."""
-
-
 class TraceRingsParams(NodeParams):
-    n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
-    n_reseeded: int = Field(4, ge=0, description="of those, rings through the points farthest from the others (dead ends)")
-    level_spacing: Literal["tx_arc", "area"] = Field(
-        "tx_arc", description="the other rings equally far apart along the Tx lines, or bands of equal area between them")
     corridor_turn: float = Field(0.0, ge=0, lt=1, description="corridor centre as a fraction of the Tx candidates' angular order")
     legs: Literal["offset", "tx_lines"] = Field("offset", description="legs side by side along a spine Tx line, or along Tx lines")
     leg_spacing_mm: float = Field(LEG_SPACING_MM, gt=0, description="offset legs: distance between neighbouring legs (mm)")
     trace_width_mm: float = Field(1.0, gt=0, description="trace width (mm), for where a ring stops")
     clearance_mm: float = Field(1.0, ge=0, description="edge-to-edge clearance (mm), for where a ring stops")
-
-
-def row_values(tables: MeshTables, vertex_values: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Piecewise-linear vertex values at surface points (face, barycentrics)."""
-    return np.einsum("kc,kc->k", vertex_values[tables.faces[faces]], bary)
 
 
 def ring_walk(level_faces, p, q, start_face: int, start_point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,102 +130,15 @@ def spine(tx: CurveSet, u_rows: np.ndarray, turn: float, levels: np.ndarray) -> 
     return None
 
 
-def radial_function(tables: MeshTables, regions, pole: int) -> np.ndarray:
-    """``(n,)`` the harmonic radial function ``u``: 0 on the far exclusion's vertices and the pole,
-    1 on the vertices of the base and its exclusion, harmonic elsewhere (see the module docstring)."""
-    inner = np.union1d(tables.faces[np.asarray(regions.exclusion_far, dtype=bool)].ravel(), [pole])
-    outer_faces = np.asarray(regions.base_faces, dtype=bool) | np.asarray(regions.exclusion_base, dtype=bool)
-    outer = np.setdiff1d(np.unique(tables.faces[outer_faces]), inner)
-    fixed = np.r_[inner, outer]
-    values = np.r_[np.zeros(len(inner)), np.ones(len(outer))]
-    return harmonic_interpolation(tables.vertices, tables.faces, fixed, values)
-
-
-def ring_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
-    """``n`` levels of ``u`` in decreasing order, spread in equal steps of the distance along the Tx
-    lines (where the crossings of one Tx line follow each other): the median over the Tx candidates of
-    the arc length (mm) at which a line first reaches a level grows in equal steps from the pole to
-    the base, half a step from either end. ``u_rows``: ``u`` at every row of ``tx``."""
-    grid = np.linspace(0.0, 1.0, LEVEL_GRID)
-    arrival = np.empty((tx.count, len(grid)))
-    for c in range(tx.count):
-        rows = tx.curve(c)
-        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(tx.points[rows], axis=0), axis=1))]
-        reached, first = np.unique(np.maximum.accumulate(u_rows[rows]), return_index=True)
-        arrival[c] = np.interp(grid, reached, arc[first]) if len(reached) > 1 else arc[-1]
-    along = np.maximum.accumulate(np.median(arrival, axis=0))
-    targets = along[0] + (np.arange(n)[::-1] + 0.5) / n * (along[-1] - along[0])
-    return np.interp(targets, along, grid)
-
-
-class LevelSets:
-    """The chained level sets (:func:`zero_set`) of piecewise-linear vertex ``values`` inside the
-    ``sensing`` faces, each level computed once: ``level_sets(c)`` is ``values = c``."""
-
-    def __init__(self, tables: MeshTables, values: np.ndarray, sensing: np.ndarray):
-        self.tables, self.values, self.sensing, self.cache = tables, values, sensing, {}
-
-    def __call__(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        key = float(level)
-        if key not in self.cache:
-            self.cache[key] = zero_set(self.tables, self.values - key, self.sensing)
-        return self.cache[key]
-
-
-def area_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, n: int) -> np.ndarray:
-    """``n`` levels of ``u`` in decreasing order that cut the sensing region into bands of equal area
-    (mm^2, faces at their mean ``u``), half a band from either end: a ring near the pole, where the Tx
-    lines crowd, gets as much surface around it as one near the base. Faces where ``u`` is 1 at every
-    corner (enclosed by the base, where no ring reaches) are left out."""
-    face_u = u[tables.faces[sensing]].mean(axis=1)
-    reachable = face_u < 1.0 - 1e-9
-    order = np.argsort(face_u[reachable])
-    cumulative = np.cumsum(tables.areas[sensing][reachable][order])
-    targets = (np.arange(n)[::-1] + 0.5) / n * cumulative[-1]
-    return np.interp(targets, cumulative, face_u[reachable][order])
-
-
-def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.ndarray:
-    """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
-    level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
-    ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own."""
-    tables, u = u_sets.tables, u_sets.values
-    vertices = np.unique(tables.faces[u_sets.sensing])
-    nearest = np.full(len(vertices), np.inf)
-    chosen = list(levels)
-    for level in chosen:
-        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
-    for _ in range(count):
-        level = float(u[vertices[np.argmax(nearest)]])
-        if not 0.0 < level < 1.0:
-            break
-        chosen.append(level)
-        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
-    return np.sort(np.asarray(chosen))[::-1]
-
-
-def level_distance(u_sets: LevelSets, level: float, points: np.ndarray) -> np.ndarray:
-    """Distance (mm) of ``points`` from the level set ``u = level`` (inf if it is empty)."""
-    from scipy.spatial import cKDTree
-
-    _, p, q = u_sets(level)
-    if len(p) == 0:
-        return np.full(len(points), np.inf)
-    return cKDTree(np.vstack([p, q])).query(points)[0]
-
-
-def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, field: DirectionField, tx: CurveSet):
+def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, levels: RingLevels, tx: CurveSet):
     """(rows per candidate as (faces, bary) arrays, end reasons, the levels of the rings) of the family."""
-    u = radial_function(tables, regions, field.start_vertex)
-    sensing = np.asarray(regions.sensing_faces, dtype=bool)
+    u, sensing = levels.values, np.asarray(regions.sensing_faces, dtype=bool)
     u_rows = row_values(tables, u, tx.faces, tx.bary)
-    n = min(params.n_rings, tx.count)
-    n_even = max(n - params.n_reseeded, 1)
     u_sets = LevelSets(tables, u, sensing)
-    even = ring_levels(tx, u_rows, n_even) if params.level_spacing == "tx_arc" else area_levels(tables, u, sensing, n_even)
-    levels = reseeded_levels(u_sets, even, n - n_even)
-    make_legs = offset_legs if params.legs == "offset" else tx_line_legs
-    legs = make_legs(params, u_sets, tx, u_rows, levels)
+    if params.legs == "offset":
+        legs = offset_legs(params, u_sets, tx, u_rows, levels.levels)
+    else:
+        legs = tx_line_legs(params, u_sets, tx, u_rows, levels.levels, levels.count)
     all_legs = np.concatenate([resample_polyline(leg[0], 0.25) for leg in legs]) if legs else np.empty((0, 3))
     rows, ends, kept = [], [], []
     for leg_points, leg_faces, ring_points, ring_faces, level, end in legs:
@@ -273,11 +167,10 @@ def tx_line_leg(tx: CurveSet, u_rows: np.ndarray, c: int, level: float) -> tuple
 
 
 def tx_line_legs(params: TraceRingsParams, u_sets: LevelSets, tx: CurveSet, u_rows: np.ndarray,
-                 levels: np.ndarray) -> list[tuple]:
-    """Legs along consecutive Tx candidates of a corridor of ``n_rings`` centred at ``corridor_turn`` of
-    their order, the levels decreasing along it in the rings' walking direction (pole on the right):
+                 levels: np.ndarray, n: int) -> list[tuple]:
+    """Legs along consecutive Tx candidates of a corridor of ``n`` centred at ``corridor_turn`` of their
+    order, the levels decreasing along it in the rings' walking direction (pole on the right):
     ``(leg points, leg faces, ring points, ring faces, level, end reason)`` each."""
-    n = min(params.n_rings, tx.count)
     corridor = (int(round(params.corridor_turn * tx.count)) - n // 2 + np.arange(n)) % tx.count
     legs = []
     for c, level in zip(corridor, levels):
@@ -378,16 +271,15 @@ def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float, family:
                     end_reason=ends, angle=float(angle), family=family)
 
 
-@node("curves.trace_rings", params=TraceRingsParams, inputs=("mesh", "regions", "field", "tx"), outputs=("curves", "stats"))
-def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, field: DirectionField, tx: CurveSet) -> dict[str, object]:
-    """Rx rings around the Tx pole with legs along a corridor of Tx candidate lines (see the module docstring)."""
-    if field.layer != "tx":
-        raise UserError(f"curves.trace_rings needs the tx field (distance from the Tx pole), got the {field.layer} field")
+@node("curves.trace_rings", params=TraceRingsParams, inputs=("mesh", "regions", "levels", "tx"), outputs=("curves", "stats"))
+def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, levels: RingLevels, tx: CurveSet) -> dict[str, object]:
+    """Rx rings around the Tx pole at ``levels`` with legs along a corridor of Tx candidate lines (see the
+    module docstring)."""
     tables = build_tables(mesh.vertices, mesh.faces)
-    rows, ends, _ = ring_curves(params, tables, regions, field, tx)
+    rows, ends, _ = ring_curves(params, tables, regions, levels, tx)
     angle = 2.0 * np.pi * params.corridor_turn
     curves = pack(tables, rows, ends, angle, "rings" if params.legs == "offset" else "rings_tx")
-    n = min(params.n_rings, tx.count)
+    n = levels.count
     counts = np.bincount(ends, minlength=len(CurveEnd)).astype(np.int64)
     stats = TraceStats(layer="rx", angle=angle, traced=n, kept=curves.count, dropped=n - curves.count, end_counts=counts,
                        sink_edges=int(counts[CurveEnd.SINK_EDGE]), sink_edge_rate=float(counts[CurveEnd.SINK_EDGE] / max(n, 1)),

@@ -1,0 +1,153 @@
+"""``curves.ring_levels``: the harmonic radial function around the Tx pole and the levels of the Rx rings.
+
+Shared by every branch of the ring family (``curves.trace_rings`` walks the rings and their legs
+per corridor): ``u`` is 0 on the far exclusion around the Tx pole, 1 on the base and its exclusion,
+harmonic in between (:mod:`retrotouch.nodes.curves.rings` says why its level sets make rings);
+``n_rings - n_reseeded`` levels are spread so that, along the Tx lines (median over the candidates),
+neighbouring rings are equally far apart from the pole to the base (``level_spacing="area"``: so that
+the bands between them have equal area, fewer rings near the pole, where the Tx lines crowd); the
+others pass through the points farthest from the rings before them, which lie in dead ends (a second
+ear) where ``u`` barely changes and the level set makes a long hairpin. Units: mm.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams, node
+from ..data.types import CurveSet, Mesh
+from ..geometry.harmonic import harmonic_interpolation
+from ..geometry.mesh_tables import MeshTables, build_tables
+from .connection import DirectionField
+from .rx_seeding import zero_set
+
+LEVEL_GRID = 257
+"""Levels of ``u`` at which the Tx lines' arrival distances are measured."""
+
+
+class RingLevelsParams(NodeParams):
+    n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
+    n_reseeded: int = Field(4, ge=0, description="of those, rings through the points farthest from the others (dead ends)")
+    level_spacing: Literal["tx_arc", "area"] = Field(
+        "tx_arc", description="the other rings equally far apart along the Tx lines, or bands of equal area between them")
+
+
+@dataclasses.dataclass(frozen=True)
+class RingLevels:
+    """The radial function and the rings' levels: ``values`` (n_vertices,) ``u`` per vertex, ``levels``
+    decreasing (fewer than ``count`` when reseeding runs out of dead ends), ``count`` the rings asked
+    for (at most one per Tx candidate)."""
+
+    values: np.ndarray
+    levels: np.ndarray
+    count: int
+
+
+def row_values(tables: MeshTables, vertex_values: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Piecewise-linear vertex values at surface points (face, barycentrics)."""
+    return np.einsum("kc,kc->k", vertex_values[tables.faces[faces]], bary)
+
+
+def radial_function(tables: MeshTables, regions, pole: int) -> np.ndarray:
+    """``(n,)`` the harmonic radial function ``u``: 0 on the far exclusion's vertices and the pole,
+    1 on the vertices of the base and its exclusion, harmonic elsewhere (see the module docstring)."""
+    inner = np.union1d(tables.faces[np.asarray(regions.exclusion_far, dtype=bool)].ravel(), [pole])
+    outer_faces = np.asarray(regions.base_faces, dtype=bool) | np.asarray(regions.exclusion_base, dtype=bool)
+    outer = np.setdiff1d(np.unique(tables.faces[outer_faces]), inner)
+    fixed = np.r_[inner, outer]
+    values = np.r_[np.zeros(len(inner)), np.ones(len(outer))]
+    return harmonic_interpolation(tables.vertices, tables.faces, fixed, values)
+
+
+def tx_arc_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
+    """``n`` levels of ``u`` in decreasing order, spread in equal steps of the distance along the Tx
+    lines (where the crossings of one Tx line follow each other): the median over the Tx candidates of
+    the arc length (mm) at which a line first reaches a level grows in equal steps from the pole to
+    the base, half a step from either end. ``u_rows``: ``u`` at every row of ``tx``."""
+    grid = np.linspace(0.0, 1.0, LEVEL_GRID)
+    arrival = np.empty((tx.count, len(grid)))
+    for c in range(tx.count):
+        rows = tx.curve(c)
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(tx.points[rows], axis=0), axis=1))]
+        reached, first = np.unique(np.maximum.accumulate(u_rows[rows]), return_index=True)
+        arrival[c] = np.interp(grid, reached, arc[first]) if len(reached) > 1 else arc[-1]
+    along = np.maximum.accumulate(np.median(arrival, axis=0))
+    targets = along[0] + (np.arange(n)[::-1] + 0.5) / n * (along[-1] - along[0])
+    return np.interp(targets, along, grid)
+
+
+class LevelSets:
+    """The chained level sets (:func:`zero_set`) of piecewise-linear vertex ``values`` inside the
+    ``sensing`` faces, each level computed once: ``level_sets(c)`` is ``values = c``."""
+
+    def __init__(self, tables: MeshTables, values: np.ndarray, sensing: np.ndarray):
+        self.tables, self.values, self.sensing, self.cache = tables, values, sensing, {}
+
+    def __call__(self, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = float(level)
+        if key not in self.cache:
+            self.cache[key] = zero_set(self.tables, self.values - key, self.sensing)
+        return self.cache[key]
+
+
+def area_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, n: int) -> np.ndarray:
+    """``n`` levels of ``u`` in decreasing order that cut the sensing region into bands of equal area
+    (mm^2, faces at their mean ``u``), half a band from either end: a ring near the pole, where the Tx
+    lines crowd, gets as much surface around it as one near the base. Faces where ``u`` is 1 at every
+    corner (enclosed by the base, where no ring reaches) are left out."""
+    face_u = u[tables.faces[sensing]].mean(axis=1)
+    reachable = face_u < 1.0 - 1e-9
+    order = np.argsort(face_u[reachable])
+    cumulative = np.cumsum(tables.areas[sensing][reachable][order])
+    targets = (np.arange(n)[::-1] + 0.5) / n * cumulative[-1]
+    return np.interp(targets, cumulative, face_u[reachable][order])
+
+
+def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.ndarray:
+    """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
+    level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
+    ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own."""
+    tables, u = u_sets.tables, u_sets.values
+    vertices = np.unique(tables.faces[u_sets.sensing])
+    nearest = np.full(len(vertices), np.inf)
+    chosen = list(levels)
+    for level in chosen:
+        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
+    for _ in range(count):
+        level = float(u[vertices[np.argmax(nearest)]])
+        if not 0.0 < level < 1.0:
+            break
+        chosen.append(level)
+        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
+    return np.sort(np.asarray(chosen))[::-1]
+
+
+def level_distance(u_sets: LevelSets, level: float, points: np.ndarray) -> np.ndarray:
+    """Distance (mm) of ``points`` from the level set ``u = level`` (inf if it is empty)."""
+    from scipy.spatial import cKDTree
+
+    _, p, q = u_sets(level)
+    if len(p) == 0:
+        return np.full(len(points), np.inf)
+    return cKDTree(np.vstack([p, q])).query(points)[0]
+
+
+@node("curves.ring_levels", params=RingLevelsParams, inputs=("mesh", "regions", "field", "tx"), outputs=("levels",))
+def ring_levels(params: RingLevelsParams, mesh: Mesh, regions, field: DirectionField, tx: CurveSet) -> RingLevels:
+    """The radial function from the Tx pole and the rings' levels (see the module docstring)."""
+    if field.layer != "tx":
+        raise UserError(f"curves.ring_levels needs the tx field (distance from the Tx pole), got the {field.layer} field")
+    tables = build_tables(mesh.vertices, mesh.faces)
+    u = radial_function(tables, regions, field.start_vertex)
+    sensing = np.asarray(regions.sensing_faces, dtype=bool)
+    n = min(params.n_rings, tx.count)
+    n_even = max(n - params.n_reseeded, 1)
+    if params.level_spacing == "tx_arc":
+        even = tx_arc_levels(tx, row_values(tables, u, tx.faces, tx.bary), n_even)
+    else:
+        even = area_levels(tables, u, sensing, n_even)
+    return RingLevels(u, reseeded_levels(LevelSets(tables, u, sensing), even, n - n_even), n)
