@@ -36,12 +36,18 @@ def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips
     mesh, tx, rx, cross, params, candidate, regions = bunny_run
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     branch = coverage(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
-    radius = candidate.metrics["coverage_radius_mm"]
-    assert branch.stage.lower_bound_mm < radius  # trimming may only take crossings away
-    skipped = finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(branch.stage.lower_bound_mm - 0.1, ""))
-    assert not skipped.feasible and skipped.layout is None and skipped.metrics["screened"]
-    assert skipped.message.startswith(f"screened out: its coverage radius is at least {branch.stage.lower_bound_mm:.1f} mm")
-    kept = finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(branch.stage.lower_bound_mm, ""))
+    radius, bound = candidate.metrics["coverage_radius_mm"], branch.stage.lower_bound_mm
+    assert bound < radius  # trimming may only take crossings away
+
+    def finished(threshold_mm):
+        return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(threshold_mm, ""))
+
+    below = finished(bound - 0.1)
+    assert not below.feasible and below.layout is None and below.metrics["screened"]
+    assert below.message.startswith(f"screened out: its coverage radius is at least {bound:.1f} mm")
+    at_bound = finished(bound)  # kept by the bound, then the model capped there is proven infeasible
+    assert at_bound.metrics["screened"] and at_bound.message.endswith("(proven)")
+    kept = finished(branch.stage.radius_mm)
     assert kept.feasible and kept.metrics["coverage_radius_mm"] == radius
 
 

@@ -54,7 +54,7 @@ def test_the_screen_finishes_what_can_still_tie_the_best_stage1_radius_and_at_le
     cut = screen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=1), branches)
     assert cut.threshold_mm == pytest.approx(22.0)  # 20 + 1 + 1
     assert [cut.keeps(b) for b in branches] == [True, True, False, True, True]  # no stage: finish reports why
-    assert cut.summary.startswith("4 of 5 branches finished")
+    assert cut.summary.startswith("4 of 5 branches kept")
     tight = screen(ScreenParams(radius_tolerance_mm=0.0, margin_mm=0.0, keep_at_least=2), branches)
     assert [tight.keeps(b) for b in branches] == [True, True, False, False, True]  # 21.4 kept as the second
     every = screen(ScreenParams(margin_mm=None), branches)

@@ -6,8 +6,11 @@ takes the smallest coverage radius first, and counts radii within ``radius_toler
 equal; so a branch whose lower bound exceeds the smallest stage-1 radius by more than that tolerance
 cannot be chosen, unless finishing (trimming crowded free ends, relaxing pads) makes the best branches
 worse. ``margin_mm`` allows for that, and the ``keep_at_least`` branches with the smallest lower
-bounds are finished in any case. ``layout.pick_best`` checks afterwards that no screened branch
-could have tied the chosen one, and says so when one could. Units: mm.
+bounds are finished in any case. A kept branch whose stage-1 radius is beyond the threshold while its
+bound is not (a trust region's bound is weak) is first put to the proof in ``layout.finish``: the
+model with every sample's cap at the threshold, proven infeasible, screens it out too.
+``layout.pick_best`` checks afterwards that no screened branch could have tied the chosen one, and
+says so when one could. Units: mm.
 """
 from __future__ import annotations
 
@@ -67,7 +70,7 @@ def screen(params: ScreenParams, branches: list[BranchStart]) -> Screen:
     """The threshold on the branches' stage-1 lower bounds up to which ``layout.finish`` completes them."""
     staged = [b.stage for b in branches if b.stage is not None]
     if params.margin_mm is None or len(staged) <= params.keep_at_least:
-        return Screen(math.inf, f"all {len(branches)} branches finished")
+        return Screen(math.inf, f"all {len(branches)} branches kept")
     best = min(s.radius_mm for s in staged)
     lower = sorted(s.lower_bound_mm for s in staged)
     threshold = best + params.radius_tolerance_mm + params.margin_mm
@@ -75,5 +78,5 @@ def screen(params: ScreenParams, branches: list[BranchStart]) -> Screen:
     if lower[params.keep_at_least - 1] > threshold:
         threshold, why = lower[params.keep_at_least - 1], f"the {params.keep_at_least} smallest lower bounds"
     finished = sum(Screen(threshold, "").keeps(b) for b in branches)
-    return Screen(threshold, f"{finished} of {len(branches)} branches finished: the others' coverage radius is "
+    return Screen(threshold, f"{finished} of {len(branches)} branches kept: the others' coverage radius is "
                   f"proven above {threshold:.1f} mm ({why})")

@@ -269,6 +269,21 @@ def solve_radius_stage(
                        seconds)
 
 
+def radius_proven_above(problem: SelectionProblem, stage: RadiusStage, radius_mm: float) -> bool:
+    """True when no selection covers every sample within ``radius_mm``: the model with every sample's
+    cap at that radius (no trust region) is proven infeasible within the stage's limits; False when a
+    selection may (feasible, or not proven)."""
+    settings = stage.settings
+    q = _quantised_distances(problem, settings["resolution_mm"])
+    level = int(np.ceil(radius_mm / settings["resolution_mm"] - 1e-9))
+    if np.any(q.min(axis=1) > level):  # a sample with no crossing that near
+        return True
+    model = build_model(problem, settings["n_drive"], settings["n_sense"], q, np.full(len(q), level), settings["power"])
+    nothing = np.zeros(model.n_cols, dtype=np.int64)  # a feasibility question: any selection stops it
+    solved = solve_stage(model, nothing, nothing, settings["solver"], {**settings, "relative_gap": 0.0})
+    return solved.status == "INFEASIBLE"
+
+
 def finish_selection(problem: SelectionProblem, stage: RadiusStage, relative_gap: float = PHASE1_RELATIVE_GAP) -> SelectionResult:
     """Phase 1 from its radius stage: the power-mean stage when the stage was solved with
     ``secondary`` (stopped within ``relative_gap`` of its optimum) and every stage's report."""

@@ -36,7 +36,7 @@ from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP,
                       SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
 from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
 from .screen import BranchStart, Screen
-from .selection import finish_selection, solve_radius_stage
+from .selection import finish_selection, radius_proven_above, solve_radius_stage
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
 from ..data.types import CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh
@@ -329,6 +329,11 @@ def finish(
                    f"{screen.threshold_mm:.1f} mm")
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
+    if (screen is not None and branch.stage.radius_mm > screen.threshold_mm
+            and radius_proven_above(problem, branch.stage, screen.threshold_mm)):
+        message = f"screened out: no selection of it covers the surface within {screen.threshold_mm:.1f} mm (proven)"
+        return _failed(branch.family, angle_deg, base, message, screened=True,
+                       coverage_radius_lower_bound_mm=screen.threshold_mm, phase1=branch.stage.report)
     selection = finish_selection(problem, branch.stage, params.relative_gap)
     geo = geodesics_for(mesh)
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
