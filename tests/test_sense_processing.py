@@ -10,7 +10,7 @@ import pytest
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.sensing_map import load_sensing_map
 from retrotouch.nodes.geometry.surface import closest_points_on_triangles, SurfaceProjector
-from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor
+from retrotouch.nodes.sensing.processing import SUPPORT_WIDTHS, ProcessingParams, TouchProcessor
 from retrotouch.nodes.sensing.pty_board import frames_through_pty
 from retrotouch.nodes.sensing.scripts import ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
@@ -260,7 +260,7 @@ def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
 
 def test_a_one_frame_spike_beside_a_noisy_crossing_is_no_touch_but_a_press_is_one(bunny_map):
     """A board spike raises one crossing for one frame (14 noise sigmas) while one crossing within
-    two pitches reads 3.4 sigmas by chance, and the spiked crossing reads 4.4 sigmas in the next
+    a finger's reach reads 3.4 sigmas by chance, and the spiked crossing reads 4.4 sigmas in the next
     frame (kept on by the off threshold's hysteresis): no touch. A finger over the same crossing,
     and a weak one only that crossing sees (7 sigmas for five frames), each give one touch-down."""
     processor = TouchProcessor(bunny_map)
@@ -268,9 +268,9 @@ def test_a_one_frame_spike_beside_a_noisy_crossing_is_no_touch_but_a_press_is_on
     baseline = rng.uniform(9650.0, 10360.0, 21 * 12)
     noise = 5.0
     distance = processor.cell_distance
-    support = processor.support
-    cell = int(np.argmax(support.sum(axis=0)))  # the crossing with the most crossings within two pitches
-    neighbour = int(np.flatnonzero(support[cell])[0])
+    reach = (distance <= SUPPORT_WIDTHS * processor.fit.coupling_sigma) & (distance > 0)
+    cell = int(np.argmax(reach.sum(axis=0)))  # the crossing with the most crossings within a finger's reach
+    neighbour = int(np.flatnonzero(reach[cell])[0])
     channel = processor.frame_index
 
     def frame(extra_sigmas=None):

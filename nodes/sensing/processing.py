@@ -65,6 +65,7 @@ from .tracking import Tracker
 
 SUPPORT_SIGMA = 3.0  # a reading that supports a new touch's peak is above this many noise sigmas ...
 SUPPORT_READINGS = 2  # ... and a new touch's peak needs this many of them (see TouchProcessor._peaks)
+SUPPORT_WIDTHS = 2.0  # crossings within this many coupling widths of a peak (its reach) support it
 
 
 class ProcessingParams(NodeParams):
@@ -149,7 +150,6 @@ class TouchProcessor:
         # (width, K): row j holds each cell's j-th neighbour within the peak radius, padded with the cell itself.
         padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
         self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
-        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
         self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
         self.tracker = Tracker(params.track_gate_mm)
         self.channels = Baseline((NUM_TX, NUM_RX), params)
@@ -219,17 +219,19 @@ class TouchProcessor:
         Away from the last frame's touches (``near_touch``, the hold radius) it must also be a finger
         rather than a board spike, which raises one cell for one frame: a finger couples to several
         crossings and lasts many frames. So it needs ``SUPPORT_READINGS`` supporting readings above
-        ``SUPPORT_SIGMA`` noise sigmas besides its own in this frame: each other crossing within two
-        pitches counts once, the candidate in the previous frame once, twice above the off threshold
-        (where a touch's cell stays on), but not at all if it has since lost more than half of its
-        delta (a spike falling back, which the off threshold's hysteresis may keep on). A finger
-        that only one crossing sees thus touches down a frame later. Noise alone puts one of a
-        peak's dozen neighbours above 3 sigmas in ~2 % of frames, two in ~0.01 %; one reading above
-        4 sigmas is as rare (~0.003 %).
+        ``SUPPORT_SIGMA`` noise sigmas besides its own in this frame: each other crossing within the
+        finger's reach (``SUPPORT_WIDTHS`` coupling widths, the width as learned: a strong finger on
+        a sparse layout lights crossings three pitches away) counts once, the candidate in the
+        previous frame once, twice above the off threshold (where a touch's cell stays on), but not
+        at all if it has since lost more than half of its delta (a spike falling back, which the
+        off threshold's hysteresis may keep on). A finger that only one crossing sees thus touches
+        down a frame later. Noise alone puts one of a peak's ~10 neighbours above 3 sigmas in ~1 %
+        of frames, two in ~0.01 %; one reading above 4 sigmas is as rare (~0.003 %).
         """
         before = np.where(delta >= 0.5 * self.previous_delta, self.previous_delta / sigma, 0.0)
-        readings = (self.support[delta > SUPPORT_SIGMA * sigma].sum(axis=0) + (before > SUPPORT_SIGMA)
-                    + (before > self.params.off_sigma))
+        strong = delta > SUPPORT_SIGMA * sigma
+        within_reach = self.cell_distance[strong] <= SUPPORT_WIDTHS * self.fit.coupling_sigma  # rows: strong cells
+        readings = within_reach.sum(axis=0) - strong + (before > SUPPORT_SIGMA) + (before > self.params.off_sigma)
         supported = self.near_touch | (readings >= SUPPORT_READINGS)
         delta = delta / self.cell_gain
         on = np.where(self.active, delta, -np.inf)
