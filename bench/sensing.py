@@ -21,7 +21,9 @@ where crossings surround the finger (rule "surrounded", the flat keys), anywhere
 spread protocol on the mismatched board after ``sense --calibrate`` there (a simulated operator
 touching each crossing twice; :func:`..evaluation.calibrate_simulator`), with ``crossing_error_mm``:
 how far the map's and the calibrated crossings are from the board's (the benchmark reads the board
-to score; the processing never does).
+to score; the processing never does). False touches at rest: 10 simulated minutes with drift on
+the twin board (board seed 2) and on the mismatched board (seed 2 under the old keys; every
+``--rest-seeds`` seed in ``false_touches_at_rest_by_seed``).
 """
 from __future__ import annotations
 
@@ -101,9 +103,9 @@ def link_rate(sensing_map, frames: int, frame_format: str) -> float:
     return (count - 1) / (time.perf_counter() - started)
 
 
-def rest(sensing_map, minutes: float, board: BoardParams = BoardParams()) -> dict:
-    """Minutes at rest with drift through the pty in fast mode: every touch-down is a false touch."""
-    params = board.model_copy(update={"seed": 2, "drift_fraction": 0.01, "drift_period_s": 240, "cell_walk_counts": 0.3})
+def rest(sensing_map, minutes: float, board: BoardParams = BoardParams(), seed: int = 2) -> dict:
+    """Minutes at rest with drift through the pty in fast mode, board ``seed``: every touch-down is a false touch."""
+    params = board.model_copy(update={"seed": seed, "drift_fraction": 0.01, "drift_period_s": 240, "cell_walk_counts": 0.3})
     board = VirtualBoard(sensing_map, params)
     processor = TouchProcessor(sensing_map)
     frames = int(minutes * 60 * params.rate_hz)
@@ -125,6 +127,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3000, help="frames of the throughput run")
     parser.add_argument("--snr", type=float, default=60.0, help="simulated SNR (peak signal / noise sigma)")
     parser.add_argument("--rest-minutes", type=float, default=10.0, help="simulated minutes at rest")
+    parser.add_argument("--rest-seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4, 5],
+                        help="board seeds of the rest runs on the mismatched board (seed 2 always runs)")
     args = parser.parse_args()
     if args.layout:
         path, layout_note = resolve_sensing_map_path(args.layout), f"--layout {args.layout}"
@@ -158,7 +162,9 @@ def main() -> None:
     # The same protocol when the board's coupling is not the processing's Gaussian (model mismatch).
     disc = evaluate_simulator(path, BoardParams(snr=args.snr, coupling_model="disc"), surrounded).summary()
     at_rest = rest(sensing_map, args.rest_minutes)
-    at_rest_mismatched = rest(sensing_map, args.rest_minutes, REALISTIC_BOARD)
+    rest_by_seed = {seed: rest(sensing_map, args.rest_minutes, REALISTIC_BOARD, seed)
+                    for seed in sorted({2, *args.rest_seeds})}
+    at_rest_mismatched = rest_by_seed[2]
     rows = [
         ("spread locations, mismatched board", f"{spread['localization_error_mm_mean']:.3f} / "
          f"{spread['localization_error_mm_max']:.3f} mm", f"mean / max; median {spread['localization_error_mm_median']:.3f}, "
@@ -209,7 +215,8 @@ def main() -> None:
         ("missed presses / false touches", f"{report['missed_presses']} / {report['false_touches_at_rest']}",
          f"eval {eval_s:.1f} s"),
         ("false touches at rest, mismatched board", f"{at_rest_mismatched['false_touches']}",
-         f"{at_rest_mismatched['frames']} frames with drift, spikes, row/column noise"),
+         f"{at_rest_mismatched['frames']} frames with drift, spikes, row/column noise, board seed 2; seeds "
+         + ", ".join(f"{seed}: {run['false_touches']}" for seed, run in rest_by_seed.items())),
         ("false touches at rest", f"{at_rest['false_touches']}", f"{at_rest['frames']} frames with drift, "
          f"max delta {at_rest['max_delta_sigmas']:.1f} sigma"),
     ]
@@ -242,7 +249,10 @@ def main() -> None:
         "false_touches_at_rest": at_rest["false_touches"], "rest_frames": at_rest["frames"],
         "spread_mismatched_board": {"false_touches_at_rest": at_rest_mismatched["false_touches"],
                                     "false_touches_at_rest_eval": spread["false_touches_at_rest"],
-                                    "rest_frames": at_rest_mismatched["frames"], **{key: spread.get(key) for key in (
+                                    "rest_frames": at_rest_mismatched["frames"],
+                                    "false_touches_at_rest_by_seed": {str(seed): run["false_touches"]
+                                                                      for seed, run in rest_by_seed.items()},
+                                    **{key: spread.get(key) for key in (
             "localization_error_mm_mean", "localization_error_mm_median", "localization_error_mm_max",
             "localization_error_mm_rmse", "missed_presses", "missed_presses_by_nearest_crossing",
             "presses_without_one_touch_down", "ghost_touches", "snr_mean", "snr_p2p_mean", "nearest_crossing_mm_max",

@@ -10,7 +10,7 @@ import pytest
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.sensing_map import load_sensing_map
 from retrotouch.nodes.geometry.surface import closest_points_on_triangles, SurfaceProjector
-from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor
+from retrotouch.nodes.sensing.processing import SUPPORT_WIDTHS, ProcessingParams, TouchProcessor
 from retrotouch.nodes.sensing.pty_board import frames_through_pty
 from retrotouch.nodes.sensing.scripts import ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
@@ -256,3 +256,47 @@ def test_sensing_map_errors_are_one_line_user_errors(bunny_map_path, tmp_path):
     tampered.write_text(json.dumps(doc))
     with pytest.raises(UserError, match="misses or mangles field"):
         load_sensing_map(tampered)
+
+
+def test_a_one_frame_spike_beside_a_noisy_crossing_is_no_touch_but_a_press_is_one(bunny_map):
+    """A board spike raises one crossing for one frame (14 noise sigmas) while one crossing within
+    a finger's reach reads 3.4 sigmas by chance, and the spiked crossing reads 4.4 sigmas in the next
+    frame (kept on by the off threshold's hysteresis): no touch. A finger over the same crossing,
+    and a weak one only that crossing sees (7 sigmas for five frames), each give one touch-down."""
+    processor = TouchProcessor(bunny_map)
+    rng = np.random.default_rng(3)
+    baseline = rng.uniform(9650.0, 10360.0, 21 * 12)
+    noise = 5.0
+    distance = processor.cell_distance
+    reach = (distance <= SUPPORT_WIDTHS * processor.fit.coupling_sigma) & (distance > 0)
+    cell = int(np.argmax(reach.sum(axis=0)))  # the crossing with the most crossings within a finger's reach
+    neighbour = int(np.flatnonzero(reach[cell])[0])
+    channel = processor.frame_index
+
+    def frame(extra_sigmas=None):
+        raw = baseline + np.clip(rng.normal(0.0, noise, baseline.shape), -2 * noise, 2 * noise)
+        for k, z in (extra_sigmas or {}).items():  # exactly z sigmas over the processing's baseline
+            raw[channel[k]] = processor.channels.baseline[channel[k]] + z * sigma[k]
+        return np.rint(raw).reshape(21, 12)
+
+    sigma = np.full(bunny_map.cell_count, noise)
+    t = 0.0
+    events = []
+    for k in range(40):  # start-up and rest
+        events += processor.process(frame(), t).events
+        t += 0.1
+    sigma = processor.sigma()
+    for extra in ({cell: 14.0, neighbour: 3.4}, {cell: 4.4}, None, None):
+        events += processor.process(frame(extra), t).events
+        t += 0.1
+    assert not [e for e in events if e["type"] == "touch_down"]
+
+    width = np.sqrt(4.5**2 + (processor.pitch / 2) ** 2)
+    finger = {k: 300.0 / noise * processor.cell_gain[k] * np.exp(-distance[cell, k] ** 2 / (2 * width**2))
+              for k in np.flatnonzero(distance[cell] < 3 * width)}
+    for press in (finger, {cell: 7.0}):
+        downs = []
+        for extra in [press] * 5 + [None] * 5:
+            downs += [e for e in processor.process(frame(extra), t).events if e["type"] == "touch_down"]
+            t += 0.1
+        assert len(downs) == 1 and downs[0]["cell"] == cell

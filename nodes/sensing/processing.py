@@ -63,7 +63,9 @@ from .contacts import ContactAreas
 from .coupling_fit import CouplingFit
 from .tracking import Tracker
 
-SUPPORT_SIGMA = 3.0  # a touch peak needs another crossing within two pitches above this many noise sigmas
+SUPPORT_SIGMA = 3.0  # a reading that supports a new touch's peak is above this many noise sigmas ...
+SUPPORT_READINGS = 2  # ... and a new touch's peak needs this many of them (see TouchProcessor._peaks)
+SUPPORT_WIDTHS = 2.0  # crossings within this many coupling widths of a peak (its reach) support it
 
 
 class ProcessingParams(NodeParams):
@@ -148,7 +150,6 @@ class TouchProcessor:
         # (width, K): row j holds each cell's j-th neighbour within the peak radius, padded with the cell itself.
         padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
         self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
-        self.support = (self.cell_distance <= 2.0 * self.pitch) & (self.cell_distance > 0)  # (K, K), symmetric
         self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
         self.tracker = Tracker(params.track_gate_mm)
         self.channels = Baseline((NUM_TX, NUM_RX), params)
@@ -158,6 +159,8 @@ class TouchProcessor:
         """Forget baseline, noise and tracks (the next frames recalibrate)."""
         self.channels.reset()
         self.active = np.zeros(self.map.cell_count, dtype=bool)
+        self.near_touch = np.zeros(self.map.cell_count, dtype=bool)  # within the hold radius of a touch of the last frame
+        self.previous_delta = np.zeros(self.map.cell_count)  # (K,) counts, the last frame's
         self._touched = np.zeros(NUM_TX * NUM_RX, dtype=bool)  # channels the common modes leave out
         self.tracker.reset()
         self._last_t: float | None = None
@@ -183,14 +186,17 @@ class TouchProcessor:
         index = self.frame_index
         delta, sigma, valid = delta_full[index], sigma_full[index], valid_full[index]
         threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
-        was_active, self.active = self.active, valid & (delta > threshold)
-        touches = self._touches(delta, sigma, was_active) if self.active.any() else []
+        self.active = valid & (delta > threshold)
+        touches = self._touches(delta, sigma) if self.active.any() else []
+        self.previous_delta = delta
         tracked, events = self.tracker.track(touches, t)
         held = None
         self._touched.fill(False)
+        self.near_touch = (self.holds[[touch.peak_cell for touch in tracked]].any(axis=0) if tracked
+                           else np.zeros_like(self.active))
         if tracked:
             held = self._touched
-            held[index] = self.holds[[touch.peak_cell for touch in tracked]].any(axis=0)
+            held[index] = self.near_touch
         self._touched[index[self.active]] = True
         self.channels.update(full, delta_full, valid_full, sigma_full, held, t, dt)
         return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
@@ -201,7 +207,7 @@ class TouchProcessor:
 
     # ---- contact areas and touch points
 
-    def _peaks(self, delta: np.ndarray, sigma: np.ndarray, was_active: np.ndarray) -> np.ndarray:
+    def _peaks(self, delta: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         """Active cells that are local maxima among the active cells and not explained by a stronger
         peak's coupling tail, both on gain-normalised deltas ``delta / g`` (a crossing without a pad
         reads less for the same finger: two padded crossings on either side of a finger over pad-less
@@ -209,12 +215,24 @@ class TouchProcessor:
         over a small gain would otherwise outweigh the one crossing a finger in a sparse region turns
         on, and the touch would drop for a frame and come back as a second touch-down.
 
-        A candidate must exceed twice the tail bound (:class:`.CouplingFit`) of every stronger peak,
-        and, unless it was on in the previous frame, another crossing within two pitches must read
-        above ``SUPPORT_SIGMA`` noise sigmas: a finger couples to several crossings, a one-frame
-        spike of the board to one cell.
+        A candidate must exceed twice the tail bound (:class:`.CouplingFit`) of every stronger peak.
+        Away from the last frame's touches (``near_touch``, the hold radius) it must also be a finger
+        rather than a board spike, which raises one cell for one frame: a finger couples to several
+        crossings and lasts many frames. So it needs ``SUPPORT_READINGS`` supporting readings above
+        ``SUPPORT_SIGMA`` noise sigmas besides its own in this frame: each other crossing within the
+        finger's reach (``SUPPORT_WIDTHS`` coupling widths, the width as learned: a strong finger on
+        a sparse layout lights crossings three pitches away) counts once, the candidate in the
+        previous frame once, twice above the off threshold (where a touch's cell stays on), but not
+        at all if it has since lost more than half of its delta (a spike falling back, which the
+        off threshold's hysteresis may keep on). A finger that only one crossing sees thus touches
+        down a frame later. Noise alone puts one of a peak's ~10 neighbours above 3 sigmas in ~1 %
+        of frames, two in ~0.01 %; one reading above 4 sigmas is as rare (~0.003 %).
         """
-        supported = was_active | self.support[delta > SUPPORT_SIGMA * sigma].any(axis=0)
+        before = np.where(delta >= 0.5 * self.previous_delta, self.previous_delta / sigma, 0.0)
+        strong = delta > SUPPORT_SIGMA * sigma
+        within_reach = self.cell_distance[strong] <= SUPPORT_WIDTHS * self.fit.coupling_sigma  # rows: strong cells
+        readings = within_reach.sum(axis=0) - strong + (before > SUPPORT_SIGMA) + (before > self.params.off_sigma)
+        supported = self.near_touch | (readings >= SUPPORT_READINGS)
         delta = delta / self.cell_gain
         on = np.where(self.active, delta, -np.inf)
         candidates = np.flatnonzero(self.active & supported & (delta >= on[self.peak_neighbours].max(axis=0)))
@@ -226,8 +244,8 @@ class TouchProcessor:
                 kept.append((c, value))
         return np.array([c for c, _ in kept], dtype=np.int64)
 
-    def _touches(self, delta: np.ndarray, sigma: np.ndarray, was_active: np.ndarray) -> list[Touch]:
-        peaks = self._peaks(delta, sigma, was_active)
+    def _touches(self, delta: np.ndarray, sigma: np.ndarray) -> list[Touch]:
+        peaks = self._peaks(delta, sigma)
         if len(peaks) == 0:
             return []
         # [cell, point, face, bary, area, centroid]; point/face/bary set by the refinement or below
