@@ -40,7 +40,8 @@ def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips
     assert bound < radius  # trimming may only take crossings away
 
     def finished(threshold_mm):
-        return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], branch, Screen(threshold_mm, ""))
+        return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"], branch,
+                      Screen(threshold_mm, ""))
 
     below = finished(bound - 0.1)
     assert not below.feasible and below.layout is None and below.metrics["screened"]

@@ -20,20 +20,18 @@ import math
 from pydantic import Field
 
 from ...graph.node import NodeParams, node
-from .problem import SelectionProblem
 from .selection import RadiusStage
 
 
 @dataclasses.dataclass(frozen=True)
 class BranchStart:
-    """One branch after phase 1's radius stage (``layout.coverage``): its phase-1 problem, the radius
-    stage (None when phase 1 cannot be set up, ``message`` says why), the report so far and the
-    parameters it is solved with, which ``layout.finish`` uses too."""
+    """One branch after phase 1's radius stage (``layout.coverage``): the radius stage (None when phase 1
+    cannot be set up, ``message`` says why), the report so far and the parameters it is solved with,
+    which ``layout.finish`` uses too (it rebuilds the phase-1 problem from them)."""
 
     params: dict  # the OptimizeParams fields
     family: str
     angle_deg: float
-    problem: SelectionProblem
     base: dict
     stage: RadiusStage | None
     message: str

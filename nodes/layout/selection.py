@@ -205,10 +205,11 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
 
 @dataclasses.dataclass(frozen=True)
 class RadiusStage:
-    """Phase 1 after its radius stage: what finishing it needs, and what screening a branch reads.
-    ``selection`` is stage 1's (Tx ids, Rx ids), or the heuristic start when the solver found none."""
+    """Phase 1 after its radius stage: what finishing it needs besides the problem, and what screening a
+    branch reads. ``selection`` is stage 1's (Tx ids, Rx ids), or the heuristic start when the solver
+    found none; ``sample_cap`` the model's caps (levels), from which :func:`stage_model` rebuilds it."""
 
-    model: LinearModel
+    sample_cap: np.ndarray
     selection: tuple[np.ndarray, np.ndarray]
     solved: bool  # stage 1 returned an incumbent
     report: dict  # heuristic, stage 1, model size, solver, resolution
@@ -265,8 +266,15 @@ def solve_radius_stage(
         stage1["global_bound"] = stage1["bound"]
     stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
-    return RadiusStage(model, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
+    return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
                        seconds)
+
+
+def stage_model(problem: SelectionProblem, stage: RadiusStage) -> LinearModel:
+    """The model the radius stage solved (the same function of the problem and its caps)."""
+    settings = stage.settings
+    return build_model(problem, settings["n_drive"], settings["n_sense"], _quantised_distances(problem, settings["resolution_mm"]),
+                       stage.sample_cap, settings["power"])
 
 
 def radius_proven_above(problem: SelectionProblem, stage: RadiusStage, radius_mm: float) -> bool:
@@ -298,7 +306,8 @@ def finish_selection(problem: SelectionProblem, stage: RadiusStage, relative_gap
         source = solver
         if stage.settings["secondary"]:
             settings = {**stage.settings, "relative_gap": relative_gap}
-            report, (tx_sel, rx_sel), seconds = _power_mean_stage(stage.model, problem, (tx_sel, rx_sel), settings)
+            report, (tx_sel, rx_sel), seconds = _power_mean_stage(stage_model(problem, stage), problem, (tx_sel, rx_sel),
+                                                                  settings)
             stages.append(report)
             stage_seconds.append(seconds)
     active, nearest = evaluate_selection(problem, tx_sel, rx_sel)

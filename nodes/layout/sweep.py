@@ -269,6 +269,14 @@ def _free_end_trims(params: OptimizeParams, samples: SurfaceSamples, curves: Cur
     return drop
 
 
+def _problem(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+             tx_tx: Crossings, rx_rx: Crossings) -> SelectionProblem:
+    """The branch's phase-1 problem under ``params`` (see :func:`selection_problem`)."""
+    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
+    return selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
+                             params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
+
+
 def _failed(family: str, angle_deg: float, base: dict, message: str, **report) -> AngleLayout:
     """A branch without a layout: ``message`` says why; ``base`` and ``report`` go into its metrics."""
     return AngleLayout(family, angle_deg, False, message, None, {**base, "feasible": False, "message": message, **report})
@@ -293,20 +301,19 @@ def coverage(
     """Phase 1's problem and radius stage for one branch (see the module docstring); ``layout.finish``
     completes it with the same parameters."""
     angle_deg = float(np.rad2deg(rx.angle))
-    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
-    problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
-                                params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
+    problem = _problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         stage = solve_radius_stage(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
                                    params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
                                    params.secondary_power, params.solver, params.highs_max_nodes)
     except UserError as exc:
-        return BranchStart(params.model_dump(), rx.family, angle_deg, problem, base, None, str(exc))
-    return BranchStart(params.model_dump(), rx.family, angle_deg, problem, base, stage, "ok")
+        return BranchStart(params.model_dump(), rx.family, angle_deg, base, None, str(exc))
+    return BranchStart(params.model_dump(), rx.family, angle_deg, base, stage, "ok")
 
 
-@node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "branch", "screen"), outputs=("candidate",))
+@node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "branch", "screen"),
+      outputs=("candidate",))
 def finish(
     params: NodeParams,
     mesh: Mesh,
@@ -314,14 +321,15 @@ def finish(
     tx: CurveSet,
     rx: CurveSet,
     tx_rx: Crossings,
+    tx_tx: Crossings,
+    rx_rx: Crossings,
     branch: BranchStart,
     screen: Screen | None,
 ) -> AngleLayout:
     """Phase 1's power-mean stage + phase 2 (pads) + metrics for a branch the ``screen`` keeps (all
     when None), with the parameters of its ``layout.coverage``; a branch it drops is reported as
     screened out with its radius stage."""
-    params, problem = OptimizeParams.model_validate(branch.params), branch.problem
-    angle_deg, base = branch.angle_deg, branch.base
+    params, angle_deg, base = OptimizeParams.model_validate(branch.params), branch.angle_deg, branch.base
     if branch.stage is None:
         return _failed(branch.family, angle_deg, base, branch.message)
     if screen is not None and not screen.keeps(branch):
@@ -329,6 +337,7 @@ def finish(
                    f"{screen.threshold_mm:.1f} mm")
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
+    problem = _problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.coverage's, rebuilt: not cached twice
     if (screen is not None and branch.stage.radius_mm > screen.threshold_mm
             and radius_proven_above(problem, branch.stage, screen.threshold_mm)):
         message = f"screened out: no selection of it covers the surface within {screen.threshold_mm:.1f} mm (proven)"
@@ -379,4 +388,4 @@ def optimize(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: Cu
              tx_tx: Crossings, rx_rx: Crossings) -> AngleLayout:
     """One branch start to end, unscreened: ``layout.coverage`` then ``layout.finish`` (plain functions)."""
     branch = coverage(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
-    return finish(NodeParams(), mesh, samples, tx, rx, tx_rx, branch, None)
+    return finish(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, None)
