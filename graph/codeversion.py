@@ -5,6 +5,11 @@ and formatting do not count) of the module defining it and of every module of th
 (:attr:`.app.App.node_packages`) that it imports, transitively. The engine is left out: engine
 changes that affect stored results bump :data:`.hashing.CACHE_FORMAT_SALT` instead. A node
 declared with ``version="..."`` uses that string and nothing else.
+
+Parsing every module costs about a second per planning run; a memo (:data:`MEMO_NAME` in the cache's
+local folder) keeps each module's normalised hash and imported names under the sha256 of its bytes,
+its name and the interpreter version, so that a run after a parameter tweak parses only the files
+that changed. Which imported names are tracked modules is decided afresh every run.
 """
 from __future__ import annotations
 
@@ -12,12 +17,19 @@ import ast
 import hashlib
 import importlib.util
 import inspect
+import json
+import os
+import sys
+import uuid
 
 from .app import current
 from .hashing import digest_fields
 from .node import NodeSpec
 
 _module_cache: dict[str, tuple[str, tuple[str, ...]]] = {}
+
+MEMO_NAME = "code_versions.json"
+MEMO_ENTRIES = 4000  # the most recent entries a saved memo keeps
 
 
 def _strip_docstrings(tree: ast.AST) -> None:
@@ -29,11 +41,14 @@ def _strip_docstrings(tree: ast.AST) -> None:
                 n.body = body[1:] or [ast.Pass()]
 
 
-def normalised_source_hash(source: str) -> str:
-    """sha256 of the source's AST with docstrings removed (comments and layout never reach it)."""
-    tree = ast.parse(source)
+def _tree_hash(tree: ast.Module) -> str:
     _strip_docstrings(tree)
     return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
+
+
+def normalised_source_hash(source: str) -> str:
+    """sha256 of the source's AST with docstrings removed (comments and layout never reach it)."""
+    return _tree_hash(ast.parse(source))
 
 
 def _is_tracked(name: str) -> bool:
@@ -47,7 +62,8 @@ def _module_exists(name: str) -> bool:
         return False
 
 
-def _imports(tree: ast.Module, modname: str, is_package: bool) -> set[str]:
+def _imported_names(tree: ast.Module, modname: str, is_package: bool) -> list[str]:
+    """Every module name an import of ``tree`` may refer to (``from a import b``: ``a`` and ``a.b``)."""
     package = modname if is_package else modname.rpartition(".")[0]
     found: set[str] = set()
     for n in ast.walk(tree):
@@ -61,26 +77,69 @@ def _imports(tree: ast.Module, modname: str, is_package: bool) -> set[str]:
                 base = f"{parent}.{base}" if base else parent
             found.add(base)
             found.update(f"{base}.{alias.name}" for alias in n.names)
-    return {m for m in found if m and _is_tracked(m) and _module_exists(m)}
+    return sorted(m for m in found if m)
 
 
-def module_hash(modname: str) -> tuple[str, tuple[str, ...]]:
-    """``(normalised source hash, tracked modules it imports)`` of one module."""
+def _memo_entry(value: object) -> tuple[str, list[str]] | None:
+    if (isinstance(value, list) and len(value) == 2 and isinstance(value[0], str)
+            and isinstance(value[1], list) and all(isinstance(m, str) for m in value[1])):
+        return value[0], value[1]
+    return None
+
+
+def module_hash(modname: str, memo: dict | None = None) -> tuple[str, tuple[str, ...]]:
+    """``(normalised source hash, tracked modules it imports)`` of one module; ``memo`` (see the module
+    docstring) is read and filled when given."""
     if modname in _module_cache:
         return _module_cache[modname]
     spec = importlib.util.find_spec(modname)
     if spec is None or not spec.origin or not spec.origin.endswith(".py"):
         raise ValueError(f"module {modname} has no Python source; declare the node with version=...")
-    with open(spec.origin, encoding="utf-8") as f:
-        tree_source = f.read()
-    digest = normalised_source_hash(tree_source)
-    deps = tuple(sorted(_imports(ast.parse(tree_source), modname, spec.submodule_search_locations is not None)))
-    _module_cache[modname] = (digest, deps)
+    with open(spec.origin, "rb") as f:
+        raw = f.read()
+    is_package = spec.submodule_search_locations is not None
+    key = digest_fields([sys.version, modname, str(is_package), hashlib.sha256(raw).hexdigest()])
+    entry = _memo_entry(memo.get(key)) if memo is not None else None
+    if entry is None:
+        tree = ast.parse(raw.decode("utf-8"))
+        names = _imported_names(tree, modname, is_package)
+        entry = (_tree_hash(tree), names)
+        if memo is not None:
+            memo[key] = [entry[0], names]
+    digest, names = entry
+    _module_cache[modname] = (digest, tuple(m for m in names if _is_tracked(m) and _module_exists(m)))
     return _module_cache[modname]
 
 
-def code_version(spec: NodeSpec) -> str:
-    """The code version of a node type (see the module docstring)."""
+def load_memo(folder: str) -> dict:
+    """The memo saved in ``folder`` (empty when there is none or it cannot be read)."""
+    try:
+        with open(os.path.join(folder, MEMO_NAME), encoding="utf-8") as f:
+            memo = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    return memo if isinstance(memo, dict) else {}
+
+
+def save_memo(folder: str, memo: dict) -> None:
+    """Write ``memo`` (its newest :data:`MEMO_ENTRIES`) atomically into ``folder``; a cache folder that
+    cannot take it only costs the next run its parsing."""
+    kept = dict(list(memo.items())[-MEMO_ENTRIES:])
+    tmp = os.path.join(folder, f".{MEMO_NAME}.{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(kept, f)
+        os.replace(tmp, os.path.join(folder, MEMO_NAME))
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+
+
+def code_version(spec: NodeSpec, memo: dict | None = None) -> str:
+    """The code version of a node type (see the module docstring); ``memo`` as for :func:`module_hash`."""
     if spec.version is not None:
         return "pinned:" + spec.version
     root = spec.func.__module__
@@ -92,7 +151,7 @@ def code_version(spec: NodeSpec) -> str:
         name = todo.pop()
         if name in seen:
             continue
-        digest, deps = module_hash(name)
+        digest, deps = module_hash(name, memo)
         seen[name] = digest
         todo.extend(deps)
     return digest_fields(f"{name}={seen[name]}" for name in sorted(seen))

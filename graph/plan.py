@@ -18,7 +18,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from .codeversion import code_version
+from .codeversion import code_version, load_memo, save_memo
 from .errors import UserError
 from .hashing import canonical_json, file_sha256, instance_key
 from .node import NodeParams
@@ -142,6 +142,8 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     by_branch: dict[str, dict[tuple[int, ...], Instance]] = {}
     ordered: list[Instance] = []
     versions: dict[str, str] = {}
+    memo = load_memo(store.local)
+    known = len(memo)
     for name, decl in pipeline.nodes.items():
         inherited: list[Axis] = []
         for ref in (r for refs in decl.inputs.values() for r in refs):
@@ -157,7 +159,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
         short = {a.id: a.param if sum(b.param == a.param for b in node_axes) == 1 else a.id for a in node_axes}
         if decl.spec.name not in versions:
             try:
-                versions[decl.spec.name] = code_version(decl.spec)
+                versions[decl.spec.name] = code_version(decl.spec, memo)
             except (OSError, ValueError, SyntaxError) as exc:
                 raise UserError(f"cannot compute the code version of node type {decl.spec.name}: {exc}") from None
         by_branch[name] = {}
@@ -178,6 +180,8 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             inst = Instance(decl, branch, label, params, inputs, versions[decl.spec.name], files, key)
             by_branch[name][idx] = inst
             ordered.append(inst)
+    if len(memo) != known:
+        save_memo(store.local, memo)
     plan = Plan(pipeline, ordered, store)
     _decide(plan)
     return plan
