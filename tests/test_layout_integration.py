@@ -41,7 +41,7 @@ def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips
 
     def finished(threshold_mm):
         return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"], branch,
-                      Screen(threshold_mm, ""))
+                      Screen(threshold_mm, threshold_mm, ""))
 
     below = finished(bound - 0.1)
     assert not below.feasible and below.layout is None and below.metrics["screened"]

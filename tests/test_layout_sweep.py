@@ -54,11 +54,13 @@ def test_the_screen_finishes_what_can_still_tie_the_best_stage1_radius_and_at_le
     cut = screen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=1), branches)
     assert cut.threshold_mm == pytest.approx(22.0)  # 20 + 1 + 1
     assert [cut.keeps(b) for b in branches] == [True, True, False, True, True]  # no stage: finish reports why
+    assert [cut.needs_proof(b) for b in branches] == [False, False, True, True, False]  # 30.0 is beyond 22
     assert cut.summary.startswith("4 of 5 branches kept")
     tight = screen(ScreenParams(radius_tolerance_mm=0.0, margin_mm=0.0, keep_at_least=2), branches)
-    assert [tight.keeps(b) for b in branches] == [True, True, False, False, True]  # 21.4 kept as the second
+    assert [tight.keeps(b) for b in branches] == [True, True, False, False, True]  # 21.0: the second radius
+    assert not tight.needs_proof(branches[1])  # kept in any case: no proof can drop it
     every = screen(ScreenParams(margin_mm=None), branches)
-    assert all(every.keeps(b) for b in branches) and every.threshold_mm == float("inf")
+    assert all(every.keeps(b) for b in branches) and not any(every.needs_proof(b) for b in branches)
 
 
 def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(caplog):

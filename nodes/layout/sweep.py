@@ -338,8 +338,7 @@ def finish(
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
     problem = _problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.coverage's, rebuilt: not cached twice
-    if (screen is not None and branch.stage.radius_mm > screen.threshold_mm
-            and radius_proven_above(problem, branch.stage, screen.threshold_mm)):
+    if screen is not None and screen.needs_proof(branch) and radius_proven_above(problem, branch.stage, screen.threshold_mm):
         message = f"screened out: no selection of it covers the surface within {screen.threshold_mm:.1f} mm (proven)"
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=screen.threshold_mm, phase1=branch.stage.report)
