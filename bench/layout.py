@@ -114,9 +114,10 @@ def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, r
     out = {}
     for solver in solvers:
         start = time.perf_counter()
-        result = select_curves(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
-                               params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
-                               params.secondary_power, solver, params.highs_max_nodes, params.relative_gap)
+        result = select_curves(problem, params.n_drive, params.n_sense, params.relative_gap, secondary=params.secondary,
+                               resolution_mm=params.resolution_mm, time_limit_s=params.time_limit_s, seed=params.seed,
+                               workers=params.workers, max_memberships=params.max_model_memberships,
+                               power=params.secondary_power, solver=solver, highs_max_nodes=params.highs_max_nodes)
         out[solver] = {"seconds": time.perf_counter() - start, "stage_seconds": result.stage_seconds,
                        "stages": result.report["stages"]}
     return out

@@ -56,7 +56,11 @@ bound when no trust region was needed, else for stage 1 the layer relaxation of
 :mod:`retrotouch.nodes.layout.bounds` (the radius no set of Rx, or Tx, curves alone can beat) and for
 stage 2 the power mean of each sample's distance to its nearest usable crossing.
 If the solver returns no incumbent the heuristic selection is used and ``report["source"]`` says so.
-Units: mm.
+
+:func:`select_curves` is :func:`solve_radius_stage` (start, caps, stage 1) then
+:func:`finish_selection` (stage 2): the sweep screens its branches between the two
+(:mod:`retrotouch.nodes.layout.screen`), and :func:`radius_proven_above` asks, without a trust region,
+whether any selection covers every sample within a radius. Units: mm.
 """
 from __future__ import annotations
 
@@ -316,22 +320,8 @@ def finish_selection(problem: SelectionProblem, stage: RadiusStage, relative_gap
                            mean_distance_mm=float(nearest.mean()), report=report, stage_seconds=tuple(stage_seconds))
 
 
-def select_curves(
-    problem: SelectionProblem,
-    n_drive: int,
-    n_sense: int,
-    secondary: bool = True,
-    resolution_mm: float = PHASE1_RESOLUTION_MM,
-    time_limit_s: float = PHASE1_TIME_LIMIT_S,
-    seed: int = 0,
-    workers: int = 1,
-    max_memberships: int = PHASE1_MAX_MEMBERSHIPS,
-    power: int = PHASE1_POWER,
-    solver: str = "cpsat",
-    highs_max_nodes: int = HIGHS_MAX_NODES,
-    relative_gap: float = PHASE1_RELATIVE_GAP,
-) -> SelectionResult:
-    """Solve phase 1 (see the module docstring) with ``solver`` ("cpsat" or "highs") and report every stage."""
-    stage = solve_radius_stage(problem, n_drive, n_sense, secondary, resolution_mm, time_limit_s, seed, workers,
-                               max_memberships, power, solver, highs_max_nodes)
-    return finish_selection(problem, stage, relative_gap)
+def select_curves(problem: SelectionProblem, n_drive: int, n_sense: int, relative_gap: float = PHASE1_RELATIVE_GAP,
+                  **options) -> SelectionResult:
+    """Solve phase 1 (see the module docstring): :func:`solve_radius_stage` with ``options`` (its keyword
+    arguments), then :func:`finish_selection` within ``relative_gap``."""
+    return finish_selection(problem, solve_radius_stage(problem, n_drive, n_sense, **options), relative_gap)
