@@ -41,6 +41,7 @@ def vertex_faces(mesh: Mesh, vertex: int) -> np.ndarray:
 
 
 def test_bunny_rests_on_its_bottom(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
+    assert "wiring" not in bunny_regions.pose_reason  # its foot ring's rim has room for the wiring
     r = bunny_regions
     assert abs(np.linalg.norm(r.up) - 1.0) < 1e-12
     assert r.up[1] > 0.99  # pymeshlab's bunny stands on -y
@@ -110,7 +111,7 @@ def test_base_boundary_edges_separate_sensing_from_base(bunny: Mesh, bunny_regio
 
 
 def test_up_axis_override(bunny: Mesh) -> None:
-    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0), bunny)
+    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0, wiring_room_mm=0.0), bunny)
     np.testing.assert_allclose(r.up, [0.0, 0.0, 1.0])
     z = bunny.vertices[:, 2]
     assert r.base_faces[vertex_faces(bunny, int(np.argmin(z)))].any()  # holds the lowest point
@@ -146,7 +147,9 @@ def test_sphere_rests_on_a_contact_cap(sphere: Mesh) -> None:
 def test_sphere_with_up_axis_gets_a_polar_cap(sphere: Mesh) -> None:
     r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere)
     cap = sphere.vertices[np.unique(sphere.faces[r.base_faces])]
-    assert cap[:, 2].max() <= -50.0 + 1.0 + 1e-9  # within the plane tolerance of the lowest point
+    # a polar cap grown until its rim (about 99 mm, 16 mm from the pole) has room for the wiring
+    assert cap[:, 2].max() <= -50.0 + 4.0 and boundary_mm(sphere, r.base_faces) > 0.8 * RegionParams().wiring_room_mm
+    assert "room for the wiring" in r.pose_reason
     assert sphere.vertices[r.base_centre][2] < -49.9
     assert sphere.vertices[r.far_vertex][2] > 49.0  # the north pole is farthest from the base
 
@@ -200,7 +203,9 @@ def test_shared_meshes_rest_without_overrides(path: Path) -> None:
         span = np.linalg.norm(mesh.vertices[r.far_vertex] - mesh.vertices[r.base_centre])
         assert span > 0.5 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)), span
     else:
-        assert r.base_distance_mm[r.far_vertex] > 0.8 * np.ptp(mesh.vertices @ r.up)  # far from the base
+        height = mesh.vertices @ r.up - (mesh.vertices @ r.up).min()
+        assert height[r.far_vertex] > 0.25 * height.max()  # not a second foot
+        assert r.base_distance_mm[r.far_vertex] > 0.5 * height.max()  # far from the base (the hip, a leg's top)
 
 
 def remeshed(tm: trimesh.Trimesh, vertices: int = 2000) -> Mesh:
@@ -228,13 +233,51 @@ def test_bowl_rests_on_its_foot_ring_not_upside_down() -> None:
     assert_valid_regions(bowl, r)
 
 
-def test_figurine_base_is_one_foot_and_the_rest_one_piece() -> None:
+def test_figurine_base_is_one_leg_and_the_rest_one_piece() -> None:
+    """The base starts on one sole and grows up its leg (a neck 35-40 mm round) to the body, where
+    the traces have room; the other three feet stay sensing."""
     figurine = remeshed(shapes.four_legged_figurine(), 3000)
     r = detect_regions(RegionParams(), figurine)
     assert r.up[2] > 0.99 and r.pose_kind == "patches" and "of 4 contact patches" in r.pose_reason
+    assert "room for the wiring" in r.pose_reason
     assert_valid_regions(figurine, r)
-    soles = np.unique(figurine.faces[r.base_faces])
-    assert np.ptp(figurine.vertices[soles, :2], axis=0).max() < 40.0  # one foot, not the body
+    base = figurine.vertices[np.unique(figurine.faces[r.base_faces])]
+    assert base[:, 2].max() > -25.0  # up the leg, past its narrow part (the body's belly is at z = -20)
+    soles = figurine.vertices[:, 2] < -44.0
+    feet = np.unique(np.sign(figurine.vertices[soles, :2]), axis=0)
+    assert len(feet) == 4 and len(np.unique(np.sign(base[base[:, 2] < -44.0, :2]), axis=0)) == 1  # one foot
+    assert r.base_area_fraction < 0.2
+    assert boundary_mm(figurine, r.base_faces) > 0.8 * RegionParams().wiring_room_mm
+
+
+def wine_glass() -> Mesh:
+    """A foot disc (35 mm radius), a stem 8 mm thick and 54 mm long, a bowl 80 mm wide on top."""
+    profile = [(0.0, 0.0), (35.0, 0.0), (35.0, 3.0), (4.0, 6.0), (4.0, 60.0), (20.0, 65.0), (38.0, 85.0),
+               (40.0, 105.0), (0.0, 108.0)]
+    return remeshed(shapes.revolved(profile), 3000)
+
+
+def test_base_grows_over_a_stem_to_the_bowl() -> None:
+    """Every trace would squeeze through a stem 25 mm round: the base takes foot and stem, and its
+    boundary, at the bowl, is long enough for the wiring; the bowl senses."""
+    glass = wine_glass()
+    r = detect_regions(RegionParams(), glass)
+    assert_valid_regions(glass, r)
+    height = glass.vertices[:, 2]
+    assert height[np.unique(glass.faces[r.base_faces])].max() > 58.0
+    assert r.base_area_fraction <= RegionParams().max_base_share
+    bowl = (height[glass.faces] > 70.0).all(axis=1)
+    assert r.sensing_faces[bowl].mean() > 0.9
+    kept = detect_regions(RegionParams(wiring_room_mm=0.0), glass)  # growth off: the foot alone
+    assert height[np.unique(glass.faces[kept.base_faces])].max() < 6.0 and "wiring" not in kept.pose_reason
+
+
+def boundary_mm(mesh: Mesh, base: np.ndarray) -> float:
+    """Length (mm) of the base's boundary, summed over edges between a base and a non-base face."""
+    graph = FaceGraph(mesh.faces, len(mesh.vertices))
+    a, b = graph.pairs[:, 0], graph.pairs[:, 1]
+    edges = graph.halfedges[np.flatnonzero(graph.opposite >= 0)][base[a] & ~base[b]]
+    return float(np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1).sum())
 
 
 def test_narrow_lying_blade_keeps_its_top_sensing() -> None:

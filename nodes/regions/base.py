@@ -21,6 +21,15 @@
 5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
    one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
    of the object's height are a cavity opening downward.
+6. **Room for the wiring** (:func:`grow_through_necks`, after the pose is chosen): every trace ends on
+   the base's boundary, so a base behind a narrow neck (one foot of a figurine, an animal's leg, the
+   foot of a penguin) lets only as many traces through as the neck's girth holds. The base grows by
+   geodesic distance from it, level by level (``levels`` steps up to the farthest point), each level's
+   base taking the islands it cuts off (a second foot, the other leg); the level kept maximises the
+   free area the wiring reaches: each later level's area weighted by ``min(1, narrowest boundary on
+   the way / wiring_room_mm)``. The base stays within ``max_share`` of the surface, and grows only
+   for ``MIN_NECK_GAIN`` of it or more: where no neck narrows the way (a foot ring, a flat bottom
+   with a long rim) it does not grow.
 """
 from __future__ import annotations
 
@@ -44,6 +53,8 @@ ISLAND_SHARE = 0.05
 """Enclosed faces worth this share of the base area make it a foot ring."""
 CURVED_DEPTH = 0.25
 """A patch whose vertices lie on average deeper than this share of the plane tolerance is curved."""
+MIN_NECK_GAIN = 0.01
+"""The base grows through a neck only if the wiring then reaches at least this share more of the surface."""
 MAX_GROWTH_RINGS = 200
 """Ring growth gives up after this many rings (the base is then what it reached)."""
 
@@ -160,3 +171,33 @@ def find_base(
     base = base | islands
     kind = "thin" if thin else "foot_ring" if ring else "round" if curved else "patches" if patches > 1 else "flat"
     return Base(faces=base, kind=kind, patches=patches, cavity=cavity)
+
+
+def boundary_length_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray) -> float:
+    """Length (mm) of the edges between ``base`` and the rest."""
+    inner = graph.opposite >= 0
+    h = np.flatnonzero(inner & base[np.arange(len(graph.halfedges)) // 3])
+    h = h[~base[graph.opposite[h] // 3]]
+    edge = graph.halfedges[h]
+    return float(np.linalg.norm(vertices[edge[:, 0]] - vertices[edge[:, 1]], axis=1).sum())
+
+
+def grow_through_necks(
+    vertices: np.ndarray, graph: FaceGraph, base: np.ndarray, areas: np.ndarray, from_base: np.ndarray,
+    wiring_room_mm: float, max_share: float, levels: int = 60,
+) -> tuple[np.ndarray, float]:
+    """Step 6: ``(base, its boundary length mm)``, the base grown through the narrow necks next to it;
+    ``from_base`` is the geodesic distance (mm) per vertex from ``base``."""
+    face_distance = from_base[graph.faces].mean(axis=1)
+    levels_mm = np.linspace(0.0, float(from_base.max()), levels, endpoint=False)
+    grown = [base] + [absorb_islands(graph, base | (face_distance <= level), areas) for level in levels_mm[1:]]
+    lengths = np.array([boundary_length_mm(vertices, graph, g) for g in grown])
+    grown_area = np.array([areas[g].sum() for g in grown])
+    gained = np.diff(np.append(grown_area, areas.sum()))  # area that leaves the free side after each level
+    reach = np.minimum(1.0, lengths / wiring_room_mm)
+    scores = np.array([float(gained[k:] @ np.minimum.accumulate(reach[k:])) for k in range(levels)])
+    scores[1:][grown_area[1:] > max_share * areas.sum()] = -np.inf
+    best = int(np.argmax(scores))
+    if scores[best] < scores[0] + MIN_NECK_GAIN * areas.sum():
+        best = 0
+    return grown[best], float(lengths[best])

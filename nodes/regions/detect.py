@@ -10,7 +10,8 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    down in, from a quasi-static analysis of its convex hull.
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
    until it gives the Rx dipole room, the whole bottom side of a thin object, plus the faces it
-   encloses, so the rest is one piece.
+   encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
+   foot), so every trace has room to reach it.
 
 Then, with heat-method geodesic distances (potpourri3d):
 
@@ -20,8 +21,9 @@ Then, with heat-method geodesic distances (potpourri3d):
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
   less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first).
 * ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
-  first exclusion farthest from the base (on a thin object, whose top is everywhere close to the
-  base's rim, farthest from the base centre, so the Tx lines run the object's length); with
+  first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
+  second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
+  base's rim, farthest from the base centre, so the Tx lines run the object's length; with
   ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
@@ -42,7 +44,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
 from ..geometry.triangles import corners, normals
-from .base import Base, find_base
+from .base import Base, find_base, grow_through_necks
 from .faces import FaceGraph
 from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 
@@ -105,6 +107,11 @@ class RegionParams(NodeParams):
         "far", description="the Tx pole: the point farthest from the base, or the free region's geodesic centre"
     )
     direction_cells: int = Field(2000, ge=20, description="automatic pose: direction cells (one hull plane each)")
+    wiring_room_mm: float = Field(
+        99.0, ge=0, description="the base grows through a narrow neck (a leg, an ankle) toward this boundary "
+        "length, room for every trace to reach it: 33 channels x 3 mm; 0 keeps the contact base"
+    )
+    max_base_share: float = Field(0.4, gt=0, le=1, description="the neck growth's largest base, share of the surface")
 
     @field_validator("up_axis")
     @classmethod
@@ -156,7 +163,7 @@ def automatic_pose(
 def resting_base(
     vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams
 ) -> tuple[Base, np.ndarray, float, str]:
-    """``(base, down, tipping angle deg, reason)``: steps 1 and 2 of the module docstring."""
+    """``(base, down, tipping angle deg, why this pose)``: steps 1 and 2 of the module docstring."""
     seed = params.seed_face
     if seed is not None and seed >= len(graph.faces):
         raise UserError(f"seed_face {seed} does not exist: the mesh has {len(graph.faces)} faces")
@@ -171,12 +178,25 @@ def resting_base(
             down, why = face_normals[seed].copy(), f"seed face {seed} given"
         base = find_base(vertices, graph, face_normals, areas, down, params, seed)
     tipping = tipping_angle_deg(vertices, down, centre_of_mass(vertices, graph.faces), params.plane_tolerance_mm)
-    share = float(areas[base.faces].sum() / areas.sum())
-    reason = (
-        f"rests on {KIND_WORDS[base.kind].format(patches=base.patches)} ({100 * share:.1f}% of the surface), "
+    return base, down, tipping, why
+
+
+def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(from boundary, from base)`` per vertex (mm): the heat-method distance from the base's boundary
+    vertices, and the same set to 0 on the base (many-source distances are smoothed, so the boundary is
+    the better source set)."""
+    on_base, off_base = graph.vertex_masks(base)
+    from_boundary = solver.compute_distance_multisource(np.flatnonzero(on_base & off_base))
+    return from_boundary, np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
+
+
+def reason_text(base: Base, share: float, tipping: float, why: str, rim_mm: float | None) -> str:
+    """The pose note's sentence: the base, its share of the surface, the stability, why."""
+    grown = f", grown until its rim has room for the wiring ({rim_mm:.0f} mm)" if rim_mm is not None else ""
+    return (
+        f"rests on {KIND_WORDS[base.kind].format(patches=base.patches)}{grown} ({100 * share:.1f}% of the surface), "
         f"tips over at {tipping:.0f} deg; {why}"
     )
-    return base, down, tipping, reason
 
 
 def grow_exclusion(
@@ -244,24 +264,29 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
             "put mesh.check_topology before regions.detect"
         )
     face_normals, areas = normals(corners(vertices, faces))
-    base, down, tipping, reason = resting_base(vertices, graph, face_normals, areas, params)
+    base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params)
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
-    on_base, off_base = graph.vertex_masks(base.faces)
     solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
-    from_boundary = solver.compute_distance_multisource(np.flatnonzero(on_base & off_base))
+    from_boundary, from_base = base_distance(solver, graph, base.faces)
+    from_contact, rim_mm = from_base, None
+    if params.wiring_room_mm > 0:
+        grown, length = grow_through_necks(
+            vertices, graph, base.faces, areas, from_base, params.wiring_room_mm, params.max_base_share
+        )
+        if grown.sum() > base.faces.sum():
+            base, rim_mm = dataclasses.replace(base, faces=grown), length
+            from_boundary, from_base = base_distance(solver, graph, base.faces)
+    share = float(areas[base.faces].sum() / areas.sum())
+    reason = reason_text(base, share, tipping, why, rim_mm)
     anchors = dipole(graph, base.faces, from_boundary)
-
-    # distance from the base = distance from its boundary outside it, 0 on it (the heat method
-    # smooths many-source distances, so the boundary is the better source set)
-    from_base = np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
     exclusion_base = grow_exclusion(graph, base.faces, from_base[faces].mean(axis=1), face_normals, down, params)
     blocked = base.faces | exclusion_base
     touches_blocked, _ = graph.vertex_masks(blocked)
     free = np.flatnonzero(~touches_blocked)
     if len(free) == 0:
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
-    reach = solver.compute_distance(int(anchors[0])) if base.kind == "thin" else from_base
+    reach = solver.compute_distance(int(anchors[0])) if base.kind == "thin" else from_contact
     far_vertex = int(free[np.argmax(reach[free])])
     from_far = solver.compute_distance(far_vertex)
     if params.tx_pole == "centre":
@@ -289,5 +314,5 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         pose_kind=base.kind,
         pose_reason=reason,
         tipping_angle_deg=float(tipping),
-        base_area_fraction=float(areas[base.faces].sum() / areas.sum()),
+        base_area_fraction=share,
     )
