@@ -89,7 +89,7 @@ def test_voronoi_cv_is_near_zero_for_octahedron_pads_and_high_for_clusters():
     assert cv > 0.8
 
 
-def test_fields_by_gradient_blocks_are_the_one_block_values_without_its_memory(monkeypatch):
+def test_fields_by_blocks_of_sources_are_the_all_at_once_values_without_their_memory(monkeypatch):
     mesh = sphere_mesh(5)
     geo = geodesics_for(mesh)
     rng = np.random.default_rng(0)
@@ -100,7 +100,7 @@ def test_fields_by_gradient_blocks_are_the_one_block_values_without_its_memory(m
     tracemalloc.stop()
     # numpy's allocations at their peak stay below the (3 * faces, 48) float64 gradient of all sources at once
     assert peak < 3 * len(mesh.faces) * 48 * 8
-    monkeypatch.setattr(samples_module, "_COLUMNS_PER_GRADIENT", 48)
+    monkeypatch.setattr(samples_module, "_COLUMNS_PER_BATCH", 48)  # the Cholesky solves too: columns are independent
     assert np.array_equal(geo.fields(faces, bary), blocked)
 
 

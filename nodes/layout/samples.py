@@ -29,8 +29,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, cross_products
 
-_COLUMNS_PER_BATCH = 48  # sources per pair of Cholesky solves: (vertices, 48) float64 blocks
-_COLUMNS_PER_GRADIENT = 8  # of those, per gradient step: bounds its (3 * faces, 8) float64 temporaries
+_COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
 
 
 class HeatGeodesics:
@@ -95,20 +94,16 @@ class HeatGeodesics:
         for start in range(0, len(faces), _COLUMNS_PER_BATCH):
             sl = slice(start, start + _COLUMNS_PER_BATCH)
             u = _solve(self._heat, self._load(faces[sl], bary[sl]))
-            divergence = np.empty_like(u)
-            for first in range(0, u.shape[1], _COLUMNS_PER_GRADIENT):
-                block = slice(first, first + _COLUMNS_PER_GRADIENT)  # columns are independent: same values as at once
-                g = (self.grad @ u[:, block]).reshape(m, 3, -1)
-                norm = g[:, 0] * g[:, 0]  # |g| per face and source, in place (as np.linalg.norm sums)
-                norm += g[:, 1] * g[:, 1]
-                norm += g[:, 2] * g[:, 2]
-                np.maximum(np.sqrt(norm, out=norm), 1e-300, out=norm)
-                np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
-                divergence[:, block] = self.div_operator @ g.reshape(3 * m, -1)
-                del g, norm
+            g = (self.grad @ u).reshape(m, 3, -1)
             del u
-            phi = _solve(self._poisson, divergence)
-            del divergence
+            norm = g[:, 0] * g[:, 0]  # |g| per face and source, in place (as np.linalg.norm sums)
+            norm += g[:, 1] * g[:, 1]
+            norm += g[:, 2] * g[:, 2]
+            np.maximum(np.sqrt(norm, out=norm), 1e-300, out=norm)
+            np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
+            del norm
+            phi = _solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
+            del g
             corners = self.faces[faces[sl]]  # (s, 3)
             phi -= np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)[None, :]
             out[:, sl] = np.maximum(phi, 0.0, out=phi)
