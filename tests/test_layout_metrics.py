@@ -1,12 +1,15 @@
 """Heat-method geodesics, surface samples and the Voronoi uniformity metric."""
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import potpourri3d as pp3d
 import pytest
 from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
 
-from retrotouch.nodes.layout.metrics import coefficient_of_variation, min_pairwise, voronoi_cell_areas
+from retrotouch.nodes.layout import metrics, samples as samples_module
+from retrotouch.nodes.layout.metrics import coefficient_of_variation, farthest_nearest, min_pairwise, voronoi_cell_areas
 from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 
@@ -84,3 +87,32 @@ def test_voronoi_cv_is_near_zero_for_octahedron_pads_and_high_for_clusters():
     faces, bary = locate(mesh, clustered)
     cv = coefficient_of_variation(voronoi_cell_areas(geo.fields(faces, bary), mesh.vertices, mesh.faces, everything))
     assert cv > 0.8
+
+
+def test_fields_by_blocks_of_sources_are_the_all_at_once_values_without_their_memory(monkeypatch):
+    mesh = sphere_mesh(5)
+    geo = geodesics_for(mesh)
+    rng = np.random.default_rng(0)
+    faces, bary = rng.integers(0, len(mesh.faces), 48), rng.dirichlet(np.ones(3), 48)
+    tracemalloc.start()
+    blocked = geo.fields(faces, bary)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    # numpy's allocations at their peak stay below the (3 * faces, 48) float64 gradient of all sources at once
+    assert peak < 3 * len(mesh.faces) * 48 * 8
+    monkeypatch.setattr(samples_module, "_COLUMNS_PER_BATCH", 48)  # the Cholesky solves too: columns are independent
+    assert np.array_equal(geo.fields(faces, bary), blocked)
+
+
+def test_voronoi_and_farthest_nearest_by_blocks_equal_the_whole_array(monkeypatch):
+    mesh = sphere_mesh(4)
+    geo = geodesics_for(mesh)
+    rng = np.random.default_rng(1)
+    fields = geo.fields(rng.integers(0, len(mesh.faces), 20), rng.dirichlet(np.ones(3), 20))
+    mask = rng.random(len(mesh.faces)) < 0.6
+    rows = np.unique(mesh.faces[mask])
+    whole_owner = np.argmin(fields[mesh.faces[mask]].mean(axis=1), axis=1)
+    whole = np.bincount(whole_owner, weights=triangle_areas(corners(mesh.vertices, mesh.faces[mask])), minlength=20)
+    monkeypatch.setattr(metrics, "_ROWS_PER_BLOCK", 97)  # many blocks, the last one partial
+    assert np.array_equal(voronoi_cell_areas(fields, mesh.vertices, mesh.faces, mask), whole)
+    assert farthest_nearest(fields, rows) == float(fields[rows].min(axis=1).max())

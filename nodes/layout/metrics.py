@@ -17,15 +17,26 @@ from .samples import SurfaceSamples
 from .selection import SelectionResult
 
 
+_ROWS_PER_BLOCK = 4096  # faces or vertices per block of the (rows, pads) reductions below
+
+
 def voronoi_cell_areas(
     pad_fields: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face_mask: np.ndarray
 ) -> np.ndarray:
     """Cell area (mm^2) per pad; ``pad_fields`` (n_vertices, P) are the pads' distance fields."""
     P = pad_fields.shape[1]
     idx = np.flatnonzero(face_mask)
-    centroid_distance = pad_fields[faces[idx]].mean(axis=1)  # (m_s, P)
-    owner = np.argmin(centroid_distance, axis=1)
+    owner = np.empty(len(idx), dtype=np.int64)
+    for start in range(0, len(idx), _ROWS_PER_BLOCK):  # a (block, 3, P) gather at a time, not (m_s, 3, P)
+        block = slice(start, start + _ROWS_PER_BLOCK)
+        owner[block] = np.argmin(pad_fields[faces[idx[block]]].mean(axis=1), axis=1)
     return np.bincount(owner, weights=areas(corners(vertices, faces[idx])), minlength=P)
+
+
+def farthest_nearest(fields: np.ndarray, rows: np.ndarray) -> float:
+    """Largest over ``rows`` of the smallest value in that row of ``fields`` (n, P), by blocks of rows."""
+    return max(float(fields[rows[start:start + _ROWS_PER_BLOCK]].min(axis=1).max())
+               for start in range(0, len(rows), _ROWS_PER_BLOCK))
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:
@@ -73,7 +84,7 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
     closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
     return {
         "coverage_radius_mm": float(nearest.max()),
-        "coverage_radius_vertices_mm": float(cell_fields[np.unique(mesh.faces[samples.sensing_faces])].min(axis=1).max()),
+        "coverage_radius_vertices_mm": farthest_nearest(cell_fields, np.unique(mesh.faces[samples.sensing_faces])),
         "mean_distance_mm": float(nearest.mean()),
         "power_mean_distance_mm": float(np.mean(nearest**power) ** (1.0 / power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,

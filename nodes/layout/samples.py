@@ -29,7 +29,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, cross_products
 
-_COLUMNS_PER_BATCH = 48  # sources solved per block; bounds memory to ~(3 * faces * 48) floats
+_COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
 
 
 class HeatGeodesics:
@@ -95,15 +95,18 @@ class HeatGeodesics:
             sl = slice(start, start + _COLUMNS_PER_BATCH)
             u = _solve(self._heat, self._load(faces[sl], bary[sl]))
             g = (self.grad @ u).reshape(m, 3, -1)
+            del u
             norm = g[:, 0] * g[:, 0]  # |g| per face and source, in place (as np.linalg.norm sums)
             norm += g[:, 1] * g[:, 1]
             norm += g[:, 2] * g[:, 2]
             np.maximum(np.sqrt(norm, out=norm), 1e-300, out=norm)
             np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
+            del norm
             phi = _solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
+            del g
             corners = self.faces[faces[sl]]  # (s, 3)
-            at_source = np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)
-            out[:, sl] = np.maximum(phi - at_source[None, :], 0.0)
+            phi -= np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)[None, :]
+            out[:, sl] = np.maximum(phi, 0.0, out=phi)
         return out
 
     def evaluate(self, fields: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:

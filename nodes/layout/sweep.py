@@ -375,7 +375,9 @@ def finish(
     layout, order = _layout_of(tx, rx, tx_rx, active_rows[keep], pads.pad, design, tx_first, rx_last)
     kept = np.flatnonzero(keep)[order]
     pad_distance = distance[np.ix_(kept[layout.pad], kept[layout.pad])]
-    quality = layout_metrics(mesh, samples, problem, selection, layout, fields[:, kept], pad_distance, active[kept],
+    cell_fields = fields[:, kept]
+    del fields  # (vertices, active crossings) float32: not kept beside its cells' copy
+    quality = layout_metrics(mesh, samples, problem, selection, layout, cell_fields, pad_distance, active[kept],
                              params.n_drive * params.n_sense, params.secondary_power)
     idle = quality.pop("unwired_selected_curves")
     metrics = {**base, "feasible": True, **quality, "phase1": selection.report, "phase2": pads.report,
