@@ -204,7 +204,9 @@ def test_shared_meshes_rest_without_overrides(path: Path) -> None:
         assert span > 0.5 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)), span
     else:
         height = mesh.vertices @ r.up - (mesh.vertices @ r.up).min()
-        assert height[r.far_vertex] > 0.25 * height.max()  # not a second foot
+        span = np.linalg.norm(mesh.vertices[r.far_vertex] - mesh.vertices[r.base_centre])
+        # not a second foot: high up, or (a lying spoon's handle end) the object's length away
+        assert height[r.far_vertex] > 0.25 * height.max() or span > 0.5 * np.linalg.norm(np.ptp(mesh.vertices, axis=0))
         assert r.base_distance_mm[r.far_vertex] > 0.5 * height.max()  # far from the base (the hip, a leg's top)
 
 
@@ -292,3 +294,21 @@ def test_narrow_lying_blade_keeps_its_top_sensing() -> None:
     assert areas[top & r.sensing_faces].sum() > 0.85 * areas[top].sum()
     assert np.linalg.norm(blade.vertices[r.far_vertex] - blade.vertices[r.base_centre]) > 100.0
     assert_valid_regions(blade, r)
+
+
+@pytest.mark.skipif(not (SHARED_MESHES / "spoon_pfc.ply").exists(), reason=f"no spoon_pfc.ply in {SHARED_MESHES}")
+def test_spoon_base_moves_to_the_bowl_where_the_wiring_has_room() -> None:
+    """The lying spoon touches the table at the handle's end (the larger contact) and under the bowl;
+    from the handle's end every trace would squeeze along the handle (under 30 mm round), so the base
+    starts under the bowl, and the Tx pole is at the handle's end."""
+    spoon = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(SHARED_MESHES / "spoon_pfc.ply"))))
+    r = detect_regions(RegionParams(), spoon)
+    assert "contact patch 2 by size" in r.pose_reason
+    centre = spoon.vertices.mean(axis=0)
+    axis = np.linalg.svd(spoon.vertices - centre)[2][0]
+    along = (spoon.vertices - centre) @ axis
+    across = (spoon.vertices - centre) @ np.linalg.svd(spoon.vertices - centre)[2][1]
+    ends = [along < np.quantile(along, 0.3), along > np.quantile(along, 0.7)]
+    bowl = int(np.argmax([np.ptp(across[end]) for end in ends]))  # the wider end
+    assert ends[bowl][r.base_centre] and ends[1 - bowl][r.far_vertex]
+    assert_valid_regions(spoon, r)

@@ -63,12 +63,14 @@ MAX_GROWTH_RINGS = 200
 class Base:
     """The base faces and how they were found: ``kind`` is one of ``flat``, ``foot_ring``,
     ``patches``, ``round`` or ``thin``; ``patches`` the number of contact patches counted;
-    ``cavity`` whether the base encloses a cavity opening downward (a bowl upside down)."""
+    ``cavity`` whether the base encloses a cavity opening downward (a bowl upside down);
+    ``contacts`` the contact patches of any size (:func:`find_base`'s ``rank`` chooses among them)."""
 
     faces: np.ndarray
     kind: str
     patches: int
     cavity: bool
+    contacts: int = 1  # contact patches on the support plane, of any size
 
 
 def contact_patches(
@@ -138,8 +140,10 @@ def find_base(
     down: np.ndarray,
     params,
     seed: int | None,
+    rank: int = 0,
 ) -> Base:
-    """The base for resting direction ``down`` (module docstring); ``params`` is a ``RegionParams``."""
+    """The base for resting direction ``down`` (module docstring) on the seed's contact patch, else on
+    the ``rank``-th largest; ``params`` is a ``RegionParams``."""
     labels = contact_patches(
         vertices, graph, face_normals, down, params.angle_threshold_deg, params.plane_tolerance_mm, seed
     )
@@ -150,7 +154,7 @@ def find_base(
         patch_area = np.zeros(1)
     else:
         patch_area = np.bincount(labels[on_plane], weights=areas[on_plane])
-        chosen = labels[seed] if seed is not None else int(np.argmax(patch_area))
+        chosen = labels[seed] if seed is not None else int(np.argsort(-patch_area, kind="stable")[rank])
         patch = labels == chosen
     patches = int(np.count_nonzero(patch_area >= PATCH_SHARE * patch_area.max())) if patch_area.max() > 0 else 1
     height = vertices @ down
@@ -170,7 +174,8 @@ def find_base(
     ring = float(areas[islands].sum()) > ISLAND_SHARE * float(areas[base].sum())
     base = base | islands
     kind = "thin" if thin else "foot_ring" if ring else "round" if curved else "patches" if patches > 1 else "flat"
-    return Base(faces=base, kind=kind, patches=patches, cavity=cavity)
+    contacts = int(np.count_nonzero(patch_area > 0))
+    return Base(faces=base, kind=kind, patches=patches, cavity=cavity, contacts=max(contacts, 1))
 
 
 def boundary_length_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray) -> float:
@@ -185,9 +190,9 @@ def boundary_length_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray)
 def grow_through_necks(
     vertices: np.ndarray, graph: FaceGraph, base: np.ndarray, areas: np.ndarray, from_base: np.ndarray,
     wiring_room_mm: float, max_share: float, levels: int = 60,
-) -> tuple[np.ndarray, float]:
-    """Step 6: ``(base, its boundary length mm)``, the base grown through the narrow necks next to it;
-    ``from_base`` is the geodesic distance (mm) per vertex from ``base``."""
+) -> tuple[np.ndarray, float, float]:
+    """Step 6: ``(base, its boundary length mm, free area reached mm^2)``, the base grown through the
+    narrow necks next to it; ``from_base`` is the geodesic distance (mm) per vertex from ``base``."""
     face_distance = from_base[graph.faces].mean(axis=1)
     levels_mm = np.linspace(0.0, float(from_base.max()), levels, endpoint=False)
     grown = [base] + [absorb_islands(graph, base | (face_distance <= level), areas) for level in levels_mm[1:]]
@@ -200,4 +205,4 @@ def grow_through_necks(
     best = int(np.argmax(scores))
     if scores[best] < scores[0] + MIN_NECK_GAIN * areas.sum():
         best = 0
-    return grown[best], float(lengths[best])
+    return grown[best], float(lengths[best]), float(scores[best])

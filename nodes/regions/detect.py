@@ -44,7 +44,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
 from ..geometry.triangles import corners, normals
-from .base import Base, find_base, grow_through_necks
+from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
 from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 
@@ -190,11 +190,51 @@ def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarra
     return from_boundary, np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
 
 
-def reason_text(base: Base, share: float, tipping: float, why: str, rim_mm: float | None) -> str:
-    """The pose note's sentence: the base, its share of the surface, the stability, why."""
+WIRING_CONTACTS = 4
+"""Room for the wiring: how many of the largest contact patches are tried as the base's start."""
+WIRING_REACH = 0.8
+"""The other contact patches are tried only if, from the largest, the wiring reaches less than this
+share of the free surface (a neck it cannot grow through)."""
+
+
+def room_for_wiring(
+    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, down: np.ndarray,
+    base: Base, from_base: np.ndarray, solver, params: RegionParams, seeded: bool,
+) -> tuple[Base, np.ndarray, float | None, int]:
+    """``(base, distance mm from its contact patch, rim mm or None if it did not grow, the patch's rank by
+    size)``: the base grown
+    through the necks next to it (:func:`.base.grow_through_necks`), started on the largest contact
+    patch or, if a neck blocks the wiring there (``WIRING_REACH``), on whichever of the
+    ``WIRING_CONTACTS`` largest lets it reach the most (the seed's if one is given; a thin object's
+    whole bottom side)."""
+    ranks = range(1 if seeded or base.kind == "thin" else min(base.contacts, WIRING_CONTACTS))
+    best = None
+    for rank in ranks:
+        start = base if rank == 0 else find_base(vertices, graph, face_normals, areas, down, params, None, rank)
+        if start.cavity or start.faces.all():
+            continue
+        distance = from_base if rank == 0 else base_distance(solver, graph, start.faces)[1]
+        grown, rim, reached = grow_through_necks(
+            vertices, graph, start.faces, areas, distance, params.wiring_room_mm, params.max_base_share
+        )
+        if best is None or reached > best[3] + MIN_NECK_GAIN * areas.sum():
+            best = (start, grown, rim, reached, distance, rank)
+        if rank == 0 and reached >= WIRING_REACH * areas[~start.faces].sum():
+            break  # the largest patch leaves the wiring room enough: the others are not tried
+    start, grown, rim, _, distance, rank = best
+    grew = bool(grown.sum() > start.faces.sum())
+    return dataclasses.replace(start, faces=grown), distance, rim if grew else None, rank
+
+
+def reason_text(base: Base, share: float, tipping: float, why: str, rim_mm: float | None, rank: int) -> str:
+    """The pose note's sentence: the base, its share of the surface, the stability, why; ``rank`` is its
+    contact patch's by size (0: the largest)."""
+    words = KIND_WORDS[base.kind].format(patches=base.patches)
+    if rank:
+        words = words.replace("the largest of", "one of") + f" (contact patch {rank + 1} by size: the wiring reaches more)"
     grown = f", grown until its rim has room for the wiring ({rim_mm:.0f} mm)" if rim_mm is not None else ""
     return (
-        f"rests on {KIND_WORDS[base.kind].format(patches=base.patches)}{grown} ({100 * share:.1f}% of the surface), "
+        f"rests on {words}{grown} ({100 * share:.1f}% of the surface), "
         f"tips over at {tipping:.0f} deg; {why}"
     )
 
@@ -269,16 +309,17 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
     solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
     from_boundary, from_base = base_distance(solver, graph, base.faces)
-    from_contact, rim_mm = from_base, None
+    from_contact, rim_mm, rank = from_base, None, 0
     if params.wiring_room_mm > 0:
-        grown, length = grow_through_necks(
-            vertices, graph, base.faces, areas, from_base, params.wiring_room_mm, params.max_base_share
+        seeded = params.seed_face is not None or params.seed_point is not None
+        contact = base.faces
+        base, from_contact, rim_mm, rank = room_for_wiring(
+            vertices, graph, face_normals, areas, down, base, from_base, solver, params, seeded
         )
-        if grown.sum() > base.faces.sum():
-            base, rim_mm = dataclasses.replace(base, faces=grown), length
+        if not np.array_equal(base.faces, contact):
             from_boundary, from_base = base_distance(solver, graph, base.faces)
     share = float(areas[base.faces].sum() / areas.sum())
-    reason = reason_text(base, share, tipping, why, rim_mm)
+    reason = reason_text(base, share, tipping, why, rim_mm, rank)
     anchors = dipole(graph, base.faces, from_boundary)
     exclusion_base = grow_exclusion(graph, base.faces, from_base[faces].mean(axis=1), face_normals, down, params)
     blocked = base.faces | exclusion_base
