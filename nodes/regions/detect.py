@@ -11,7 +11,8 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
    until it gives the Rx dipole room, the whole bottom side of a thin object, plus the faces it
    encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
-   foot), so every trace has room to reach it.
+   foot), so every trace has room to reach it, or, where a neck it cannot grow through blocks the
+   wiring (a lying spoon's handle), started on another contact patch (:func:`room_for_wiring`).
 
 Then, with heat-method geodesic distances (potpourri3d):
 
@@ -201,17 +202,16 @@ def room_for_wiring(
     vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, down: np.ndarray,
     base: Base, from_base: np.ndarray, solver, params: RegionParams, seeded: bool,
 ) -> tuple[Base, np.ndarray, float | None, int]:
-    """``(base, distance mm from its contact patch, rim mm or None if it did not grow, the patch's rank by
-    size)``: the base grown
-    through the necks next to it (:func:`.base.grow_through_necks`), started on the largest contact
-    patch or, if a neck blocks the wiring there (``WIRING_REACH``), on whichever of the
-    ``WIRING_CONTACTS`` largest lets it reach the most (the seed's if one is given; a thin object's
-    whole bottom side)."""
+    """``(base, distance mm from its contact patch, rim mm or None if it did not grow, the patch's rank
+    by size)``: the base grown through the necks next to it (:func:`.base.grow_through_necks`), started
+    on the largest contact patch or, if a neck blocks the wiring there (``WIRING_REACH``), on whichever
+    of the ``WIRING_CONTACTS`` largest lets it reach the most (the seed's if one is given; a thin
+    object's whole bottom side)."""
     ranks = range(1 if seeded or base.kind == "thin" else min(base.contacts, WIRING_CONTACTS))
     best = None
     for rank in ranks:
         start = base if rank == 0 else find_base(vertices, graph, face_normals, areas, down, params, None, rank)
-        if start.cavity or start.faces.all():
+        if rank and (start.cavity or start.faces.all()):
             continue
         distance = from_base if rank == 0 else base_distance(solver, graph, start.faces)[1]
         grown, rim, reached = grow_through_necks(
