@@ -180,10 +180,7 @@ def find_base(
 
 def boundary_length_mm(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray) -> float:
     """Length (mm) of the edges between ``base`` and the rest."""
-    inner = graph.opposite >= 0
-    h = np.flatnonzero(inner & base[np.arange(len(graph.halfedges)) // 3])
-    h = h[~base[graph.opposite[h] // 3]]
-    edge = graph.halfedges[h]
+    edge = graph.halfedges[graph.halfedges_between(base, ~base)]
     return float(np.linalg.norm(vertices[edge[:, 0]] - vertices[edge[:, 1]], axis=1).sum())
 
 

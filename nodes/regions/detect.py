@@ -57,7 +57,7 @@ AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 KIND_WORDS = {
     "flat": "a flat bottom",
     "foot_ring": "a foot ring and the faces it encloses",
-    "patches": "the largest of {patches} contact patches (the others stay sensing)",
+    "patches": "{which} of {patches} contact patches (the others stay sensing)",
     "round": "a contact cap on its curved bottom",
     "thin": "the bottom side of a thin object",
 }
@@ -229,9 +229,9 @@ def room_for_wiring(
 def reason_text(base: Base, share: float, tipping: float, why: str, rim_mm: float | None, rank: int) -> str:
     """The pose note's sentence: the base, its share of the surface, the stability, why; ``rank`` is its
     contact patch's by size (0: the largest)."""
-    words = KIND_WORDS[base.kind].format(patches=base.patches)
+    words = KIND_WORDS[base.kind].format(patches=base.patches, which="one" if rank else "the largest")
     if rank:
-        words = words.replace("the largest of", "one of") + f" (contact patch {rank + 1} by size: the wiring reaches more)"
+        words += f" (contact patch {rank + 1} by size: the wiring reaches more)"
     grown = f", grown until its rim has room for the wiring ({rim_mm:.0f} mm)" if rim_mm is not None else ""
     return (
         f"rests on {words}{grown} ({100 * share:.1f}% of the surface), "
@@ -339,8 +339,6 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     if not sensing.any():
         raise UserError("no sensing surface is left: lower exclusion_base_mm or exclusion_far_mm")
 
-    halfedge_face = np.arange(len(graph.halfedges)) // 3
-    toward_base = sensing[halfedge_face] & blocked[graph.opposite // 3]
     return SurfaceRegions(
         base_faces=base.faces,
         exclusion_base=exclusion_base,
@@ -350,7 +348,7 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         base_dipole=anchors,
         far_vertex=far_vertex,
         up=-down,
-        base_boundary_edges=np.ascontiguousarray(graph.halfedges[toward_base], dtype=np.int64),
+        base_boundary_edges=graph.halfedges[graph.halfedges_between(sensing, blocked)].astype(np.int64),
         base_distance_mm=np.asarray(from_base, dtype=np.float64),
         pose_kind=base.kind,
         pose_reason=reason,

@@ -34,6 +34,11 @@ class FaceGraph:
         labels = connected_components(graph, directed=False)[1]
         return np.where(mask, labels, -1)
 
+    def halfedges_between(self, inside: np.ndarray, outside: np.ndarray) -> np.ndarray:
+        """Indices of the halfedges of faces in ``inside`` whose opposite face is in ``outside``."""
+        h = np.flatnonzero(inside[np.arange(len(self.halfedges)) // 3] & (self.opposite >= 0))
+        return h[outside[self.opposite[h] // 3]]
+
     def vertex_masks(self, face_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(touched by a face in mask, touched by a face outside mask)`` per vertex."""
         inside = np.zeros(self.vertex_count, dtype=bool)
