@@ -2,6 +2,7 @@
 called directly."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -90,7 +91,12 @@ def test_far_vertex_is_the_ear_or_head(bunny: Mesh, bunny_regions: SurfaceRegion
 def test_exclusion_regions_respect_their_radii(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
     r = bunny_regions
     params = RegionParams()
-    assert r.base_distance_mm[bunny.faces[r.exclusion_base]].mean(axis=1).max() < params.exclusion_base_mm
+    distance = r.base_distance_mm[bunny.faces].mean(axis=1)
+    within = r.exclusion_base & (distance < params.exclusion_base_mm)
+    beyond = r.exclusion_base & ~within
+    touches_blocked, _ = FaceGraph(bunny.faces, len(bunny.vertices)).vertex_masks(r.base_faces | within)
+    assert touches_blocked[bunny.faces[beyond]].all()  # beyond the radius: only slivers no trace reaches
+    assert beyond.sum() < 0.01 * r.exclusion_base.sum()
     far_point = bunny.vertices[r.far_vertex]
     chord = np.linalg.norm(bunny.vertices[bunny.faces[r.exclusion_far]] - far_point, axis=2).mean(axis=1)
     assert chord.max() < params.exclusion_far_mm + 2.0  # geodesic radius bounds the chord (+ one edge)
@@ -118,7 +124,8 @@ def test_up_axis_override(bunny: Mesh) -> None:
     assert r.tipping_angle_deg < 0 and "up_axis +z given" in r.pose_reason  # the bunny would fall over
     assert z[np.unique(bunny.faces[r.base_faces])].max() <= z.min() + 0.25 * np.ptp(z)  # low side
     assert r.base_faces[vertex_faces(bunny, r.base_centre)].all()
-    assert not r.exclusion_base.any()
+    touches_base, _ = FaceGraph(bunny.faces, len(bunny.vertices)).vertex_masks(r.base_faces)
+    assert touches_base[bunny.faces[r.exclusion_base]].all()  # no exclusion grown, only slivers on the base's rim
 
 
 def test_seed_point_and_angle_overrides(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
@@ -188,6 +195,11 @@ def assert_valid_regions(mesh: Mesh, r: SurfaceRegions) -> None:
     assert abs(r.base_area_fraction - areas[r.base_faces].sum() / areas.sum()) < 1e-9
     assert r.pose_kind in POSE_KINDS and r.pose_reason.startswith("rests on")
     assert len(r.base_boundary_edges) >= 6  # a closed loop around base and first exclusion
+    assert abs(r.sensing_area_fraction - areas[r.sensing_faces].sum() / areas.sum()) < 1e-9
+    reachable = graph.components(r.sensing_faces | r.exclusion_far)  # every sensing face reachable from the pole
+    assert len(np.unique(reachable[reachable >= 0])) == 1
+    touches_blocked, _ = graph.vertex_masks(r.base_faces | r.exclusion_base)
+    assert not touches_blocked[mesh.faces[r.sensing_faces]].all(axis=1).any()  # no sliver
 
 
 @pytest.mark.skipif(not SHARED, reason=f"no shared meshes in {SHARED_MESHES}")
@@ -312,3 +324,21 @@ def test_spoon_base_moves_to_the_bowl_where_the_wiring_has_room() -> None:
     bowl = int(np.argmax([np.ptp(across[end]) for end in ends]))  # the wider end
     assert ends[bowl][r.base_centre] and ends[1 - bowl][r.far_vertex]
     assert_valid_regions(spoon, r)
+
+
+@pytest.mark.skipif(not (SHARED_MESHES / "scorpion_lowres_oded.ply").exists(),
+                    reason=f"no scorpion_lowres_oded.ply in {SHARED_MESHES}")
+def test_legs_cut_off_from_the_pole_are_not_sensing_and_the_note_says_so() -> None:
+    """The scorpion stands on eight legs; its base and the exclusion around it cut some legs off from
+    the body. No trace from the Tx pole reaches them, so they join the first exclusion, and the note
+    gives their share of the surface."""
+    path = SHARED_MESHES / "scorpion_lowres_oded.ply"
+    scorpion = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
+    r = detect_regions(RegionParams(), scorpion)
+    assert_valid_regions(scorpion, r)
+    _, areas = normals(corners(scorpion.vertices, scorpion.faces))
+    within = r.base_distance_mm[scorpion.faces].mean(axis=1) < RegionParams().exclusion_base_mm
+    beyond_radius = areas[r.exclusion_base & ~within].sum() / areas.sum()
+    found = re.search(r"; ([0-9.]+)% of the surface is cut off from the Tx pole", r.pose_reason)
+    assert found, r.pose_reason
+    assert 0.02 < beyond_radius <= float(found[1]) / 100 + 5e-4 <= areas[r.exclusion_base].sum() / areas.sum() + 1e-3

@@ -147,3 +147,4 @@ class SurfaceRegions:
     pose_reason: str  # one sentence: the base, its share of the surface, the stability, why
     tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
     base_area_fraction: float  # base area / surface area
+    sensing_area_fraction: float  # sensing area / surface area

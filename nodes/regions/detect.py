@@ -20,7 +20,10 @@ Then, with heat-method geodesic distances (potpourri3d):
   its interior neighbour farthest from the boundary.
 * ``exclusion_base``: faces grown outward from the base, across edges, while their mean vertex
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
-  less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first).
+  less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first);
+  then also every face no trace can reach from the Tx pole (:func:`unreachable_faces`): slivers
+  whose three corners lie on the base or the exclusion, and pieces (a second foot, legs) that the
+  base and its exclusion cut off from the pole. The run note gives their area when it matters.
 * ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
@@ -255,6 +258,16 @@ def grow_exclusion(
     return np.isin(labels, np.unique(labels[base])) & ~base
 
 
+def unreachable_faces(graph: FaceGraph, candidate: np.ndarray, blocked: np.ndarray, pole: np.ndarray) -> np.ndarray:
+    """Faces of ``candidate`` (the sensing region before this check) that no trace from the Tx pole
+    (around the faces ``pole``) reaches: faces whose three corners touch ``blocked`` faces, and the
+    edge-connected pieces of the rest that share no edge with ``pole``."""
+    touches_blocked, _ = graph.vertex_masks(blocked)
+    sliver = candidate & touches_blocked[graph.faces].all(axis=1)
+    labels = graph.components((candidate & ~sliver) | pole)
+    return candidate & ~np.isin(labels, np.unique(labels[pole]))
+
+
 def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.ndarray:
     """``(centre, partner)``: the interior base vertex farthest from the base boundary and its
     interior neighbour farthest from it."""
@@ -272,6 +285,9 @@ def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.
         raise UserError("the base is too narrow for the Rx dipole: raise min_base_radius_mm or remesh finer")
     return np.array([centre, int(neighbours[np.argmax(from_boundary[neighbours])])], dtype=np.int64)
 
+
+CUT_OFF_NOTE_SHARE = 0.005
+"""The run note names the faces no trace reaches once they are this share of the surface or more."""
 
 CENTRE_SAMPLES = 16
 """Farthest-point samples of the free region whose largest distance the centre Tx pole minimises."""
@@ -335,9 +351,15 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
+    cut_off = unreachable_faces(graph, ~(blocked | exclusion_far), blocked, exclusion_far)
+    exclusion_base |= cut_off
+    blocked |= cut_off
     sensing = ~(blocked | exclusion_far)
     if not sensing.any():
         raise UserError("no sensing surface is left: lower exclusion_base_mm or exclusion_far_mm")
+    cut_share = float(areas[cut_off].sum() / areas.sum())
+    if cut_share >= CUT_OFF_NOTE_SHARE:
+        reason += f"; {100 * cut_share:.1f}% of the surface is cut off from the Tx pole by the base and is not sensing"
 
     return SurfaceRegions(
         base_faces=base.faces,
@@ -354,4 +376,5 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         pose_reason=reason,
         tipping_angle_deg=float(tipping),
         base_area_fraction=share,
+        sensing_area_fraction=float(areas[sensing].sum() / areas.sum()),
     )
