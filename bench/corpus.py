@@ -6,13 +6,12 @@ fresh process per mesh, a shared cache folder) on every mesh in ``--meshes`` (de
 with a foot ring, a four-legged figurine, a lying spoon-like object, a bust with a cut base, a box,
 a point-cloud scan with holes and fragments; written at their natural size). ``--sizes FILE.json``
 maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the generated shapes
-keep their own size). The pose and base kind are read back by running ``regions.detect`` on the
-run's ``mesh.ply``.
+keep their own size). The pose, base and sensing region are read from the run's ``metrics.json``.
 
-Prints one row per mesh (mesh, ok, pose and base kind, base area %, cells, pads, Voronoi CV,
-coverage radius mm, sheets, seconds) and, as the LAST line, one JSON object with ``meshes``,
-``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
-``median_cells``, the worst cases and per-row details. Usage::
+Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and sensing area %, cells,
+pads, Voronoi CV over the pads and over all crossings, coverage radius mm, sheets, seconds) and, as
+the LAST line, one JSON object with ``meshes``, ``succeeded``, ``failures`` (list of ``{mesh, node,
+message}``), ``median_voronoi_cv``, ``median_cells``, the worst cases and per-row details. Usage::
 
     python bench/corpus.py [--meshes DIR] [--sizes FILE.json] [--vertices N] [--angles -20,0,20]
                            [--only STEM ...] [--no-shapes] [--cache-dir DIR] [--timeout S]
@@ -30,15 +29,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the generated shapes are test fixtures, shared with the e2e tests
 
 import shapes  # noqa: E402
-
-from retrotouch.nodes.data.types import Mesh  # noqa: E402
-from retrotouch.nodes.regions.detect import RegionParams, detect_regions  # noqa: E402
 
 DEFAULT_DIAGONAL_MM = 170.0
 ERROR_LINE = re.compile(r"error: node (?P<node>[\w.\-]+)(?:\[[^\]]*\])?: (?P<message>.*)")
@@ -73,21 +68,21 @@ def failure(stem: str, stderr: str) -> dict[str, str]:
 
 
 def measured(stem: str, out: Path) -> dict[str, object]:
-    """The row of a successful run: layout metrics, sheet count, pose and base."""
+    """The row of a successful run: layout metrics, sheet count, pose, base and sensing region."""
     metrics = json.loads((out / "metrics.json").read_text())
     report = json.loads((out / "sheets" / "report.json").read_text())
     sheet_count = report.get("sheet", {}).get("count")
-    checked = trimesh.load(str(out / "mesh.ply"), process=False)
-    mesh = Mesh(np.asarray(checked.vertices, dtype=np.float64), np.asarray(checked.faces, dtype=np.int64), stem)
-    regions = detect_regions(RegionParams(), mesh)
+    pose = metrics["pose"]
     return {
-        "pose": regions.pose_kind,
-        "up": [round(float(v), 3) for v in regions.up],
-        "tipping_deg": round(regions.tipping_angle_deg, 1),
-        "base_percent": round(100 * regions.base_area_fraction, 2),
+        "pose": pose["kind"],
+        "up": [round(float(v), 3) for v in pose["up"]],
+        "tipping_deg": round(pose["tipping_angle_deg"], 1),
+        "base_percent": round(100 * pose["base_area_fraction"], 2),
+        "sensing_percent": round(100 * pose["sensing_area_fraction"], 2),
         "cells": metrics.get("cells"),
         "pads": metrics.get("pads"),
         "voronoi_cv": metrics.get("voronoi_cv"),
+        "voronoi_cv_all_crossings": metrics.get("voronoi_cv_all_crossings"),
         "coverage_radius_mm": metrics.get("coverage_radius_mm"),
         "sheets": sheet_count,
     }
@@ -131,8 +126,8 @@ def main() -> None:
         os.environ.setdefault("PYTHONHASHSEED", "0")
         rows, failures = [], []
         print(
-            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'cells':>6s} {'pads':>5s} "
-            f"{'CV':>6s} {'cov mm':>7s} {'sheets':>6s} {'s':>7s}",
+            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'cells':>6s} {'pads':>5s} "
+            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'sheets':>6s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -150,8 +145,10 @@ def main() -> None:
             print(
                 f"{stem:32s} {'yes' if row['ok'] else 'NO':3s} {row.get('pose', '-'):10s} "
                 f"{fmt(row.get('tipping_deg'), '5.0f')} "
-                f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
-                f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('coverage_radius_mm'), '7.1f')} "
+                f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('sensing_percent'), '6.1f')} "
+                f"{fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
+                f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('voronoi_cv_all_crossings'), '6.3f')} "
+                f"{fmt(row.get('coverage_radius_mm'), '7.1f')} "
                 f"{fmt(row.get('sheets'), '6d')} {seconds:7.1f}",
                 flush=True,
             )
@@ -160,6 +157,7 @@ def main() -> None:
     good = [r for r in rows if r["ok"]]
     cvs = [r["voronoi_cv"] for r in good if r.get("voronoi_cv") is not None]
     cells = [r["cells"] for r in good if r.get("cells") is not None]
+    radii = [r["coverage_radius_mm"] for r in good if r.get("coverage_radius_mm") is not None]
     summary = {
         "meshes": len(rows),
         "succeeded": len(good),
@@ -168,6 +166,8 @@ def main() -> None:
         "worst_voronoi_cv": max(cvs) if cvs else None,
         "median_cells": float(np.median(cells)) if cells else None,
         "fewest_cells": min(cells) if cells else None,
+        "median_coverage_radius_mm": float(np.median(radii)) if radii else None,
+        "worst_coverage_radius_mm": max(radii) if radii else None,
         "median_seconds": float(np.median([r["seconds"] for r in rows])) if rows else None,
         "slowest_seconds": max((r["seconds"] for r in rows), default=None),
         "vertices": args.vertices,
