@@ -132,9 +132,14 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     meshset.meshing_re_orient_faces_coherently()
     if params.close_holes:
         holes = meshset.get_topological_measures()["number_holes"]
+        largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
+        crossing = 0
         try:
-            largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
             meshset.meshing_close_holes(maxholesize=largest)
+            left = meshset.get_topological_measures()["number_holes"]
+            if left:  # a patch free of self-intersections was not found (a scan's wide, warped open bottom)
+                meshset.meshing_close_holes(maxholesize=largest, selfintersection=False)
+                crossing = left - meshset.get_topological_measures()["number_holes"]
         except pymeshlab.PyMeshLabException as exc:
             raise UserError(
                 f"closing holes failed ({str(exc).strip()[:100]}): set close_holes: false and "
@@ -142,7 +147,8 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
             ) from None
         filled = counted(meshset)[1] - repaired[1]
         if filled:
-            done.append(f"closed {max(holes, 1)} hole(s) with {filled:,} faces")
+            done.append(f"closed {max(holes, 1)} hole(s) with {filled:,} faces"
+                        + (f" ({crossing} with a patch that may cross the surface)" if crossing else ""))
     return done
 
 
