@@ -14,7 +14,7 @@ from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
 from retrotouch.nodes.geometry.triangles import signed_volume
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
-from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology
+from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, topology_report
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
@@ -324,3 +324,23 @@ def test_noisy_dense_scan_is_decimated_and_remeshed_to_its_target() -> None:
     assert abs(len(out.vertices) - 1000) / 1000 <= 0.10, len(out.vertices)
     assert out.repairs[0].startswith("decimated a dense input from 81,920 to 4,000 faces")
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
+
+
+def test_a_pinch_vertex_split_by_repair_stays_split_after_remeshing() -> None:
+    """A capsule bent round until its two poles meet, welded there into one non-manifold vertex (a
+    scan where two parts of the surface touch): repair splits it, and remeshing must not weld the two
+    copies into a pinch again, so the mesh passes the topology check as a sphere."""
+    capsule = trimesh.creation.capsule(height=100.0, radius=10.0, count=[32, 32])
+    v, f = np.asarray(capsule.vertices, dtype=np.float64), np.asarray(capsule.faces, dtype=np.int64)
+    phi = (v[:, 2] - v[:, 2].min()) / np.ptp(v[:, 2]) * 2.0 * np.pi
+    bend = np.ptp(v[:, 2]) / (2.0 * np.pi) + v[:, 0]
+    bent = np.column_stack([bend * np.cos(phi), bend * np.sin(phi), v[:, 1]])
+    welded = np.where(f == np.argmax(v[:, 2]), np.argmin(v[:, 2]), f)
+    used, welded = np.unique(welded, return_inverse=True)
+    pinched = Mesh(bent[used], welded.reshape(-1, 3).astype(np.int64), "pinched")
+    assert topology_report(pinched.vertices, pinched.faces)["non_manifold_vertices"] == 1
+    repaired = repair_mesh(RepairParams(), pinched)
+    assert "moved apart the 2 copies of split non-manifold vertices, so remeshing keeps them apart" in repaired.repairs
+    out = remesh(RemeshParams(target_vertices=3000), repaired)
+    report = topology_report(out.vertices, out.faces)
+    assert report["non_manifold_vertices"] == 0 and report["euler_characteristic"] == 2 and report["boundary_edges"] == 0

@@ -3,7 +3,8 @@
 Nodes:
 
 * ``mesh.repair`` -- remove duplicate vertices/faces, null faces and unreferenced vertices, repair
-  non-manifold edges and vertices, orient faces coherently, close holes (every hole by default, so a
+  non-manifold edges and vertices (the copies a pinch vertex is split into are moved apart, so
+  remeshing does not weld them again), orient faces coherently, close holes (every hole by default, so a
   scan's open bottom is closed), keep only the largest
   connected component (a scan's loose fragments), and make the orientation outward (signed
   volume > 0). Each change is listed in ``Mesh.repairs``.
@@ -37,6 +38,9 @@ DECIMATE_TO = 2
 """... to this many times the target's faces (quadric edge collapse), before remeshing."""
 TARGET_TOLERANCE = 0.10
 """mesh.remesh: a vertex count within this share of the target is on target."""
+SPLIT_SEPARATION = 0.2
+"""mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
+of its own neighbours."""
 
 
 def to_meshset(vertices: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
@@ -104,6 +108,25 @@ class RepairParams(NodeParams):
     )
 
 
+def separate_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """``vertices`` with every vertex that shares its position with another (after duplicates are
+    merged: the copies of a split non-manifold vertex) moved ``SPLIT_SEPARATION`` of the way to the
+    centroid of its neighbours, and how many moved."""
+    _, inverse, counts = np.unique(vertices, axis=0, return_inverse=True, return_counts=True)
+    shared = counts[inverse.ravel()] > 1
+    if not shared.any():
+        return vertices, 0
+    halfedges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    halfedges = halfedges[shared[halfedges[:, 0]]]
+    sums = np.zeros_like(vertices)
+    np.add.at(sums, halfedges[:, 0], vertices[halfedges[:, 1]])
+    degree = np.bincount(halfedges[:, 0], minlength=len(vertices))
+    moved = vertices.copy()
+    index = np.flatnonzero(shared)
+    moved[index] += SPLIT_SEPARATION * (sums[index] / degree[index, None] - vertices[index])
+    return moved, len(index)
+
+
 def counted(meshset: pymeshlab.MeshSet) -> tuple[int, int]:
     """``(vertices, faces)`` of the current mesh."""
     return meshset.current_mesh().vertex_number(), meshset.current_mesh().face_number()
@@ -159,6 +182,9 @@ def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
     meshset = to_meshset(mesh.vertices, mesh.faces)
     done = clean(meshset, params)
     vertices, faces = from_meshset(meshset)
+    vertices, separated = separate_coincident(vertices, faces)
+    if separated:
+        done.append(f"moved apart the {separated} copies of split non-manifold vertices, so remeshing keeps them apart")
     if params.keep_largest and len(faces):
         vertices, faces, dropped = keep_largest_component(vertices, faces)
         done += [dropped] if dropped else []
