@@ -14,7 +14,7 @@ the LAST line, one JSON object with ``meshes``, ``succeeded``, ``failures`` (lis
 message}``), ``median_voronoi_cv``, ``median_cells``, the worst cases and per-row details. Usage::
 
     python bench/corpus.py [--meshes DIR] [--sizes FILE.json] [--vertices N] [--angles -20,0,20]
-                           [--only STEM ...] [--no-shapes] [--cache-dir DIR] [--timeout S]
+                           [--set KEY=VALUE ...] [--only STEM ...] [--no-shapes] [--cache-dir DIR] [--timeout S]
 """
 from __future__ import annotations
 
@@ -48,6 +48,8 @@ def run_pipeline(mesh_path: Path, diagonal_mm: float, args: argparse.Namespace, 
     ]
     if args.angles:
         command += ["-S", f"rx_angles_deg=[{args.angles}]"]
+    for override in args.set:
+        command += ["-S", override]
     start = time.perf_counter()
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=args.timeout, cwd=out.parent)
@@ -115,6 +117,8 @@ def main() -> None:
     parser.add_argument("--sizes", default=None, help="JSON file: mesh stem -> bounding-box diagonal (mm)")
     parser.add_argument("--vertices", type=int, default=20000)
     parser.add_argument("--angles", default="", help="Rx angles (deg, comma-separated); default: the pipeline's")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a further -S override for every run (repeatable), e.g. --set 'tx_poles=[far, centre]'")
     parser.add_argument("--only", nargs="*", default=None, help="run only these stems / shape classes")
     parser.add_argument("--no-shapes", action="store_true", help="skip the generated shapes")
     parser.add_argument("--cache-dir", default=None, help="cache folder (default: a fresh temporary one)")

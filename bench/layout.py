@@ -99,7 +99,7 @@ def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screen
     )
     cut = screen(ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None), starts)
     candidates = Parallel(n_jobs=jobs)(
-        delayed(finish)(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, cut)
+        delayed(finish)(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, cut, regions)
         for (rx, tx_rx, tx_tx, rx_rx), branch in zip(branches, starts)
     )
     picked = pick_best(PickParams(), candidates)

@@ -48,6 +48,7 @@ class Regions:
         area = areas(corners(mesh.vertices, mesh.faces))
         self.base_area_fraction = float(area[~self.sensing_faces].sum() / area.sum())
         self.sensing_area_fraction = 1.0 - self.base_area_fraction
+        self.tx_pole = "far"
 
 
 def _to_xyz(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:

@@ -41,10 +41,11 @@ def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips
 
     def finished(threshold_mm):
         return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"], branch,
-                      Screen(threshold_mm, threshold_mm, ""))
+                      Screen(threshold_mm, threshold_mm, ""), regions)
 
     below = finished(bound - 0.1)
     assert not below.feasible and below.layout is None and below.metrics["screened"]
+    assert below.regions is regions  # a candidate carries the regions it was laid out on, screened or not
     assert below.message.startswith(f"screened out: its coverage radius is at least {bound:.1f} mm")
     at_bound = finished(bound)  # kept by the bound, then the model capped there is proven infeasible
     assert at_bound.metrics["screened"] and at_bound.message.endswith("(proven)")

@@ -1,6 +1,8 @@
 """layout.pick_best ranking and the per-angle table, on hand-made branch results."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from types import SimpleNamespace
@@ -42,6 +44,16 @@ def test_infeasible_branches_are_skipped_and_listed():
     assert [r["angle_deg"] for r in rows] == [-10, 0] and [r["feasible"] for r in rows] == [False, True]
     out = pick_best(PickParams(print_table=False), candidates)
     assert out["metrics"]["chosen_angle_deg"] == 0 and len(out["metrics"]["angles"]) == 2
+
+
+def test_the_chosen_branch_brings_the_regions_of_its_tx_pole():
+    """Branches around two Tx poles compete in one list; the chosen one's regions go to the sinks."""
+    far, centre = SimpleNamespace(tx_pole="far"), SimpleNamespace(tx_pole="centre")
+    candidates = [dataclasses.replace(branch(0, 40.0, 9.0, 0.5), regions=far),
+                  dataclasses.replace(branch(0, 25.0, 7.0, 0.6), regions=centre)]
+    out = pick_best(PickParams(print_table=False), candidates)
+    assert out["regions"] is centre and out["layout"] is None
+    assert [r["tx_pole"] for r in out["metrics"]["angles"]] == ["far", "centre"]
 
 
 def started(radius, lower_bound):

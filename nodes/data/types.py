@@ -148,3 +148,4 @@ class SurfaceRegions:
     tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
     base_area_fraction: float  # base area / surface area
     sensing_area_fraction: float  # sensing area / surface area
+    tx_pole: str  # how far_vertex was chosen: "far" or "centre" (regions.detect's tx_pole)

@@ -1,7 +1,8 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
-A branch is one Rx family (dipole loops or rings) at one angle; branches of several families arrive
-as one list (``candidates: ["finish[*]", "ring_finish[*]"]``) and are taken in order. The best has
+A branch is one Rx family (dipole loops or rings) at one angle, around one Tx pole; branches of
+several families (and poles) arrive as one list (``candidates: ["finish[*]", "ring_finish[*]"]``)
+and are taken in order; the chosen branch's regions go to the sinks with its layout. The best has
 the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the
 sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
 then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in
@@ -97,6 +98,7 @@ def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> l
         rows.append({
             "rx_family": c.family,
             "angle_deg": c.angle_deg,
+            "tx_pole": c.regions.tx_pole if c.regions is not None else None,
             "feasible": c.feasible,
             "screened": bool(m.get("screened")),
             "stage1_radius_mm": stages[0]["objective"] if stages else None,
@@ -126,14 +128,15 @@ def print_angle_table(rows: list[dict], best: int) -> None:
     from rich.table import Table
 
     table = Table(title="layout per branch: Rx family and angle (* = chosen; r1 = radius after phase 1's first stage)")
-    columns = ("family", "angle", "r1 mm", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
+    columns = ("family", "angle", "pole", "r1 mm", "radius mm", "mean mm", "CV all", "CV pads", "cells", "pads", "clear mm", "channels", "det t",
                "status", "gap", "relax", "note")
     for name in columns:
         table.add_column(name, justify="right")
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for i, r in enumerate(rows):
         cells = "-" if r["cells"] is None else f"{r['cells']}/{r['channel_pairs']}"
-        table.add_row(("*" if i == best else "") + r["rx_family"], fmt(r["angle_deg"], "+.0f"), fmt(r["stage1_radius_mm"], ".1f"),
+        table.add_row(("*" if i == best else "") + r["rx_family"], fmt(r["angle_deg"], "+.0f"), r["tx_pole"] or "-",
+                      fmt(r["stage1_radius_mm"], ".1f"),
                       fmt(r["coverage_radius_mm"], ".2f"),
                       fmt(r["mean_distance_mm"], ".2f"), fmt(r["voronoi_cv_all_crossings"], ".3f"),
                       fmt(r["voronoi_cv"], ".3f"), cells, fmt(r["pads"], "d"), fmt(r["min_same_layer_clearance_mm"], ".2f"),
@@ -142,9 +145,9 @@ def print_angle_table(rows: list[dict], best: int) -> None:
     Console(stderr=True, width=200).print(table)
 
 
-@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics"))
+@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics", "regions"))
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
-    """Keep the best branch (radius, secondary, cells, Voronoi CV) and the per-branch table."""
+    """Keep the best branch (radius, secondary, cells, Voronoi CV), its regions, and the per-branch table."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     screened = [c for c in candidates if c.metrics.get("screened")]
     if not feasible:
@@ -162,4 +165,4 @@ def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, ob
         print_angle_table(rows, best)
     chosen = candidates[best]
     metrics = {**chosen.metrics, "chosen_angle_deg": chosen.angle_deg, "angles": rows}
-    return {"layout": chosen.layout, "metrics": metrics}
+    return {"layout": chosen.layout, "metrics": metrics, "regions": chosen.regions}

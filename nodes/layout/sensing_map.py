@@ -35,5 +35,5 @@ def pose_summary(regions: SurfaceRegions) -> dict:
     """The resting pose the layout was made for, as metrics.json reports it."""
     return {"kind": regions.pose_kind, "reason": regions.pose_reason, "up": [float(v) for v in regions.up],
             "tipping_angle_deg": regions.tipping_angle_deg, "base_area_fraction": regions.base_area_fraction,
-            "sensing_area_fraction": regions.sensing_area_fraction}
+            "sensing_area_fraction": regions.sensing_area_fraction, "tx_pole": regions.tx_pole}
 

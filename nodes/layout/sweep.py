@@ -39,7 +39,8 @@ from .screen import BranchStart, Screen
 from .selection import finish_selection, radius_proven_above, solve_radius_stage
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
-from ..data.types import CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh
+from ..data.types import (CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh,
+                          SurfaceRegions)
 from .metrics import layout_metrics
 from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
 from .samples import HeatGeodesics, SurfaceSamples, geodesics_for
@@ -103,7 +104,8 @@ def d_min_for(params: OptimizeParams, pad_radius_mm: float) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class AngleLayout:
-    """One branch of the sweep (an Rx family at one angle): its layout (None if infeasible), metrics."""
+    """One branch of the sweep (an Rx family at one angle, around one Tx pole): its layout (None if
+    infeasible), metrics, and the regions it was laid out on (their ``tx_pole``)."""
 
     family: str  # the Rx family: "dipole", "rings" or "rings_tx"
     angle_deg: float  # the dipole's angle offset, or the rings' corridor position around the Tx pole
@@ -111,6 +113,7 @@ class AngleLayout:
     message: str
     layout: Layout | None
     metrics: dict
+    regions: SurfaceRegions | None = None
 
 
 def subset_curves(curves: CurveSet, ids: np.ndarray) -> CurveSet:
@@ -312,20 +315,17 @@ def coverage(
     return BranchStart(params.model_dump(), rx.family, angle_deg, base, stage, "ok")
 
 
-@node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "branch", "screen"),
+@node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "branch", "screen", "regions"),
       outputs=("candidate",))
-def finish(
-    params: NodeParams,
-    mesh: Mesh,
-    samples: SurfaceSamples,
-    tx: CurveSet,
-    rx: CurveSet,
-    tx_rx: Crossings,
-    tx_tx: Crossings,
-    rx_rx: Crossings,
-    branch: BranchStart,
-    screen: Screen | None,
-) -> AngleLayout:
+def finish(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+           tx_tx: Crossings, rx_rx: Crossings, branch: BranchStart, screen: Screen, regions: SurfaceRegions) -> AngleLayout:
+    """:func:`finish_branch` as a node; the candidate carries ``regions`` (``layout.pick_best`` hands the chosen
+    branch's to the sinks)."""
+    return dataclasses.replace(finish_branch(mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, screen), regions=regions)
+
+
+def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings, tx_tx: Crossings,
+                  rx_rx: Crossings, branch: BranchStart, screen: Screen | None) -> AngleLayout:
     """Phase 1's power-mean stage + phase 2 (pads) + metrics for a branch the ``screen`` keeps (all
     when None), with the parameters of its ``layout.coverage``; a branch it drops is reported as
     screened out with its radius stage."""
@@ -389,4 +389,4 @@ def optimize(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: Cu
              tx_tx: Crossings, rx_rx: Crossings) -> AngleLayout:
     """One branch start to end, unscreened: ``layout.coverage`` then ``layout.finish`` (plain functions)."""
     branch = coverage(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
-    return finish(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, None)
+    return finish_branch(mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, None)

@@ -377,4 +377,5 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         tipping_angle_deg=float(tipping),
         base_area_fraction=share,
         sensing_area_fraction=float(areas[sensing].sum() / areas.sum()),
+        tx_pole=params.tx_pole,
     )
