@@ -203,11 +203,13 @@ def verify(polygons: list[Polygon], sheets: np.ndarray, width: float, height: fl
         if len(group) < 2:
             continue
         tree = shapely.STRtree(group)
-        near = tree.query(group, predicate="dwithin", distance=spacing + 10.0)
-        near = near[:, near[0] < near[1]]
-        if near.shape[1]:  # else every gap exceeds spacing + 10 mm: find the nearest pair
-            gap = shapely.distance(np.asarray(group)[near[0]], np.asarray(group)[near[1]]).min()
-        else:
+        for reach in (spacing + 0.5, spacing + 10.0):  # the pairs within reach hold the smallest gap, if any
+            near = tree.query(group, predicate="dwithin", distance=reach)
+            near = near[:, near[0] < near[1]]
+            if near.shape[1]:
+                gap = shapely.distance(np.asarray(group)[near[0]], np.asarray(group)[near[1]]).min()
+                break
+        else:  # every gap exceeds spacing + 10 mm: find the nearest pair
             gap = tree.query_nearest(group, exclusive=True, return_distance=True, all_matches=False)[1].min()
         min_gap = min(min_gap, float(gap))
         pairs = tree.query(group, predicate="dwithin", distance=spacing - 1e-6) if spacing > 1e-6 else tree.query(
