@@ -344,3 +344,20 @@ def test_a_pinch_vertex_split_by_repair_stays_split_after_remeshing() -> None:
     out = remesh(RemeshParams(target_vertices=3000), repaired)
     report = topology_report(out.vertices, out.faces)
     assert report["non_manifold_vertices"] == 0 and report["euler_characteristic"] == 2 and report["boundary_edges"] == 0
+
+
+def test_a_flat_outline_closed_into_a_double_sheet_is_refused_as_no_solid() -> None:
+    """A 2D outline exported as a mesh (every vertex at z = 0) whose open side mesh.repair closes with
+    a coplanar patch is closed, manifold and genus 0 but encloses nothing: one line says so."""
+    disc = trimesh.creation.annulus(r_min=0.0, r_max=40.0, height=1.0, sections=48)
+    top = disc.vertices[:, 2] > 0
+    keep = np.flatnonzero(top)
+    faces = disc.faces[np.all(top[disc.faces], axis=1)]
+    flat = np.column_stack([disc.vertices[keep, :2], np.zeros(len(keep))])
+    faces = np.searchsorted(keep, faces)
+    sheet = repair_mesh(RepairParams(), Mesh(flat, faces.astype(np.int64), "outline.obj"))
+    assert any(line.startswith("closed 1 hole(s)") for line in sheet.repairs)
+    with pytest.raises(UserError, match=r"outline.obj: the surface encloses no volume .*flat sheet, not a solid object"):
+        check_topology(CheckTopologyParams(), sheet)
+    solid = as_mesh(trimesh.creation.box(extents=(80.0, 80.0, 0.5)))  # a thin but real slab passes
+    assert check_topology(CheckTopologyParams(), solid)["report"]["mean_thickness_mm"] > 0.2

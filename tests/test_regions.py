@@ -91,12 +91,7 @@ def test_far_vertex_is_the_ear_or_head(bunny: Mesh, bunny_regions: SurfaceRegion
 def test_exclusion_regions_respect_their_radii(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
     r = bunny_regions
     params = RegionParams()
-    distance = r.base_distance_mm[bunny.faces].mean(axis=1)
-    within = r.exclusion_base & (distance < params.exclusion_base_mm)
-    beyond = r.exclusion_base & ~within
-    touches_blocked, _ = FaceGraph(bunny.faces, len(bunny.vertices)).vertex_masks(r.base_faces | within)
-    assert touches_blocked[bunny.faces[beyond]].all()  # beyond the radius: only slivers no trace reaches
-    assert beyond.sum() < 0.01 * r.exclusion_base.sum()
+    assert r.base_distance_mm[bunny.faces[r.exclusion_base]].mean(axis=1).max() < params.exclusion_base_mm
     far_point = bunny.vertices[r.far_vertex]
     chord = np.linalg.norm(bunny.vertices[bunny.faces[r.exclusion_far]] - far_point, axis=2).mean(axis=1)
     assert chord.max() < params.exclusion_far_mm + 2.0  # geodesic radius bounds the chord (+ one edge)
@@ -124,8 +119,7 @@ def test_up_axis_override(bunny: Mesh) -> None:
     assert r.tipping_angle_deg < 0 and "up_axis +z given" in r.pose_reason  # the bunny would fall over
     assert z[np.unique(bunny.faces[r.base_faces])].max() <= z.min() + 0.25 * np.ptp(z)  # low side
     assert r.base_faces[vertex_faces(bunny, r.base_centre)].all()
-    touches_base, _ = FaceGraph(bunny.faces, len(bunny.vertices)).vertex_masks(r.base_faces)
-    assert touches_base[bunny.faces[r.exclusion_base]].all()  # no exclusion grown, only slivers on the base's rim
+    assert not r.exclusion_base.any()
 
 
 def test_seed_point_and_angle_overrides(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
@@ -198,8 +192,6 @@ def assert_valid_regions(mesh: Mesh, r: SurfaceRegions) -> None:
     assert abs(r.sensing_area_fraction - areas[r.sensing_faces].sum() / areas.sum()) < 1e-9
     reachable = graph.components(r.sensing_faces | r.exclusion_far)  # every sensing face reachable from the pole
     assert len(np.unique(reachable[reachable >= 0])) == 1
-    touches_blocked, _ = graph.vertex_masks(r.base_faces | r.exclusion_base)
-    assert not touches_blocked[mesh.faces[r.sensing_faces]].all(axis=1).any()  # no sliver
 
 
 @pytest.mark.skipif(not SHARED, reason=f"no shared meshes in {SHARED_MESHES}")

@@ -2,8 +2,9 @@
 
 The trivial-connection layout needs one closed, manifold, coherently and outwardly oriented
 genus-0 surface. The check measures components, boundary edges and holes, non-manifold edges and
-vertices, orientation and the Euler characteristic / genus, and fails with one line that says what
-is wrong and what to do.
+vertices, orientation, the Euler characteristic / genus and the mean thickness (a flat sheet, such
+as a 2D outline closed into a double layer, has none), and fails with one line that says what is
+wrong and what to do.
 """
 from __future__ import annotations
 
@@ -15,15 +16,19 @@ from scipy.sparse.csgraph import connected_components
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.triangles import signed_volume
+from ..geometry.triangles import areas, corners, signed_volume
 from .repair import face_components, to_meshset
+
+MIN_MEAN_THICKNESS_MM = 0.01
+"""A closed surface thinner than this on average (2 x volume / area) is a flat sheet, not an object."""
 
 
 def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | float]:
     """Topological measures of a triangle mesh (plain ints/floats).
 
     ``genus`` is ``(2 C - chi - holes) / 2`` over the referenced vertices, meaningful for manifold
-    meshes; ``inconsistent_edges`` counts edges whose two faces traverse them in the same direction.
+    meshes; ``inconsistent_edges`` counts edges whose two faces traverse them in the same direction;
+    ``mean_thickness_mm`` is 2 x |signed volume| / area (a slab's thickness, 0 for a flat sheet).
     """
     faces = np.asarray(faces, dtype=np.int64)
     used = np.unique(faces)
@@ -42,6 +47,7 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
     components = face_components(faces, len(vertices))[0] if len(faces) else 0
     measures = to_meshset(vertices, faces).get_topological_measures()
     chi = len(used) - len(edges) + len(faces)
+    volume = signed_volume(vertices, faces)
     return {
         "vertices": int(len(used)),
         "faces": int(len(faces)),
@@ -55,7 +61,8 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "inconsistent_edges": int(np.count_nonzero(directed_count > 1)),
         "euler_characteristic": int(chi),
         "genus": int((2 * components - chi - holes) // 2),
-        "signed_volume_mm3": signed_volume(vertices, faces),
+        "signed_volume_mm3": volume,
+        "mean_thickness_mm": 2.0 * abs(volume) / max(float(areas(corners(vertices, faces)).sum()), 1e-300),
     }
 
 
@@ -84,6 +91,11 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
         )
     elif report["signed_volume_mm3"] < 0 and not report["boundary_edges"]:
         problems.append("faces point inward (negative signed volume): add mesh.repair before this node")
+    if not problems and report["mean_thickness_mm"] < MIN_MEAN_THICKNESS_MM:
+        problems.append(
+            f"the surface encloses no volume (mean thickness {report['mean_thickness_mm']:.2g} mm): it is a "
+            "flat sheet, not a solid object; give it its thickness in a mesh editor"
+        )
     clean = not problems
     if clean and expected_genus is not None and report["genus"] != expected_genus:
         problems.append(

@@ -21,9 +21,9 @@ Then, with heat-method geodesic distances (potpourri3d):
 * ``exclusion_base``: faces grown outward from the base, across edges, while their mean vertex
   distance from the base is below ``exclusion_base_mm`` and their normal deviates from ``down`` by
   less than ``exclusion_base_angle_deg`` (growth stops at whichever threshold is reached first);
-  then also every face no trace can reach from the Tx pole (:func:`unreachable_faces`): slivers
-  whose three corners lie on the base or the exclusion, and pieces (a second foot, legs) that the
-  base and its exclusion cut off from the pole. The run note gives their area when it matters.
+  then also every piece of the rest that no trace can reach from the Tx pole
+  (:func:`unreachable_faces`: a second foot, legs that the base and its exclusion cut off). The run
+  note gives their area when it matters.
 * ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
@@ -260,11 +260,14 @@ def grow_exclusion(
 
 def unreachable_faces(graph: FaceGraph, candidate: np.ndarray, blocked: np.ndarray, pole: np.ndarray) -> np.ndarray:
     """Faces of ``candidate`` (the sensing region before this check) that no trace from the Tx pole
-    (around the faces ``pole``) reaches: faces whose three corners touch ``blocked`` faces, and the
-    edge-connected pieces of the rest that share no edge with ``pole``."""
+    (around the faces ``pole``) reaches: the edge-connected pieces that share no edge with ``pole``
+    once slivers, faces whose three corners touch ``blocked`` faces, are taken out (no trace passes a
+    sliver without touching the base); slivers left beside the pole's piece stay."""
     touches_blocked, _ = graph.vertex_masks(blocked)
     sliver = candidate & touches_blocked[graph.faces].all(axis=1)
     labels = graph.components((candidate & ~sliver) | pole)
+    reached = np.isin(labels, np.unique(labels[pole]))
+    labels = graph.components(reached | sliver)
     return candidate & ~np.isin(labels, np.unique(labels[pole]))
 
 
