@@ -203,11 +203,13 @@ class CouplingFit:
                     self.cell_gain * math.exp(fit[1]) * self.profile.at_squared(np.sum((cells - fit[0]) ** 2, axis=1))[0]
                     for fit in fits]
         total = np.sum(modelled, axis=0)
+        reach2 = (3.0 * self.coupling_sigma + self.pitch) ** 2  # the crossings a refit sees (see refine)
         for entry, fit, own in zip(found, fits, modelled):
             if fit is None:
                 continue
             others = total - own
-            if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
+            seen = np.einsum("ij,ij->i", cells - entry[1], cells - entry[1]) <= reach2
+            if not np.any(others[seen] > sigma[seen]):  # the others' coupling does not reach this touch's crossings
                 continue
             refined = self.refine(entry[1], entry[2], delta - others, sigma, fit[1], learn_profile=True)
             if refined is not None:
