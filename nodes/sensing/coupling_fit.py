@@ -149,8 +149,9 @@ class CouplingFit:
                             sigma: np.ndarray) -> bool:
         """Whether one finger of plausible amplitude, fitted to every delta from between two peak
         crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise
-        sigmas) and lights no crossing near it more than twice its delta plus ``SPLIT_SIGMA`` noise
-        sigmas (two fingers with dark crossings between them are two). A finger in a gap between
+        sigmas) and lights no crossing near it more than twice its delta (0 if negative: noise below
+        the baseline is no darker than none) plus ``SPLIT_SIGMA`` noise sigmas (two fingers with dark
+        crossings between them are two). A finger in a gap between
         crossings far apart raises a peak on either side, and the first fits, each seeing only its
         own peak's crossings, put a weak finger beside each peak. Plausible: at most
         ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the
@@ -185,7 +186,7 @@ class CouplingFit:
         model = gains[near] * math.exp(joint[3]) * self.profile.at_squared(squared[near])[0]
         tolerance = SPLIT_SIGMA * sigma[near]
         explains_peaks = np.all(delta[[first, second]] <= 2.0 * model[-2:] + tolerance[-2:])
-        return bool(explains_peaks and np.all(model <= 2.0 * delta[near] + tolerance))
+        return bool(explains_peaks and np.all(model <= 2.0 * np.maximum(delta[near], 0.0) + tolerance))
 
     def tail_envelope(self, squared: np.ndarray) -> np.ndarray:
         """The larger of the coupling profile and ``(1 + d^2 / h^2)^(-3/2)`` at squared distances
