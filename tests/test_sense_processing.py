@@ -1,5 +1,6 @@
 """Touch processing end to end on the synthetic bunny sensing map: localization through the
-pseudo-terminal, rest without false touches under drift, holds, multi-touch ids, map loading."""
+pseudo-terminal, rest without false touches under drift, holds, multi-touch ids, one finger between
+two peaks, map loading."""
 from __future__ import annotations
 
 import json
@@ -300,3 +301,24 @@ def test_a_one_frame_spike_beside_a_noisy_crossing_is_no_touch_but_a_press_is_on
             downs += [e for e in processor.process(frame(extra), t).events if e["type"] == "touch_down"]
             t += 0.1
         assert len(downs) == 1 and downs[0]["cell"] == cell
+
+
+def test_one_finger_between_two_peaks_is_not_split_by_a_crossing_reading_below_its_baseline(bunny_map):
+    """One finger between two crossings, with every crossing reading what it couples plus nothing,
+    is one finger; so it stays when a crossing the finger barely reaches reads 3.5 noise sigmas below
+    its baseline (noise: no darker than a crossing reading 0, which the test lets the finger light
+    up to 6 sigmas)."""
+    processor = TouchProcessor(bunny_map)
+    fit, cells, noise, amplitude = processor.fit, bunny_map.cell_points, 5.0, 300.0
+    width = fit.coupling_sigma
+    pairs = np.argwhere((processor.cell_distance > 1.5 * width) & (processor.cell_distance < 2.0 * width))
+    first, second = (int(k) for k in pairs[0])
+    middle = processor.projector.project(0.5 * (cells[first] + cells[second]), bunny_map.cell_normals[first])[0][0]
+    squared = np.sum((cells - middle) ** 2, axis=1)
+    delta = processor.cell_gain * amplitude * fit.profile.at_squared(squared)[0]
+    sigma = np.full(bunny_map.cell_count, noise)
+    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma)
+    faint = (delta > 0.2 * noise) & (delta < 2.0 * noise)  # the finger reaches them, barely
+    faint[[first, second]] = False
+    delta[np.flatnonzero(faint)[0]] = -3.5 * noise
+    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma)

@@ -41,10 +41,10 @@ def median(values: np.ndarray) -> float:
 
 def _medians(grid: np.ndarray, axis: int) -> np.ndarray:
     """Medians of ``grid`` along ``axis``, kept as a length-1 axis (``np.median`` at a fifth of its cost)."""
-    ordered = np.sort(grid, axis=axis)
-    n = grid.shape[axis]
-    middle = np.take(ordered, [(n - 1) // 2, n // 2], axis=axis)
-    return middle.mean(axis=axis, keepdims=True)
+    ordered = np.sort(grid if axis == 1 else grid.T, axis=1)
+    n = ordered.shape[1]
+    middle = (ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2
+    return middle[:, None] if axis == 1 else middle[None]
 
 
 def line_offsets(delta: np.ndarray, quiet: np.ndarray) -> np.ndarray:

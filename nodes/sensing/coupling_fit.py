@@ -149,8 +149,9 @@ class CouplingFit:
                             sigma: np.ndarray) -> bool:
         """Whether one finger of plausible amplitude, fitted to every delta from between two peak
         crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise
-        sigmas) and lights no crossing near it more than twice its delta plus ``SPLIT_SIGMA`` noise
-        sigmas (two fingers with dark crossings between them are two). A finger in a gap between
+        sigmas) and lights no crossing near it more than twice its delta (0 if negative: noise below
+        the baseline is no darker than none) plus ``SPLIT_SIGMA`` noise sigmas (two fingers with dark
+        crossings between them are two). A finger in a gap between
         crossings far apart raises a peak on either side, and the first fits, each seeing only its
         own peak's crossings, put a weak finger beside each peak. Plausible: at most
         ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the
@@ -185,7 +186,7 @@ class CouplingFit:
         model = gains[near] * math.exp(joint[3]) * self.profile.at_squared(squared[near])[0]
         tolerance = SPLIT_SIGMA * sigma[near]
         explains_peaks = np.all(delta[[first, second]] <= 2.0 * model[-2:] + tolerance[-2:])
-        return bool(explains_peaks and np.all(model <= 2.0 * delta[near] + tolerance))
+        return bool(explains_peaks and np.all(model <= 2.0 * np.maximum(delta[near], 0.0) + tolerance))
 
     def tail_envelope(self, squared: np.ndarray) -> np.ndarray:
         """The larger of the coupling profile and ``(1 + d^2 / h^2)^(-3/2)`` at squared distances
@@ -203,11 +204,13 @@ class CouplingFit:
                     self.cell_gain * math.exp(fit[1]) * self.profile.at_squared(np.sum((cells - fit[0]) ** 2, axis=1))[0]
                     for fit in fits]
         total = np.sum(modelled, axis=0)
+        reach2 = (3.0 * self.coupling_sigma + self.pitch) ** 2  # the crossings a refit sees (see refine)
         for entry, fit, own in zip(found, fits, modelled):
             if fit is None:
                 continue
             others = total - own
-            if not np.any(others > sigma):  # the others' coupling does not reach this touch's crossings
+            seen = np.einsum("ij,ij->i", cells - entry[1], cells - entry[1]) <= reach2
+            if not np.any(others[seen] > sigma[seen]):  # the others' coupling does not reach this touch's crossings
                 continue
             refined = self.refine(entry[1], entry[2], delta - others, sigma, fit[1], learn_profile=True)
             if refined is not None:

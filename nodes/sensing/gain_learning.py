@@ -52,10 +52,11 @@ class GainLearner:
         weights = np.minimum(weights, WEIGHT_CAP)
         keep = np.isfinite(log_ratios)
         cells, log_ratios, weights = cells[keep], log_ratios[keep], weights[keep]
+        weighted = weights * np.minimum(np.maximum(log_ratios, LOG_RANGE[0]), LOG_RANGE[1])  # np.clip, without its overhead
         self.weight[cells] = self.fade * self.weight[cells] + weights
-        self.moment[cells] = self.fade * self.moment[cells] + weights * np.clip(log_ratios, *LOG_RANGE)
+        self.moment[cells] = self.fade * self.moment[cells] + weighted
         self.learned[cells] = self.fade * self.learned[cells] + weights / WEIGHT_CAP
-        self.learned_moment[cells] = self.fade * self.learned_moment[cells] + weights * np.clip(log_ratios, *LOG_RANGE)
+        self.learned_moment[cells] = self.fade * self.learned_moment[cells] + weighted
         self.touches += 1
 
     def gains(self) -> np.ndarray:

@@ -28,7 +28,8 @@ class Tracker:
         if previous_ids and touches:
             before = np.array([self._tracks[i] for i in previous_ids])
             now = np.array([touch.point for touch in touches])
-            cost = np.linalg.norm(before[:, None] - now[None], axis=2)
+            offsets = before[:, None] - now[None]
+            cost = np.sqrt(np.sum(offsets * offsets, axis=2))
             gate = self.gate_mm
             rows, cols = linear_sum_assignment(np.where(cost <= gate, cost, 1e6))
             assigned = {int(c): previous_ids[r] for r, c in zip(rows, cols) if cost[r, c] <= gate}
