@@ -55,8 +55,9 @@ def trimmed_pipeline(folder: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("name", sorted(EXPECTED_POSE))
-def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> None:
+def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
+    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle and one ring
+    corridor, plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
     mesh_path = shapes.write_shape(name, tmp_path)
     out = tmp_path / "out"
     command = [
@@ -65,8 +66,16 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
         "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
     ]
+    for override in overrides:
+        command += ["-S", override]
     done = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED_POSE))
+def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> None:
+    out = run_class(tmp_path, name)
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     assert metrics["feasible"]
@@ -91,17 +100,7 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
 def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions(tmp_path: Path) -> None:
     """``-S tx_poles=[far, centre]``: every branch runs around each Tx pole, screened and picked as one
     sweep; the sensing map's pose names the chosen branch's pole and its sensing share is that pole's."""
-    mesh_path = shapes.write_shape("four_legged_figurine", tmp_path)
-    out = tmp_path / "out"
-    command = [
-        sys.executable, "-m", "retrotouch.nodes", "run", str(trimmed_pipeline(tmp_path)),
-        "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
-        "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm('four_legged_figurine')}",
-        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
-        "-S", "tx_poles=[far, centre]",
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
+    out = run_class(tmp_path, "four_legged_figurine", "tx_poles=[far, centre]")
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     rows = metrics["angles"]
