@@ -156,13 +156,12 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     if params.close_holes:
         holes = meshset.get_topological_measures()["number_holes"]
         largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
-        crossing = 0
         try:
             meshset.meshing_close_holes(maxholesize=largest)
-            left = meshset.get_topological_measures()["number_holes"]
+            left = crossing = meshset.get_topological_measures()["boundary_edges"]
             if left:  # a patch free of self-intersections was not found (a scan's wide, warped open bottom)
                 meshset.meshing_close_holes(maxholesize=largest, selfintersection=False)
-                crossing = left - meshset.get_topological_measures()["number_holes"]
+                crossing = left - meshset.get_topological_measures()["boundary_edges"]
         except pymeshlab.PyMeshLabException as exc:
             raise UserError(
                 f"closing holes failed ({str(exc).strip()[:100]}): set close_holes: false and "
@@ -171,7 +170,8 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
         filled = counted(meshset)[1] - repaired[1]
         if filled:
             done.append(f"closed {max(holes, 1)} hole(s) with {filled:,} faces"
-                        + (f" ({crossing} with a patch that may cross the surface)" if crossing else ""))
+                        + (f" ({crossing:,} of their boundary edges closed by a patch that may cross the surface)"
+                           if crossing else ""))
     return done
 
 
