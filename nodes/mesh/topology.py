@@ -72,8 +72,8 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
     if report["non_manifold_edges"] or report["non_manifold_vertices"]:
         problems.append(
             f"{report['non_manifold_edges']} non-manifold edges and "
-            f"{report['non_manifold_vertices']} non-manifold vertices that no mesh.repair before this node "
-            "removed: add mesh.repair, or fix them in a mesh editor"
+            f"{report['non_manifold_vertices']} non-manifold vertices: put mesh.repair before this node if the "
+            "pipeline has none, else fix them in a mesh editor (repair could not)"
         )
     if report["components"] > 1:
         problems.append(
