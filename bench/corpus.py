@@ -81,6 +81,7 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "tipping_deg": round(pose["tipping_angle_deg"], 1),
         "base_percent": round(100 * pose["base_area_fraction"], 2),
         "sensing_percent": round(100 * pose["sensing_area_fraction"], 2),
+        "rx_family": metrics.get("rx_family"),
         "cells": metrics.get("cells"),
         "pads": metrics.get("pads"),
         "voronoi_cv": metrics.get("voronoi_cv"),

@@ -1,14 +1,14 @@
-"""Layout benchmark: the 13-branch sweep of both optimisation phases on a ~20k-vertex mesh.
+"""Layout benchmark: the 15-branch sweep of both optimisation phases on a ~20k-vertex mesh.
 
 Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
 diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
 (both layers) -> ``curves.trace_tx`` -> the default pipeline's branches: per angle -40..40 step 20
-``curves.trace_rx`` and per corridor position 0, 0.25, 0.5, 0.75 and kind of legs ``curves.trace_rings``,
-each with ``curves.crossings`` (``--family dipole`` or ``rings``: one family only), all called as plain
-functions.
+``curves.trace_rx``, per corridor position 0, 0.25, 0.5, 0.75 and kind of legs ``curves.trace_rings``
+and per winding sense ``curves.trace_helices``, each with ``curves.crossings`` (``--family dipole``,
+``rings`` or ``helices``: one family only), all called as plain functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
-fields, shared by all branches) + ``layout.coverage`` for the 13 branches on ``--jobs`` processes
+fields, shared by all branches) + ``layout.coverage`` for the 15 branches on ``--jobs`` processes
 (joblib/loky; each process factorises the heat operators once) + ``layout.screen`` (default
 parameters; ``--no-screen`` finishes every branch) + ``layout.finish`` the same way +
 ``layout.pick_best``; ``branches_finished`` says how many the screen kept. The sweep is
@@ -58,6 +58,7 @@ from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, sc
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -65,9 +66,10 @@ from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_
 ANGLES = tuple(range(-40, 41, 20))
 CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)
 RING_LEGS = ("offset", "tx_lines")
+WINDINGS = ("left", "right")
 
 
-def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "both"):
+def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "all"):
     mesh = load_mesh(LoadParams(path=mesh_path))
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
@@ -77,12 +79,14 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "b
     rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
     families = []
-    if family in ("dipole", "both"):
+    if family in ("dipole", "all"):
         families += [trace_rx(TraceRxParams(angle_deg=a), mesh, regions, rx_field)["curves"] for a in ANGLES]
-    if family in ("rings", "both"):
-        levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
+    levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx) if family != "dipole" else None
+    if family in ("rings", "all"):
         families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs), mesh, regions, levels, tx)["curves"]
                      for t in CORRIDOR_TURNS for legs in RING_LEGS]
+    if family in ("helices", "all"):
+        families += [trace_helices(TraceHelicesParams(winding=w), mesh, regions, levels, tx, tx_field)["curves"] for w in WINDINGS]
     branches = []
     for rx in families:
         cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
@@ -174,9 +178,9 @@ def main() -> None:
     parser.add_argument("--no-ablation", action="store_true", help="skip the second sweep without the secondary objective")
     parser.add_argument("--no-screen", action="store_true", help="finish every branch (no layout.screen)")
     parser.add_argument("--solvers", default="cpsat,highs", help="phase-1 solvers to compare (comma list; empty: none)")
-    parser.add_argument("--family", choices=("both", "dipole", "rings"), default="both",
-                        help="Rx candidates: both families as in the default pipeline, dipole loops per angle (the "
-                             "paper) or rings around the Tx pole per corridor")
+    parser.add_argument("--family", choices=("all", "dipole", "rings", "helices"), default="all",
+                        help="Rx candidates: every family as in the default pipeline, dipole loops per angle (the "
+                             "paper), rings around the Tx pole per corridor or helices around it per winding sense")
     args = parser.parse_args()
 
     start = time.perf_counter()

@@ -1,10 +1,10 @@
 """One layout per mesh at test size (about 4k vertices, 60 Tx and 60 Rx candidates at one Rx angle,
 the 21 x 12 board), for the tests that bound layout quality. Run as a script to print the figures
-over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN | --families] [MESH ...]``
+over the bunny and ../shared/meshes: ``python tests/layout_quality.py [--rings TURN | --families F,F,...] [MESH ...]``
 (``--rings``: the ring family with its corridor at TURN instead of the dipole loops; ``--families``:
-per mesh the best branch of each family as the default pipeline sweeps them, dipole angles
-``DIPOLE_ANGLES`` and ring corridors ``RING_TURNS`` with either kind of legs, and the best of all, by
-``layout.pick_best``'s rule)."""
+per mesh the best branch of each family named (``FAMILY_BRANCHES``: dipole angles ``DIPOLE_ANGLES``,
+ring corridors ``RING_TURNS`` with either kind of legs, helices of either winding) as the default
+pipeline sweeps them, and the best of all, by ``layout.pick_best``'s rule)."""
 from __future__ import annotations
 
 import functools
@@ -15,6 +15,7 @@ from pathlib import Path
 from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -27,13 +28,17 @@ SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is
 
 
 @functools.lru_cache(maxsize=None)
-def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None, ring_legs: str = "offset") -> dict:
+def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None = None, ring_legs: str = "offset",
+                   helix_winding: str | None = None) -> dict:
     """The metrics of one branch, unscreened (``layout.coverage`` + ``layout.finish``), on the mesh at
-    ``path`` (prepared as the curve tests do): the dipole family at ``rx_angle_deg``, or the ring family
-    with its corridor at ``ring_turn`` and ``ring_legs`` legs."""
+    ``path`` (prepared as the curve tests do): the dipole family at ``rx_angle_deg``, the ring family
+    with its corridor at ``ring_turn`` and ``ring_legs`` legs, or the helices winding ``helix_winding``."""
     mesh, regions, _, tx_field, rx_field = prepared(path, 4000)
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]
-    if ring_turn is None:
+    if helix_winding is not None:
+        levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
+        rx = trace_helices(TraceHelicesParams(winding=helix_winding), mesh, regions, levels, tx, tx_field)["curves"]
+    elif ring_turn is None:
         rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
     else:
         levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
@@ -53,6 +58,7 @@ FAMILY_BRANCHES = {
     "dipole": [{"rx_angle_deg": a} for a in DIPOLE_ANGLES],
     "rings": [{"ring_turn": t} for t in RING_TURNS],
     "rings_tx": [{"ring_turn": t, "ring_legs": "tx_lines"} for t in RING_TURNS],
+    "helices": [{"helix_winding": w} for w in ("left", "right")],
 }
 
 
@@ -75,12 +81,12 @@ SUMMARY = ("cells", "channel_pairs", "voronoi_cv_all_crossings", "voronoi_cv_pad
 if __name__ == "__main__":
     args = sys.argv[1:]
     turn = float(args.pop(args.index("--rings") + 1)) if "--rings" in args else None
-    families = "--families" in args
+    families = tuple(args.pop(args.index("--families") + 1).split(",")) if "--families" in args else ()
     args = [a for a in args if a not in ("--rings", "--families")]
     for path in [BUNNY] + (args or SHARED):
         try:
             if families:
-                best = {f: best_of(path, (f,)) for f in FAMILY_BRANCHES} | {"all": best_of(path, tuple(FAMILY_BRANCHES))}
+                best = {f: best_of(path, (f,)) for f in families} | {"all": best_of(path, families)}
                 row = {f: m and {k: m.get(k) for k in SUMMARY} for f, m in best.items()}
             else:
                 m = layout_metrics(path, ring_turn=turn)

@@ -63,11 +63,10 @@ def radial_function(tables: MeshTables, regions, pole: int) -> np.ndarray:
     return harmonic_interpolation(tables.vertices, tables.faces, fixed, values)
 
 
-def tx_arc_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
-    """``n`` levels of ``u`` in decreasing order, spread in equal steps of the distance along the Tx
-    lines (where the crossings of one Tx line follow each other): the median over the Tx candidates of
-    the arc length (mm) at which a line first reaches a level grows in equal steps from the pole to
-    the base, half a step from either end. ``u_rows``: ``u`` at every row of ``tx``."""
+def tx_arc_profile(tx: CurveSet, u_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(``LEVEL_GRID`` levels of ``u`` from 0 to 1, the median over the Tx candidates of the arc length
+    (mm) at which a line first reaches each level, made non-decreasing). ``u_rows``: ``u`` at every
+    row of ``tx``."""
     grid = np.linspace(0.0, 1.0, LEVEL_GRID)
     arrival = np.empty((tx.count, len(grid)))
     for c in range(tx.count):
@@ -75,7 +74,14 @@ def tx_arc_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
         arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(tx.points[rows], axis=0), axis=1))]
         reached, first = np.unique(np.maximum.accumulate(u_rows[rows]), return_index=True)
         arrival[c] = np.interp(grid, reached, arc[first]) if len(reached) > 1 else arc[-1]
-    along = np.maximum.accumulate(np.median(arrival, axis=0))
+    return grid, np.maximum.accumulate(np.median(arrival, axis=0))
+
+
+def tx_arc_levels(tx: CurveSet, u_rows: np.ndarray, n: int) -> np.ndarray:
+    """``n`` levels of ``u`` in decreasing order, spread in equal steps of the distance along the Tx
+    lines (where the crossings of one Tx line follow each other, :func:`tx_arc_profile`) from the
+    pole to the base, half a step from either end."""
+    grid, along = tx_arc_profile(tx, u_rows)
     targets = along[0] + (np.arange(n)[::-1] + 0.5) / n * (along[-1] - along[0])
     return np.interp(targets, along, grid)
 

@@ -1,7 +1,7 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
-A branch is one Rx family (dipole loops or rings) at one angle, around one Tx pole; branches of
-several families (and poles) arrive as one list (``candidates: ["finish[*]", "ring_finish[*]"]``)
+A branch is one Rx family (dipole loops, rings or helices) at one angle, around one Tx pole; branches
+of several families (and poles) arrive as one list (``candidates: ["finish[*]", "ring_finish[*]", ...]``)
 and are taken in order; the chosen branch's regions go to the sinks with its layout. The best has
 the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the
 sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
