@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+import yaml
+
 from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
@@ -24,6 +26,8 @@ from retrotouch.nodes.layout.samples import SamplesParams, surface_samples
 from retrotouch.nodes.layout.sweep import AngleLayout, OptimizeParams, optimize
 
 BUNNY = str(sample_mesh_path("bunny.obj"))
+HELIX_FREE_END_MM = yaml.safe_load((Path(__file__).resolve().parents[1] / "pipelines" / "retrofit.yaml").read_text())[
+    "nodes"]["helix_select"]["params"]["rx_free_end_mm"]  # the default pipeline's, for the helices
 SHARED = sorted(str(p) for p in SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is_dir() else []
 
 
@@ -45,7 +49,8 @@ def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None
         rx = trace_rings(TraceRingsParams(corridor_turn=ring_turn, legs=ring_legs), mesh, regions, levels, tx)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
-    candidate = optimize(OptimizeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    params = OptimizeParams(rx_free_end_mm=HELIX_FREE_END_MM) if helix_winding is not None else OptimizeParams()
+    candidate = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
     return {"feasible": candidate.feasible, "message": candidate.message, **candidate.metrics,
             "sensing_area_mm2": samples.sensing_area_mm2}
 

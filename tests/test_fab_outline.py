@@ -189,6 +189,28 @@ def test_trace_longer_than_the_mat_is_split_into_pieces_that_fit(fit_mat):
     assert len(outlines.pad_xy) == len(marks)
 
 
+def test_a_trace_curled_over_the_mat_is_split_into_pieces_that_leave_room():
+    """A helix on a plate unfolds to a spiral as large as the sheet: whole, nothing else fits beside it."""
+    from retrotouch.nodes.fab.mats import MARGIN_MM, MATS_MM, usable_sides
+
+    turn = np.linspace(0.0, 2 * np.pi, 600)
+    spiral = np.stack([(125 - 12 * turn) * np.cos(turn), (125 - 12 * turn) * np.sin(turn)], axis=1)  # fits the mat whole
+    straight = np.stack([np.linspace(-250.0, 0.0, 200), np.zeros(200)], axis=1)
+    params = Params()
+    outlines = outline(params, unfolded_from_polylines([spiral - spiral[-1], straight]))
+    long_side, short_side = usable_sides(*MATS_MM[params.fit_mat], MARGIN_MM)
+    assert outlines.split_traces == ("Tx00",)
+    assert outlines.split_reasons == (f"curls over more than {params.max_hull_share:g} of the mat",)
+    spiral_parts = np.flatnonzero(outlines.trace == 0)
+    assert 2 <= len(spiral_parts) <= 4  # as few as the limit allows: about 45,000 mm2 of hull, 21,000 per piece
+    for i in spiral_parts:
+        centre = outlines.centre[outlines.centre_offsets[i] : outlines.centre_offsets[i + 1]]
+        assert shapely.MultiPoint(centre).convex_hull.area <= params.max_hull_share * long_side * short_side
+    assert np.sum(outlines.trace == 1) == 1  # the straight trace of about the same length stays whole
+    whole = outline(Params(max_hull_share=1.0), unfolded_from_polylines([spiral - spiral[-1]]))
+    assert whole.count == 1
+
+
 def test_fit_mat_none_keeps_the_trace_whole():
     outlines = outline(Params(fit_mat="none"), unfolded_from_polylines([long_arc()]))
     assert outlines.count == 1 and outlines.joints == 0

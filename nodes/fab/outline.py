@@ -22,9 +22,11 @@ base-side end, which overlaps the neighbouring piece on the object and is solder
 above pi/2 times the contact distance, which no bend gentler than a half turn reaches.
 
 Mat size: a piece that would not fit the usable area of ``fit_mat`` (inside the default nesting
-margin) at any rotation ends at the last sample where it still does, and the next piece starts
-there, the same way: its tab overlaps the previous piece's end (the joint, soldered on the object),
-so no trace is too long for the cutter. ``TraceOutlines.joints`` counts the joints.
+margin) at any rotation, or whose convex hull would cover more than ``max_hull_share`` of that area
+(a helix on a plate unfolds to a spiral the size of the sheet, which nothing else can share), ends
+at the last sample where it still does, and the next piece starts there, the same way: its tab
+overlaps the previous piece's end (the joint, soldered on the object), so no trace is too long for
+the cutter. ``TraceOutlines.joints`` counts the joints.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from typing import Literal
 import numpy as np
 import shapely
 from pydantic import Field
-from shapely.geometry import LineString, Point, Polygon
+from shapely.geometry import LineString, MultiPoint, Point, Polygon
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
@@ -52,6 +54,9 @@ class Params(NodeParams):
     on_self_overlap: Literal["split", "error"] = Field("split", description="split self-overlapping traces or fail")
     fit_mat: Literal["12x12", "12x24", "none"] = Field(
         "12x12", description="split traces into pieces that fit this mat (inside the default margin); none = never")
+    max_hull_share: float = Field(
+        0.25, gt=0, le=1, description="split traces into pieces whose convex hull covers at most this share of fit_mat's "
+                                      "usable area (a curled trace left whole takes a sheet to itself)")
     arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
     fill_hole_mm2: float = Field(
         8.0, gt=0, description="holes of a part up to this area (mm2) are filled: pockets between the tab, a sharp "
@@ -81,7 +86,7 @@ class TraceOutlines:
     label_part: np.ndarray  # (G,) int64
     area_mm2: np.ndarray  # (N,) float64
     split_traces: tuple[str, ...]  # traces that were split (to avoid self-overlap, or to fit the mat)
-    split_reasons: tuple[str, ...]  # per split trace: "overlaps itself", "longer than the 12x12 mat" or both
+    split_reasons: tuple[str, ...]  # per split trace: "overlaps itself", "longer than the 12x12 mat", "curls over more than 0.25 of the mat", joined by ", "
     width_mm: float
     pad_radius_mm: float
     landmark_radius_mm: float
@@ -209,7 +214,7 @@ def _split_pieces(params: Params, width_mm: float, name: str, points: np.ndarray
                 raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
         fit = _fitting_end(params, samples, radius, sample_u, u0, min(u1, length))
         if fit is not None:
-            u1, reason = fit, f"longer than the {params.fit_mat} mat"
+            u1, reason = fit[0], fit[1]
         pieces.append((u0, u1, reason))
         if not np.isfinite(u1):
             return pieces
@@ -217,21 +222,26 @@ def _split_pieces(params: Params, width_mm: float, name: str, points: np.ndarray
 
 
 def _fitting_end(params: Params, samples: np.ndarray, radius: np.ndarray, sample_u: np.ndarray, u0: float,
-                 u1: float) -> float | None:
-    """None when the piece [u0, u1] (its samples' discs) fits ``fit_mat`` at some rotation, else an
-    end (on the ``width_mm / 2`` sample grid) that cuts [u0, u1] into as few pieces of equal length
-    as the longest fitting piece allows (shorter pieces pack better than one that just fits)."""
+                 u1: float) -> tuple[float, str] | None:
+    """None when the piece [u0, u1] (its samples' discs) fits ``fit_mat`` at some rotation and its
+    convex hull covers at most ``max_hull_share`` of the mat's usable area, else (an end on the
+    ``width_mm / 2`` sample grid that cuts [u0, u1] into as few pieces of equal length as the longest
+    piece within both limits allows (shorter pieces pack better than one that just fits), the reason)."""
     if params.fit_mat == "none":
         return None
     long_side, short_side = usable_sides(*MATS_MM[params.fit_mat], MARGIN_MM)
     grow = 2 * float(radius.max())
+    hull_limit = params.max_hull_share * long_side * short_side
+
+    def fits_mat(end: float) -> bool:
+        return len(points_fit_angles(samples[sample_u <= end], long_side - grow, short_side - grow)) > 0
 
     def fits(end: float) -> bool:
-        inside = sample_u <= end
-        return len(points_fit_angles(samples[inside], long_side - grow, short_side - grow)) > 0
+        return fits_mat(end) and MultiPoint(samples[sample_u <= end]).convex_hull.area <= hull_limit
 
     if fits(u1):
         return None
+    reason = f"longer than the {params.fit_mat} mat" if not fits_mat(u1) else f"curls over more than {params.max_hull_share:g} of the mat"
     ends = np.unique(sample_u[(sample_u > u0) & (sample_u < u1)])
     lo, hi = 0, len(ends) - 1  # binary search for the last end that fits
     if len(ends) == 0 or not fits(ends[0]):
@@ -241,7 +251,7 @@ def _fitting_end(params: Params, samples: np.ndarray, radius: np.ndarray, sample
         lo, hi = (mid, hi) if fits(ends[mid]) else (lo, mid - 1)
     target = u0 + (u1 - u0) / np.ceil((u1 - u0) / (ends[lo] - u0))
     k = int(np.searchsorted(ends, target, side="right")) - 1
-    return float(ends[min(max(k, 0), lo)])
+    return float(ends[min(max(k, 0), lo)]), reason
 
 
 def _tab_corners(tab_xy: np.ndarray, direction: np.ndarray, length: float, half_width: float) -> np.ndarray:
