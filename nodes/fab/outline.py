@@ -86,7 +86,7 @@ class TraceOutlines:
     label_part: np.ndarray  # (G,) int64
     area_mm2: np.ndarray  # (N,) float64
     split_traces: tuple[str, ...]  # traces that were split (to avoid self-overlap, or to fit the mat)
-    split_reasons: tuple[str, ...]  # per split trace: "overlaps itself", "longer than the 12x12 mat", "curls over more than 0.25 of the mat", joined by ", "
+    split_reasons: tuple[str, ...]  # per split trace: "overlaps itself", "longer than the 12x12 mat", "curls over more than <max_hull_share> of the mat", joined by ", "
     width_mm: float
     pad_radius_mm: float
     landmark_radius_mm: float
@@ -214,7 +214,7 @@ def _split_pieces(params: Params, width_mm: float, name: str, points: np.ndarray
                 raise UserError(f"{name} folds onto itself within {hi - u0:.1f} mm; it cannot be cut flat")
         fit = _fitting_end(params, samples, radius, sample_u, u0, min(u1, length))
         if fit is not None:
-            u1, reason = fit[0], fit[1]
+            u1, reason = fit
         pieces.append((u0, u1, reason))
         if not np.isfinite(u1):
             return pieces
