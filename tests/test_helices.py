@@ -49,6 +49,19 @@ def test_the_angle_winds_once_round_the_pole_and_holds_along_the_tx_lines(family
     assert np.median(spread) < 0.05
 
 
+def test_the_angle_grows_clockwise_seen_from_outside_at_the_pole(family):
+    mesh, _, _, tx_field, _, levels, tables = family
+    theta = winding_angle(tables, levels.values, tx_field.face_direction)
+    u = levels.values[tables.faces]
+    near = np.flatnonzero((u.min(axis=1) > 0.0) & (u.max(axis=1) < 0.3))  # faces round the pole
+    corner = theta[tables.faces[near]]
+    corner = corner - np.round(corner - corner[:, :1])  # one face's corners on one branch of the angle
+    grad = np.einsum("kij,ki->kj", tables.bary_gradients[near], corner)
+    radial = mesh.vertices[tables.faces[near]].mean(axis=1) - mesh.vertices[tx_field.start_vertex]
+    turn = np.einsum("ij,ij->i", np.cross(radial, grad), tables.normals[near])
+    assert np.mean(turn < 0) > 0.9  # counter-clockwise about the outward normal is positive
+
+
 @pytest.mark.parametrize("winding", ["left", "right"])
 def test_helices_start_on_the_base_climb_and_never_meet(family, winding):
     mesh, regions, tx, tx_field, rx_field, levels, tables = family
