@@ -42,6 +42,9 @@ import argparse
 import json
 import time
 
+import sys
+from pathlib import Path
+
 import numpy as np
 from joblib import Parallel, delayed
 
@@ -59,6 +62,9 @@ from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, rep
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the default pipeline's helix free end
+from layout_quality import HELIX_FREE_END_MM  # noqa: E402
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -94,12 +100,18 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "a
     return mesh, regions, tx, branches
 
 
+def branch_params(params: OptimizeParams, rx) -> OptimizeParams:
+    """``params`` as the default pipeline gives them to the branch of ``rx`` (the helices' free end)."""
+    return params.model_copy(update={"rx_free_end_mm": HELIX_FREE_END_MM}) if rx.family == "helices" else params
+
+
 def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screened: bool = True):
     start = time.perf_counter()
     samples = surface_samples(SamplesParams(), mesh, regions)
     samples_s = time.perf_counter() - start
     starts = Parallel(n_jobs=jobs)(
-        delayed(coverage)(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx) for rx, tx_rx, tx_tx, rx_rx in branches
+        delayed(coverage)(branch_params(params, rx), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+        for rx, tx_rx, tx_tx, rx_rx in branches
     )
     cut = screen(ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None), starts)
     candidates = Parallel(n_jobs=jobs)(
@@ -130,7 +142,8 @@ def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, r
 def solver_comparison(mesh, regions, tx, branches, jobs: int, solvers: tuple[str, ...]) -> dict:
     """Phase 1 per branch and solver (see the module docstring): per-stage tables and summaries."""
     samples = surface_samples(SamplesParams(), mesh, regions)
-    runs = Parallel(n_jobs=jobs)(delayed(phase1_branch)(OptimizeParams(), mesh, samples, tx, *b, solvers) for b in branches)
+    runs = Parallel(n_jobs=jobs)(delayed(phase1_branch)(branch_params(OptimizeParams(), b[0]), mesh, samples, tx, *b, solvers)
+                               for b in branches)
     stats = lambda values: {"median": float(np.median(values)), "worst": float(np.max(values))}  # noqa: E731
     seconds, gaps, same = {}, {}, {}
     for solver in solvers:
