@@ -37,10 +37,9 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
-from .assembly import TraceStats
 from .connection import DirectionField
 from .ring_levels import RingLevels, reseeded_levels, row_values, tx_arc_profile
-from .rings import pack
+from .rings import pack, packed_stats
 from .rx_seeding import zero_set
 
 ACROSS_WEIGHT = 0.05
@@ -234,10 +233,4 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
         rows.append((faces, bary / bary.sum(axis=1, keepdims=True)))
         ends.append(int(CurveEnd.BASE))
     curves = pack(tables, rows, np.asarray(ends, dtype=np.int8), 0.0 if params.winding == "left" else np.pi, "helices")
-    n = params.n_helices
-    counts = np.bincount(curves.end_reason, minlength=len(CurveEnd)).astype(np.int64)
-    stats = TraceStats(layer="rx", angle=curves.angle, traced=n, kept=curves.count, dropped=n - curves.count, end_counts=counts,
-                       sink_edges=0, sink_edge_rate=0.0, sink_hits=0, sink_slides=0,
-                       reached_base_rate=float(counts[CurveEnd.BASE] / max(n, 1)), face_steps=0,
-                       mean_length_mm=float(curves.lengths_mm.mean()) if curves.count else 0.0)
-    return {"curves": curves, "stats": stats}
+    return {"curves": curves, "stats": packed_stats(curves, params.n_helices)}

@@ -271,6 +271,16 @@ def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float, family:
                     end_reason=ends, angle=float(angle), family=family)
 
 
+def packed_stats(curves: CurveSet, traced: int) -> TraceStats:
+    """The TraceStats of a family :func:`pack` made out of ``traced`` level sets (no field was traced)."""
+    counts = np.bincount(curves.end_reason, minlength=len(CurveEnd)).astype(np.int64)
+    return TraceStats(layer="rx", angle=curves.angle, traced=traced, kept=curves.count, dropped=traced - curves.count,
+                      end_counts=counts, sink_edges=int(counts[CurveEnd.SINK_EDGE]),
+                      sink_edge_rate=float(counts[CurveEnd.SINK_EDGE] / max(traced, 1)), sink_hits=0, sink_slides=0,
+                      reached_base_rate=float(counts[CurveEnd.BASE] / max(traced, 1)), face_steps=0,
+                      mean_length_mm=float(curves.lengths_mm.mean()) if curves.count else 0.0)
+
+
 @node("curves.trace_rings", params=TraceRingsParams, inputs=("mesh", "regions", "levels", "tx"), outputs=("curves", "stats"))
 def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, levels: RingLevels, tx: CurveSet) -> dict[str, object]:
     """Rx rings around the Tx pole at ``levels`` with legs along a corridor of Tx candidate lines (see the
@@ -279,10 +289,4 @@ def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, levels: RingLevel
     rows, ends, _ = ring_curves(params, tables, regions, levels, tx)
     angle = 2.0 * np.pi * params.corridor_turn
     curves = pack(tables, rows, ends, angle, "rings" if params.legs == "offset" else "rings_tx")
-    n = levels.count
-    counts = np.bincount(ends, minlength=len(CurveEnd)).astype(np.int64)
-    stats = TraceStats(layer="rx", angle=angle, traced=n, kept=curves.count, dropped=n - curves.count, end_counts=counts,
-                       sink_edges=int(counts[CurveEnd.SINK_EDGE]), sink_edge_rate=float(counts[CurveEnd.SINK_EDGE] / max(n, 1)),
-                       sink_hits=0, sink_slides=0, reached_base_rate=float(counts[CurveEnd.BASE] / max(n, 1)), face_steps=0,
-                       mean_length_mm=float(curves.lengths_mm.mean()) if curves.count else 0.0)
-    return {"curves": curves, "stats": stats}
+    return {"curves": curves, "stats": packed_stats(curves, levels.count)}

@@ -107,8 +107,8 @@ class AngleLayout:
     """One branch of the sweep (an Rx family at one angle, around one Tx pole): its layout (None if
     infeasible), metrics, and the regions it was laid out on (their ``tx_pole``)."""
 
-    family: str  # the Rx family: "dipole", "rings" or "rings_tx"
-    angle_deg: float  # the dipole's angle offset, or the rings' corridor position around the Tx pole
+    family: str  # the Rx family: "dipole", "rings", "rings_tx" or "helices"
+    angle_deg: float  # the dipole's angle offset, the rings' corridor position around the Tx pole, or 0 / 180 for left- / right-handed helices
     feasible: bool
     message: str
     layout: Layout | None
