@@ -59,6 +59,10 @@ MIN_CROSSING_ANGLE_DEG = 8.0
 within a trace width of each other for the 10 mm that make them laid along each other (11.5 deg)."""
 
 
+NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (helices, helix_crossings, "
+              "helix_select, helix_finish) and their entries in screen and best from the pipeline")
+
+
 class TraceHelicesParams(NodeParams):
     n_helices: int = Field(24, ge=1, description="Rx helix candidates")
     n_reseeded: int = Field(4, ge=0, description="of those, helices through the points farthest from the others (dead ends)")
@@ -82,13 +86,11 @@ def cut_path(tables: MeshTables, u: np.ndarray, region: np.ndarray) -> np.ndarra
     starts = np.intersect1d(np.flatnonzero(inner), edges.ravel())
     ends = np.intersect1d(np.flatnonzero(outer), edges.ravel())
     if len(starts) == 0 or len(ends) == 0:
-        raise UserError("curves.trace_helices: the sensing region does not join the Tx pole's exclusion to the base; "
-                        "use the rings or dipole Rx family for this object")
+        raise UserError(f"curves.trace_helices: the sensing region does not join the Tx pole's exclusion to the base; {NO_HELICES}")
     dist, pred = dijkstra(graph, indices=starts, min_only=True, return_predecessors=True)[:2]
     end = int(ends[np.argmin(dist[ends])])
     if not np.isfinite(dist[end]):
-        raise UserError("curves.trace_helices: no path from the Tx pole's exclusion to the base inside the sensing region; "
-                        "use the rings or dipole Rx family for this object")
+        raise UserError(f"curves.trace_helices: no path from the Tx pole's exclusion to the base inside the sensing region; {NO_HELICES}")
     path = [end]
     while pred[path[-1]] >= 0:
         path.append(int(pred[path[-1]]))
