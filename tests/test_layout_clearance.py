@@ -41,6 +41,15 @@ def test_close_pairs_flag_exactly_the_pairs_below_the_bound_plus_one_step(gap, c
     assert len(pairs) == int(close)
 
 
+def test_close_pairs_are_kept_per_content_and_recomputed_when_it_changes():
+    """Every branch of one Tx pole asks for the same Tx pairs: the second ask is the kept result."""
+    first = close_pairs(lines([0.0, 1.5, 20.0]), EVERYWHERE, 2.0)
+    again = close_pairs(lines([0.0, 1.5, 20.0]), EVERYWHERE, 2.0)
+    assert again is first and not first.flags.writeable
+    assert close_pairs(lines([0.0, 1.5, 20.0]), EVERYWHERE, 1.0).tolist() == []  # another bound
+    assert close_pairs(lines([0.0, 20.0, 21.5]), EVERYWHERE, 2.0).tolist() == [[1, 2]]  # other curves
+
+
 def test_only_segments_in_the_region_count():
     # curves 1.0 mm apart, but only segments 0..9 (the first 20 mm) lie in region face 1
     curves = lines([0.0, 1.0], face_of_row=lambda j: 1 if j < 10 else 0)

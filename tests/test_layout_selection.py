@@ -157,6 +157,27 @@ def test_layer_radius_bound_never_exceeds_the_proven_optimum(problem, n_drive, n
     assert low <= bound <= high
 
 
+def test_a_start_the_layer_bound_proves_optimal_needs_no_solver():
+    result = select_curves(random_plane_problem(), 8, 5, secondary=False)
+    stage = result.report["stages"][0]
+    assert stage["proven_by"] == "layer_bound" and stage["deterministic_time"] == 0.0
+    assert stage["objective"] == stage["bound"] == stage["global_bound"] == 200.0  # the pinned sample
+    assert result.coverage_radius_mm == pytest.approx(200.0)
+
+
+@pytest.mark.parametrize("instance,n_drive,n_sense", [("synthetic", 21, 12), ("synthetic", 3, 2), ("plane", 8, 5)])
+def test_the_proof_shortcut_gives_the_solver_radius(problem, instance, n_drive, n_sense, monkeypatch):
+    from retrotouch.nodes.layout import selection
+
+    problem = problem if instance == "synthetic" else random_plane_problem()
+    shortcut = select_curves(problem, n_drive, n_sense, secondary=False, time_limit_s=5.0)
+    assert ("proven_by" in shortcut.report["stages"][0]) is (instance == "plane")
+    monkeypatch.setattr(selection, "layer_radius_bound", lambda problem, q, limits, low, high, settings: low)
+    solved = select_curves(problem, n_drive, n_sense, secondary=False, time_limit_s=5.0)
+    assert "proven_by" not in solved.report["stages"][0]
+    assert shortcut.coverage_radius_mm == pytest.approx(solved.coverage_radius_mm)
+
+
 def test_cpsat_proto_is_the_one_the_modelling_api_builds(problem):
     """The phase-1 proto written directly equals the one made row by row through CP-SAT's API (so
     the solver searches the same model), for stage 1 and for stage 2's model with columns fixed."""

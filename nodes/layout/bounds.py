@@ -13,16 +13,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from .problem import SelectionProblem, deterministic_solver
+from .problem import UNREACHABLE_LEVEL, SelectionProblem, deterministic_solver
 
 
 def _layer_levels(problem: SelectionProblem, q: np.ndarray, layer: str) -> np.ndarray:
     """(K, curves) level of each sample's nearest usable crossing on each curve of ``layer``."""
     curve_of = problem.cross_tx if layer == "tx" else problem.cross_rx
     usable = problem.tx_usable if layer == "tx" else problem.rx_usable
-    nearest = np.full((len(q), len(usable)), np.iinfo(np.int64).max // 4)
+    nearest = np.full((len(q), len(usable)), UNREACHABLE_LEVEL)
     np.minimum.at(nearest.T, curve_of, q.T)
-    nearest[:, ~usable] = np.iinfo(np.int64).max // 4
+    nearest[:, ~usable] = UNREACHABLE_LEVEL
     return nearest
 
 

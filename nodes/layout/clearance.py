@@ -10,7 +10,10 @@ beyond the bound, never miss one). Units: mm.
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
+import threading
 from typing import Literal
 
 import numpy as np
@@ -21,6 +24,9 @@ CONFLICT_STEP_MM = 0.25  # resampling of candidate curves for the conflict pairs
 MEASURE_STEP_MM = 0.1  # resampling of selected traces for the reported clearance
 PARALLEL_RUN_MM = 10.0  # a Tx/Rx pair closer than a trace width along more of the Tx line is laid along, not across
 FreeEnd = Literal["start", "end"]  # the end of a curve that may be cut back (the other one is wired)
+CLOSE_PAIRS_MEMO = 8  # close_pairs results kept per process: every branch of one Tx pole asks for the same Tx pairs
+_close_pairs_memo: collections.OrderedDict[str, np.ndarray] = collections.OrderedDict()
+_close_pairs_lock = threading.Lock()
 
 
 def row_arcs(curves: CurveSet) -> np.ndarray:
@@ -64,13 +70,28 @@ def close_pairs(
     """Distinct ``(P, 2)`` curve pairs (ascending) whose centre lines come closer than ``bound_mm``
     inside ``face_mask`` (conservatively: sampled distance at most ``bound_mm + step_mm``), except where
     both points lie in their curves' free zones: within ``free_mm`` of the ``free_end`` (``"start"`` or
-    ``"end"``) and in that half of the curve, which :func:`free_end_trims` shortens until they have room."""
+    ``"end"``) and in that half of the curve, which :func:`free_end_trims` shortens until they have room.
+    Kept per process by content (:data:`CLOSE_PAIRS_MEMO` results), read-only."""
+    digest = hashlib.sha256(repr((bound_mm, free_mm, free_end, step_mm)).encode())
+    for array in (curves.points, curves.faces, curves.offsets, np.asarray(face_mask, dtype=bool)):
+        digest.update(np.ascontiguousarray(array).tobytes())
+    memo_key = digest.hexdigest()
+    with _close_pairs_lock:
+        if memo_key in _close_pairs_memo:
+            _close_pairs_memo.move_to_end(memo_key)
+            return _close_pairs_memo[memo_key]
     points, curve, _, arc = resample(curves, face_mask, step_mm)
     if len(points) < 2:
         return np.empty((0, 2), dtype=np.int64)
     free = _in_free_zone(curves, curve, arc, free_mm, free_end)
     key = _close_keys(points, curve, free, bound_mm + step_mm, curves.count, step_mm)
-    return np.stack([key // curves.count, key % curves.count], axis=1).astype(np.int64)
+    pairs = np.stack([key // curves.count, key % curves.count], axis=1).astype(np.int64)
+    pairs.flags.writeable = False
+    with _close_pairs_lock:
+        _close_pairs_memo[memo_key] = pairs
+        while len(_close_pairs_memo) > CLOSE_PAIRS_MEMO:
+            _close_pairs_memo.popitem(last=False)
+    return pairs
 
 
 def _chunks(points: np.ndarray, curve: np.ndarray, size: int, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,6 +14,7 @@ PHASE1_RESOLUTION_MM = 0.5  # distance quantisation of the model
 PHASE1_MAX_MEMBERSHIPS = 15000  # (sample, crossing) pairs before a trust region
 PHASE1_POWER = 6  # secondary objective: power mean of the sample distances
 PHASE1_RELATIVE_GAP = 0.02  # the secondary stage stops once proven within this share of its optimum
+UNREACHABLE_LEVEL = np.iinfo(np.int64).max // 4  # the quantised distance of a crossing no selection may use
 
 
 def deterministic_solver(time_limit_s: float, seed: int, workers: int, relative_gap: float = 0.0):

@@ -56,6 +56,8 @@ bound when no trust region was needed, else for stage 1 the layer relaxation of
 :mod:`retrotouch.nodes.layout.bounds` (the radius no set of Rx, or Tx, curves alone can beat) and for
 stage 2 the power mean of each sample's distance to its nearest usable crossing.
 If the solver returns no incumbent the heuristic selection is used and ``report["source"]`` says so.
+When the layer relaxation already proves that no selection covers every sample a level nearer than
+the start does, stage 1 is the start without a solver call (``proven_by: "layer_bound"``).
 
 :func:`select_curves` is :func:`solve_radius_stage` (start, caps, stage 1) then
 :func:`finish_selection` (stage 2): the sweep screens its branches between the two
@@ -65,6 +67,7 @@ whether any selection covers every sample within a radius. Units: mm.
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 
@@ -77,6 +80,7 @@ from .problem import (
     PHASE1_RELATIVE_GAP,
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
+    UNREACHABLE_LEVEL,
     SelectionProblem,
     evaluate_selection,
 )
@@ -112,7 +116,7 @@ def _quantised_distances(problem: SelectionProblem, resolution_mm: float) -> np.
     unusable curves get a value beyond any cap."""
     usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
     q = np.ceil(problem.distance / resolution_mm - 1e-9).astype(np.int64)
-    q[:, ~usable_c] = np.iinfo(np.int64).max // 4
+    q[:, ~usable_c] = UNREACHABLE_LEVEL
     return q
 
 
@@ -262,8 +266,18 @@ def solve_radius_stage(
     settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
                 "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
                 "highs_max_nodes": highs_max_nodes, "restricted": restricted, "secondary": secondary}
-    stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
-    if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
+    level = int(q_start.max())
+    started = time.perf_counter()
+    if level < UNREACHABLE_LEVEL and layer_radius_bound(problem, q, (n_drive, n_sense), level - 1, level, settings) >= level:
+        radius = float(level * resolution_mm)  # no set of curves of one layer reaches every sample a level nearer
+        stage1 = {"stage": "coverage_radius", "status": "OPTIMAL", "objective": radius, "bound": radius, "gap": 0.0,
+                  "proven_by": "layer_bound", "deterministic_time": 0.0}
+        found, seconds = (start_tx, start_rx), time.perf_counter() - started
+    else:
+        stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
+    if stage1.get("proven_by"):
+        stage1["global_bound"] = stage1["bound"]
+    elif restricted:  # the model's bound holds inside the trust region only: bound the problem apart
         low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, int(q_start.max()), settings)
         stage1["global_bound"] = float(low * resolution_mm)
     else:
