@@ -104,6 +104,22 @@ def test_fields_by_blocks_of_sources_are_the_all_at_once_values_without_their_me
     assert np.array_equal(geo.fields(faces, bary), blocked)
 
 
+@pytest.mark.parametrize("heat_scale", [1e-170, 1e-250])
+def test_fields_do_not_depend_on_the_scale_of_the_heat(heat_scale, monkeypatch):
+    """Far along a long object the heat underflows to the smallest doubles; the heat method only uses
+    its direction, so a heat scaled that small must give the same distances (it gave infinities)."""
+    mesh = sphere_mesh(4)
+    geo = geodesics_for(mesh)
+    faces, bary = np.array([0, 17, 301]), np.full((3, 3), 1 / 3)
+    expected = geo.fields(faces, bary)
+    solve = samples_module._solve
+    monkeypatch.setattr(samples_module, "_solve",
+                        lambda factor, rhs: solve(factor, rhs) * (heat_scale if factor is geo._heat else 1.0))
+    scaled = geo.fields(faces, bary)
+    assert np.isfinite(scaled).all()
+    np.testing.assert_allclose(scaled, expected, rtol=1e-5, atol=1e-4)
+
+
 def test_voronoi_and_farthest_nearest_by_blocks_equal_the_whole_array(monkeypatch):
     mesh = sphere_mesh(4)
     geo = geodesics_for(mesh)

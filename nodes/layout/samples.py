@@ -96,10 +96,16 @@ class HeatGeodesics:
             u = _solve(self._heat, self._load(faces[sl], bary[sl]))
             g = (self.grad @ u).reshape(m, 3, -1)
             del u
-            norm = g[:, 0] * g[:, 0]  # |g| per face and source, in place (as np.linalg.norm sums)
+            # far from a source the heat underflows: scale each gradient by its largest component
+            # before squaring, so that a tiny one keeps its direction instead of becoming huge
+            scale = np.maximum(np.maximum(np.abs(g[:, 0]), np.abs(g[:, 1])), np.abs(g[:, 2]))
+            np.maximum(scale, np.finfo(np.float64).tiny, out=scale)
+            g /= scale[:, None, :]
+            norm = g[:, 0] * g[:, 0]  # |g| / scale per face and source, in place (as np.linalg.norm sums)
             norm += g[:, 1] * g[:, 1]
             norm += g[:, 2] * g[:, 2]
-            np.maximum(np.sqrt(norm, out=norm), 1e-300, out=norm)
+            del scale
+            np.maximum(np.sqrt(norm, out=norm), 1.0, out=norm)  # 1 <= |g| / scale <= sqrt(3) where g != 0
             np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
             del norm
             phi = _solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
