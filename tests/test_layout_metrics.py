@@ -120,6 +120,16 @@ def test_fields_do_not_depend_on_the_scale_of_the_heat(heat_scale, monkeypatch):
     np.testing.assert_allclose(scaled, expected, rtol=1e-5, atol=1e-4)
 
 
+def test_fields_that_are_not_finite_stop_the_run_instead_of_reaching_phase_1(monkeypatch):
+    mesh = sphere_mesh(3)
+    geo = geodesics_for(mesh)
+    solve = samples_module._solve
+    monkeypatch.setattr(samples_module, "_solve",
+                        lambda factor, rhs: solve(factor, rhs) * (np.inf if factor is geo._poisson else 1.0))
+    with pytest.raises(FloatingPointError, match="not finite"):
+        geo.fields(np.array([0, 5]), np.full((2, 3), 1 / 3))
+
+
 def test_voronoi_and_farthest_nearest_by_blocks_equal_the_whole_array(monkeypatch):
     mesh = sphere_mesh(4)
     geo = geodesics_for(mesh)

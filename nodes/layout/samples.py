@@ -113,6 +113,8 @@ class HeatGeodesics:
             corners = self.faces[faces[sl]]  # (s, 3)
             phi -= np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)[None, :]
             out[:, sl] = np.maximum(phi, 0.0, out=phi)
+            if not np.isfinite(out[:, sl]).all():  # never silently: phase 1 would quantise garbage
+                raise FloatingPointError(f"heat-method distances from sources {start}..{start + len(corners) - 1} are not finite")
         return out
 
     def evaluate(self, fields: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
