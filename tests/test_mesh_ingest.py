@@ -259,6 +259,15 @@ def test_remesh_to_edge_length() -> None:
     assert abs(np.median(np.linalg.norm(edges, axis=2)) - 6.0) < 1.0
 
 
+def test_remeshing_stays_on_the_input_surface_and_keeps_its_creases() -> None:
+    box = trimesh.creation.box(extents=(80.0, 50.0, 30.0))
+    out = remesh(RemeshParams(target_vertices=2000), as_mesh(box))
+    remeshed = trimesh.Trimesh(out.vertices, out.faces, process=False)
+    points, _ = trimesh.sample.sample_surface(remeshed, 20000, seed=1)
+    assert np.abs(trimesh.proximity.signed_distance(box, points)).max() < 0.05  # mm: faces lie on the box
+    assert remeshed.volume == pytest.approx(box.volume, rel=1e-3)  # corners and edges kept, none cut off
+
+
 def test_remesh_params_need_one_target() -> None:
     with pytest.raises(ValueError, match="exactly one"):
         RemeshParams()
