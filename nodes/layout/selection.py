@@ -278,7 +278,7 @@ def solve_radius_stage(
     if stage1.get("proven_by"):
         stage1["global_bound"] = stage1["bound"]
     elif restricted:  # the model's bound holds inside the trust region only: bound the problem apart
-        low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, int(q_start.max()), settings)
+        low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings)
         stage1["global_bound"] = float(low * resolution_mm)
     else:
         stage1["global_bound"] = stage1["bound"]
