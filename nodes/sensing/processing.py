@@ -41,7 +41,8 @@ Per frame (``TouchProcessor.process``):
    the bias of the wrong shape. Without a crossing above 2 sigma near the peak the coarse point stays.
 5. **Tracking** (:mod:`.tracking`): touches are matched to the previous frame's tracks by minimum total distance
    (``scipy.optimize.linear_sum_assignment``) within ``track_gate_mm``; unmatched touches get fresh
-   ids, unmatched tracks end.
+   ids, unmatched tracks end; a lone finger keeps its id however far it moved, and a touch appearing
+   beside live ones must persist ``confirm_frames`` frames before it touches down.
 
 Units: mm for lengths, seconds for times inside (ms only in params named ``*_ms``), counts for
 capacitance. Touch points lie on the mesh (``face`` + ``bary`` follow the datatypes conventions).
@@ -91,6 +92,7 @@ class ProcessingParams(NodeParams):
     learn_gains: bool = Field(True, description="learn each crossing's gain and the no-pad gain from touches")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
+    confirm_frames: int = Field(2, ge=1, description="frames a touch appearing beside live ones must persist before it touches down")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,7 +153,7 @@ class TouchProcessor:
         padded = [np.pad(n, (0, width - len(n)), constant_values=k) for k, n in enumerate(neighbours)]
         self.peak_neighbours = np.ascontiguousarray(np.array(padded).T)
         self.holds = self.cell_distance <= self.hold_radius  # (K, K), symmetric: a touch at a row's cell holds the columns
-        self.tracker = Tracker(params.track_gate_mm)
+        self.tracker = Tracker(params.track_gate_mm, params.confirm_frames)
         self.channels = Baseline((NUM_TX, NUM_RX), params)
         self.reset()
 
