@@ -55,7 +55,7 @@ class Params(NodeParams):
     fit_mat: Literal["12x12", "12x24", "none"] = Field(
         "12x12", description="split traces into pieces that fit this mat (inside the default margin); none = never")
     max_hull_share: float = Field(
-        0.25, gt=0, le=1, description="split traces into pieces whose convex hull covers at most this share of fit_mat's "
+        0.15, gt=0, le=1, description="split traces into pieces whose convex hull covers at most this share of fit_mat's "
                                       "usable area (a curled trace left whole takes a sheet to itself)")
     arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
     fill_hole_mm2: float = Field(
