@@ -28,6 +28,9 @@ from .rx_seeding import zero_set
 LEVEL_GRID = 257
 """Levels of ``u`` at which the Tx lines' arrival distances are measured."""
 
+RESEED_POINTS = 20000
+"""Most sensing vertices the reseeding's farthest-point search measures (:func:`reseeded_levels`)."""
+
 
 class RingLevelsParams(NodeParams):
     n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
@@ -116,9 +119,12 @@ def area_levels(tables: MeshTables, u: np.ndarray, sensing: np.ndarray, n: int) 
 def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.ndarray:
     """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
     level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
-    ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own."""
+    ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own. On a mesh
+    with more than ``RESEED_POINTS`` sensing vertices, every k-th of them is measured (fewer than
+    ``RESEED_POINTS``): a farthest point needs no finer sampling than the default mesh's."""
     tables, u = u_sets.tables, u_sets.values
     vertices = np.unique(tables.faces[u_sets.sensing])
+    vertices = vertices[:: -(-len(vertices) // RESEED_POINTS)]
     nearest = np.full(len(vertices), np.inf)
     chosen = list(levels)
     for level in chosen:
