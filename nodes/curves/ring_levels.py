@@ -120,7 +120,7 @@ def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.nda
     """``levels`` and ``count`` more, each the level through the sensing vertex farthest (mm, to the
     level sets' polylines) from the rings so far, in decreasing order: a dead end such as an ear, where
     ``u`` barely changes, falls between two evenly spread levels and gets a ring of its own. On a mesh
-    with more than ``RESEED_POINTS`` sensing vertices, every k-th of them is measured (fewer than
+    with more than ``RESEED_POINTS`` sensing vertices, every k-th of them is measured (at most
     ``RESEED_POINTS``): a farthest point needs no finer sampling than the default mesh's."""
     tables, u = u_sets.tables, u_sets.values
     vertices = np.unique(tables.faces[u_sets.sensing])

@@ -91,7 +91,7 @@ class ProcessingParams(NodeParams):
     adapt_coupling: bool = Field(True, description="learn the coupling width, then the profile's shape, from touches")
     learn_gains: bool = Field(True, description="learn each crossing's gain and the no-pad gain from touches")
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
-    track_gate_mm: float = Field(40.0, gt=0, description="largest move of one touch between frames (mm)")
+    track_gate_mm: float = Field(40.0, gt=0, description="largest move between frames of one of several touches (mm); a lone finger is never gated")
     confirm_frames: int = Field(2, ge=1, description="frames a touch appearing beside live ones must persist before it touches down")
 
 
