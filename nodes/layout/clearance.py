@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import hashlib
 import threading
 from typing import Literal
 
 import numpy as np
 
 from ..data.types import CurveSet
+from .samples import array_digest
 
 CONFLICT_STEP_MM = 0.25  # resampling of candidate curves for the conflict pairs
 MEASURE_STEP_MM = 0.1  # resampling of selected traces for the reported clearance
@@ -72,10 +72,8 @@ def close_pairs(
     both points lie in their curves' free zones: within ``free_mm`` of the ``free_end`` (``"start"`` or
     ``"end"``) and in that half of the curve, which :func:`free_end_trims` shortens until they have room.
     Kept per process by content (:data:`CLOSE_PAIRS_MEMO` results), read-only."""
-    digest = hashlib.sha256(repr((bound_mm, free_mm, free_end, step_mm)).encode())
-    for array in (curves.points, curves.faces, curves.offsets, np.asarray(face_mask, dtype=bool)):
-        digest.update(np.ascontiguousarray(array).tobytes())
-    memo_key = digest.hexdigest()
+    memo_key = repr((bound_mm, free_mm, free_end, step_mm)) + array_digest(
+        curves.points, curves.faces, curves.offsets, np.asarray(face_mask, dtype=bool))
     with _close_pairs_lock:
         if memo_key in _close_pairs_memo:
             _close_pairs_memo.move_to_end(memo_key)

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 
 import numpy as np
 from pydantic import Field
 
 from ...graph.errors import UserError
+from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, cross_products
@@ -149,13 +149,9 @@ def _solve(factor, rhs: np.ndarray) -> np.ndarray:
     return out
 
 
-def mesh_digest(vertices: np.ndarray, faces: np.ndarray) -> str:
-    """Content hash of a mesh's arrays (dtype, shape and bytes)."""
-    h = hashlib.sha256()
-    for a in (np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64)):
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+def array_digest(*arrays: np.ndarray) -> str:
+    """Content hash of arrays (each one's dtype, shape and bytes, length-prefixed: :func:`digest_fields`)."""
+    return digest_fields([f for a in arrays for f in (f"{a.dtype}{a.shape}", np.ascontiguousarray(a).tobytes())])
 
 
 @functools.lru_cache(maxsize=2)
@@ -169,7 +165,7 @@ def geodesics_for(mesh: Mesh) -> HeatGeodesics:
     """The heat-method solver for ``mesh``, factorised once per process (cached by content hash)."""
     V = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
     F = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    return _cached_geodesics(mesh_digest(V, F), V.tobytes(), F.tobytes(), len(V), len(F))
+    return _cached_geodesics(array_digest(V, F), V.tobytes(), F.tobytes(), len(V), len(F))
 
 
 def sample_surface(
