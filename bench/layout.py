@@ -40,9 +40,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
-
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -62,12 +61,12 @@ from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, rep
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the default pipeline's helix free end
-from layout_quality import HELIX_FREE_END_MM  # noqa: E402
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the default pipeline's helix free end
+from layout_quality import HELIX_FREE_END_MM  # noqa: E402
 
 ANGLES = tuple(range(-40, 41, 20))
 CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)

@@ -271,17 +271,15 @@ def solve_radius_stage(
     if level < UNREACHABLE_LEVEL and layer_radius_bound(problem, q, (n_drive, n_sense), level - 1, level, settings) >= level:
         radius = float(level * resolution_mm)  # no set of curves of one layer reaches every sample a level nearer
         stage1 = {"stage": "coverage_radius", "status": "OPTIMAL", "objective": radius, "bound": radius, "gap": 0.0,
-                  "proven_by": "layer_bound", "deterministic_time": 0.0}
+                  "proven_by": "layer_bound", "deterministic_time": 0.0, "global_bound": radius}
         found, seconds = (start_tx, start_rx), time.perf_counter() - started
     else:
         stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
-    if stage1.get("proven_by"):
-        stage1["global_bound"] = stage1["bound"]
-    elif restricted:  # the model's bound holds inside the trust region only: bound the problem apart
-        low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings)
-        stage1["global_bound"] = float(low * resolution_mm)
-    else:
-        stage1["global_bound"] = stage1["bound"]
+        if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
+            low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings)
+            stage1["global_bound"] = float(low * resolution_mm)
+        else:
+            stage1["global_bound"] = stage1["bound"]
     stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
     return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
