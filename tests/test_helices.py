@@ -7,8 +7,8 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.helices import (BASE_RHO, TraceHelicesParams, cut_path, helix_function,
-                                             trace_helices, winding_angle)
+from retrotouch.nodes.curves.helices import (ALONG_MM, BASE_RHO, MIN_CROSSING_ANGLE_DEG, TraceHelicesParams, cut_path,
+                                             helix_function, trace_helices, winding_angle)
 from retrotouch.nodes.curves.ring_levels import LevelSets, RingLevelsParams, ring_levels, row_values
 from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
@@ -84,14 +84,45 @@ def test_helices_start_on_the_base_climb_and_never_meet(family, winding):
     assert 0.3 < np.median(turns) <= 1.0 + 1e-6  # at most one turn round the pole, in its winding sense
     cross = crossings(CrossingsParams(), mesh, tx, helices, tx_field, rx_field)
     assert len(cross["rx_rx"].curve_a) == 0  # level sets of one function never meet
-    # off the base, no segment runs nearer the Tx lines' direction than the crossing angle allowed
-    for c in range(helices.count):
-        rows = helices.curve(c)
-        segment = np.diff(helices.points[rows], axis=0)
-        cos = np.abs(np.einsum("ij,ij->i", segment, tx_field.face_direction[helices.faces[rows][:-1]]))
-        r = row_values(tables, rho, helices.faces[rows], helices.bary[rows])
+
+
+def mean_cos_along(points: np.ndarray, direction: np.ndarray, j: int) -> float:
+    """Length-weighted mean |cos| between a polyline and ``direction`` (per segment) over the ALONG_MM
+    centred on segment ``j`` (each segment clipped to the window, the window to the polyline)."""
+    segment = np.diff(points, axis=0)
+    length = np.linalg.norm(segment, axis=1)
+    cos = np.abs(np.einsum("ij,ij->i", segment, direction)) / np.maximum(length, 1e-12)
+    start = np.r_[0.0, np.cumsum(length)[:-1]]
+    middle = start[j] + 0.5 * length[j]
+    lo, hi = max(middle - 0.5 * ALONG_MM, 0.0), min(middle + 0.5 * ALONG_MM, start[-1] + length[-1])
+    inside = np.clip(np.minimum(start + length, hi) - np.maximum(start, lo), 0.0, None)
+    return float((inside * cos).sum() / (hi - lo))
+
+
+@pytest.mark.parametrize("min_angle_deg", [MIN_CROSSING_ANGLE_DEG, 20.0])
+def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, min_angle_deg):
+    # Off the base, no ALONG_MM of a kept helix runs nearer the Tx lines' direction than the angle
+    # allows, and a helix is cut only there: its uncut walk (angle 0) goes on with a window that does.
+    mesh, regions, tx, tx_field, _, levels, tables = family
+    limit = np.cos(np.radians(min_angle_deg))
+    cut = trace_helices(TraceHelicesParams(min_crossing_angle_deg=min_angle_deg), mesh, regions, levels, tx, tx_field)["curves"]
+    whole = trace_helices(TraceHelicesParams(min_crossing_angle_deg=0.0), mesh, regions, levels, tx, tx_field)["curves"]
+    rho, _, _ = helix_function(tables, levels.values, tx, tx_field.face_direction, "left")
+    assert cut.count == whole.count
+    shortened = 0
+    for c in range(cut.count):
+        rows, whole_rows = cut.curve(c), whole.curve(c)
+        n = rows.stop - rows.start
+        assert np.array_equal(cut.points[rows], whole.points[whole_rows][:n])  # a prefix of the whole walk
+        points, direction = whole.points[whole_rows], tx_field.face_direction[whole.faces[whole_rows][:-1]]
+        r = row_values(tables, rho, whole.faces[whole_rows], whole.bary[whole_rows])
         off_base = np.maximum(r[:-1], r[1:]) < BASE_RHO
-        assert np.all(cos[off_base] <= np.cos(np.radians(params.min_crossing_angle_deg)) * np.linalg.norm(segment[off_base], axis=1) + 1e-9)
+        assert all(mean_cos_along(points, direction, j) <= limit + 1e-9 for j in np.flatnonzero(off_base[: n - 1]))
+        if n < whole_rows.stop - whole_rows.start:
+            shortened += 1
+            assert off_base[n - 1] and mean_cos_along(points, direction, n - 1) > limit
+    if min_angle_deg > 15.0:  # the bunny's helices cross the Tx lines at 12-16 deg near the pole
+        assert shortened > cut.count // 2
 
 
 def test_each_helix_crosses_most_tx_lines_once_and_none_twice(family):

@@ -22,9 +22,9 @@ pass through the sensing points farthest from the helices before them (a second 
 ``theta`` barely change). A helix climbs the whole way from the base to the pole in one turn, so it
 runs at an angle ``atan(C / (P L))`` to the Tx lines, ``C`` the way round the pole there and ``L``
 the Tx lines' length: steeply where the object is slender and near the pole. It stops where it first
-runs within ``min_crossing_angle_deg`` of them, leaving the crossings near the pole to the Tx lines'
-crowding there (and a slender object to the rings). Units: mm; angles in turns unless named in
-degrees.
+runs within ``min_crossing_angle_deg`` of them over ``ALONG_MM``, leaving the crossings near the pole
+to the Tx lines' crowding there (and a slender object to the rings). Units: mm; angles in turns
+unless named in degrees.
 """
 from __future__ import annotations
 
@@ -54,9 +54,12 @@ BASE_RHO = 0.95
 PHASE_TOLERANCE = 1e-3
 """Reseeded phases nearer than this share of the period to another one are dropped (the same helix)."""
 
+ALONG_MM = 10.0
+"""A Tx line and a helix within a trace width of each other for this length are laid along each other."""
+
 MIN_CROSSING_ANGLE_DEG = 8.0
 """Default ``min_crossing_angle_deg``: below the angle at which a crossing keeps a Tx line and a helix
-within a trace width of each other for the 10 mm that make them laid along each other (11.5 deg)."""
+within a trace width of each other for ``ALONG_MM`` (11.5 deg)."""
 
 
 NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (helices, helix_crossings, "
@@ -68,7 +71,7 @@ class TraceHelicesParams(NodeParams):
     n_reseeded: int = Field(4, ge=0, description="of those, helices through the points farthest from the others (dead ends)")
     winding: Literal["left", "right"] = Field("left", description="handedness: left-handed helices climb clockwise seen from the pole")
     min_crossing_angle_deg: float = Field(MIN_CROSSING_ANGLE_DEG, ge=0, lt=90,
-                                          description="a helix stops where it first runs closer than this to the Tx lines (deg)")
+                                          description="a helix stops where it first runs closer than this to the Tx lines over ALONG_MM (deg)")
 
 
 def cut_path(tables: MeshTables, u: np.ndarray, region: np.ndarray) -> np.ndarray:
@@ -186,13 +189,20 @@ def longest_chain(tables: MeshTables, rho: np.ndarray, chain) -> tuple[np.ndarra
 def steep_index(points: np.ndarray, faces: np.ndarray, rho_points: np.ndarray, direction: np.ndarray,
                 min_angle_deg: float) -> int:
     """Rows of a helix walked from the base to keep: up to the first segment off the base (``rho`` <
-    ``BASE_RHO`` at both ends) that runs within ``min_angle_deg`` of ``direction`` (the Tx lines' unit
-    direction per face): beyond, it would cross them at a glancing angle and crowd the other helices."""
+    ``BASE_RHO`` at both ends) where the helix, over the ``ALONG_MM`` centred on it, runs within
+    ``min_angle_deg`` of ``direction`` (the Tx lines' unit direction per face) on average (the mean of
+    ``|cos|`` weighted by length): beyond, it would cross them at a glancing angle and crowd the other
+    helices. One face's segment alone says little: it may cross that face's direction at any angle."""
     segment = np.diff(points, axis=0)
     length = np.linalg.norm(segment, axis=1)
-    cos = np.abs(np.einsum("ij,ij->i", segment, direction[faces[:-1]])) / np.maximum(length, 1e-12)
+    along = np.r_[0.0, np.cumsum(length)]
+    aligned = np.r_[0.0, np.cumsum(np.abs(np.einsum("ij,ij->i", segment, direction[faces[:-1]])))]
+    middle = 0.5 * (along[:-1] + along[1:])
+    lo = np.maximum(middle - 0.5 * ALONG_MM, 0.0)
+    hi = np.minimum(middle + 0.5 * ALONG_MM, along[-1])
+    mean_cos = (np.interp(hi, along, aligned) - np.interp(lo, along, aligned)) / np.maximum(hi - lo, 1e-12)
     off_base = np.maximum(rho_points[:-1], rho_points[1:]) < BASE_RHO
-    steep = np.flatnonzero((cos > np.cos(np.radians(min_angle_deg))) & (length > 0) & off_base)
+    steep = np.flatnonzero((mean_cos > np.cos(np.radians(min_angle_deg))) & (length > 0) & off_base)
     return int(steep[0]) + 1 if len(steep) else len(points)
 
 

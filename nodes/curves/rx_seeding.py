@@ -11,33 +11,32 @@ from .connection import DirectionField
 def zero_set(tables: MeshTables, values: np.ndarray, faces_allowed: np.ndarray):
     """Zero level set of piecewise-linear vertex ``values`` inside ``faces_allowed``, as chained segments.
 
-    Returns per segment (in chain order): face (s,), end points ``p``, ``q`` (s, 3).
+    A vertex where the value is exactly 0 counts as positive (the level set of ``values + epsilon``),
+    so a level set through a vertex stays one chain. Each segment runs with the values increasing to
+    its left (seen from outside, faces wound counter-clockwise). Returns per segment (in chain order):
+    face (s,), end points ``p``, ``q`` (s, 3).
     """
     faces = tables.faces
-    d = values[faces]
-    fidx = np.flatnonzero((d.min(axis=1) < 0.0) & (d.max(axis=1) > 0.0) & faces_allowed)
-    dd = d[fidx]
-    pts, eids = [], []
-    for i in range(3):
+    negative = values[faces] < 0.0
+    fidx = np.flatnonzero(negative.any(axis=1) & ~negative.all(axis=1) & faces_allowed)
+    d, neg = values[faces[fidx]], negative[fidx]
+    pts, eids, leaving, entering = [], [], [], []
+    for i in range(3):  # the edge opposite corner i, walked counter-clockwise from corner a to b
         a, b = (i + 1) % 3, (i + 2) % 3
-        da, db = dd[:, a], dd[:, b]
-        hit = (da < 0.0) != (db < 0.0)
-        t = np.where(hit, -da / np.where(hit, db - da, 1.0), 0.0)
+        hit = neg[:, a] != neg[:, b]
+        t = np.where(hit, -d[:, a] / np.where(hit, d[:, b] - d[:, a], 1.0), 0.0)
         pa = tables.vertices[faces[fidx, a]]
         pb = tables.vertices[faces[fidx, b]]
-        pts.append(pa + t[:, None] * (pb - pa))
-        eids.append(np.where(hit, tables.face_edges[fidx, (i + 1) % 3], -1))
-    pts = np.stack(pts, axis=1)
-    eids = np.stack(eids, axis=1)
-    two = np.argsort(eids < 0, axis=1, kind="stable")[:, :2]
+        pts.append(np.where(t[:, None] == 1.0, pb, pa + t[:, None] * (pb - pa)))  # a zero vertex exactly
+        eids.append(tables.face_edges[fidx, (i + 1) % 3])
+        leaving.append(hit & neg[:, b])
+        entering.append(hit & neg[:, a])
+    pts, eids = np.stack(pts, axis=1), np.stack(eids, axis=1)
     rows = np.arange(len(fidx))
-    p, q = pts[rows, two[:, 0]], pts[rows, two[:, 1]]
-    ep, eq = eids[rows, two[:, 0]], eids[rows, two[:, 1]]
-    # orient every segment so that values increase to its left (N x (q - p) . grad > 0)
-    grad = np.einsum("kij,ki->kj", tables.bary_gradients[fidx], dd)
-    flip = np.einsum("kj,kj->k", np.cross(tables.normals[fidx], q - p), grad) < 0
-    p, q = np.where(flip[:, None], q, p), np.where(flip[:, None], p, q)
-    ep, eq = np.where(flip, eq, ep), np.where(flip, ep, eq)
+    # walking round the face, the segment starts where the values turn negative: they rise to its left
+    first, last = np.argmax(np.stack(leaving, axis=1), axis=1), np.argmax(np.stack(entering, axis=1), axis=1)
+    p, q = pts[rows, first], pts[rows, last]
+    ep, eq = eids[rows, first], eids[rows, last]
     # chains: the segment starting on edge eq follows; start chains at segments nothing leads into
     by_start = {int(e): s for s, e in enumerate(ep)}
     has_pred = np.isin(ep, eq)
@@ -49,6 +48,7 @@ def zero_set(tables: MeshTables, values: np.ndarray, faces_allowed: np.ndarray):
             order.append(s)
             s = by_start.get(int(eq[s]), s)
     order = np.asarray(order, dtype=np.int64)
+    order = order[np.any(p[order] != q[order], axis=1)]  # the walk round a zero vertex: no length
     return fidx[order], p[order], q[order]
 
 
