@@ -56,8 +56,8 @@ def trimmed_pipeline(folder: Path) -> Path:
 
 
 def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
-    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one ring corridor
-    and one helix winding, plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
+    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one ring corridor,
+    one helix winding and one grid, plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
     mesh_path = shapes.write_shape(name, tmp_path)
     out = tmp_path / "out"
     command = [
@@ -65,7 +65,7 @@ def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
         "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
         "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
-        "-S", "helix_windings=[left]",
+        "-S", "helix_windings=[left]", "-S", "grid_tx=[across]",
     ]
     for override in overrides:
         command += ["-S", override]
@@ -105,7 +105,7 @@ def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     rows = metrics["angles"]
-    assert sorted(r["tx_pole"] for r in rows) == ["centre"] * 4 + ["far"] * 4  # dipole, rings, rings_tx, helices per pole
+    assert sorted(r["tx_pole"] for r in rows) == ["centre"] * 5 + ["far"] * 5  # dipole, rings, rings_tx, helices, grid per pole
     finished = [r for r in rows if r["coverage_radius_mm"] is not None]
     chosen = min(finished, key=lambda r: r["coverage_radius_mm"])
     assert metrics["coverage_radius_mm"] <= chosen["coverage_radius_mm"] + 1.0  # pick_best's radius tolerance

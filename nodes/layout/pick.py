@@ -1,6 +1,6 @@
 """``layout.pick_best``: the best branch of the layout sweep and the per-branch table.
 
-A branch is one Rx family (dipole loops, rings or helices) at one angle, around one Tx pole; branches
+A branch is one curve family (dipole loops, rings, helices or the grid) at one angle, around one Tx pole; branches
 of several families (and poles) arrive as one list (``candidates: ["finish[*]", "ring_finish[*]", ...]``)
 and are taken in order; the chosen branch's regions go to the sinks with its layout. The best has
 the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest power mean of the

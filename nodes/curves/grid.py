@@ -1,0 +1,175 @@
+"""``curves.trace_grid``: a Tx and an Rx family that cross like the grid of a touch panel, with no pole.
+
+The surface where curves may run, everything but the base and its exclusion, is a disc on a genus-0
+object, and its rim is the base's. Two ends and two sides split the rim as a rectangle's corners
+would: each end is the ``end_share`` of the rim's length around the rim point farthest along the
+disc's principal axis (area-weighted, one end at either extreme), the sides are what lies between.
+Two harmonic functions on the disc (cotan Laplacian, no flux through the boundary where no value is
+set) are the two coordinates of its conformal map onto a rectangle, up to discretisation:
+
+* ``across`` is 0 on one end and 1 on the other; its level sets run from side to side, across the
+  principal axis;
+* ``along`` is 0 on one side and 1 on the other; its level sets run from end to end.
+
+Level sets of one function never meet, and a level set of each meets one of the other once, at a
+right angle: on a slender or flat object (a sword, a plate's top, a spoon's bowl) that is a touch
+panel's grid, with no pole where the lines of one layer crowd. ``tx`` says which family drives. The
+levels are evenly spread, and a few more pass through the points farthest from the lines before them
+(where the conformal map shrinks the surface); every curve has both ends on the rim and runs the way
+the other function grows, so a Tx curve is wired at its last row and an Rx curve at its first, as
+``fab.unfold`` expects. A level set that the disc's other boundary loops (holes where the base
+encloses a cut-off region) break into pieces keeps each piece with an end on the rim, wired there.
+Units: mm.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from ...graph.errors import UserError
+from ...graph.node import NodeParams, node
+from ..data.types import CurveEnd, CurveSet, Mesh
+from ..geometry.harmonic import harmonic_interpolation
+from ..geometry.mesh_tables import MeshTables, build_tables
+from .ring_levels import LevelSets, reseeded_levels
+from .rings import pack
+
+MIN_LENGTH_MM = 10.0
+"""A level set's piece shorter than this is no candidate (it would carry one pad at most)."""
+
+
+class TraceGridParams(NodeParams):
+    tx: Literal["across", "along"] = Field("across", description="which family drives: the lines across the disc's principal axis or along it")
+    n_across: int = Field(40, ge=1, description="evenly spread lines across the principal axis (level sets of 'across')")
+    n_along: int = Field(24, ge=1, description="evenly spread lines along the principal axis (level sets of 'along')")
+    n_reseeded: int = Field(8, ge=0, description="more lines of each family, each through the point farthest from the lines before it")
+    end_share: float = Field(0.1, gt=0.0, lt=0.5, description="each end's share of the rim's length")
+
+
+def boundary_loops(tables: MeshTables, domain: np.ndarray) -> list[np.ndarray]:
+    """The closed vertex loops bounding the faces ``domain`` (m,) bool, each with the domain on its
+    left (counter-clockwise seen from outside), longest first (mm)."""
+    f, k = np.nonzero(np.ones_like(tables.faces, dtype=bool))
+    e = tables.face_edges[f, k]
+    other = np.where(tables.edge_faces[e, 0] == f, tables.edge_faces[e, 1], tables.edge_faces[e, 0])
+    rim = domain[f] & ~domain[other]
+    start, end = tables.faces[f[rim], k[rim]], tables.faces[f[rim], (k[rim] + 1) % 3]
+    following = dict(zip(start.tolist(), end.tolist()))
+    loops, seen = [], set()
+    for v0 in start.tolist():
+        if v0 in seen:
+            continue
+        loop, v = [], v0
+        while v not in seen and v in following:
+            seen.add(v)
+            loop.append(v)
+            v = following[v]
+        loops.append(np.asarray(loop, dtype=np.int64))
+    length = [np.linalg.norm(np.diff(tables.vertices[np.r_[l, l[:1]]], axis=0), axis=1).sum() for l in loops]
+    return [loops[i] for i in np.argsort(length)[::-1]]
+
+
+def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share: float) -> tuple[np.ndarray, ...]:
+    """The rim's ``(end_a, end_b, side_c, side_d)`` vertex arcs: the ends centred on the rim vertices
+    lowest and highest along the domain's principal axis, each ``end_share`` of the rim's length;
+    ``side_c`` follows ``end_a`` along the rim (domain on the left), ``side_d`` follows ``end_b``."""
+    centroids = tables.vertices[tables.faces[domain]].mean(axis=1)
+    weights = tables.areas[domain] / tables.areas[domain].sum()
+    centre = weights @ centroids
+    spread = (centroids - centre).T @ ((centroids - centre) * weights[:, None])
+    axis = np.linalg.eigh(spread)[1][:, -1]
+    step = np.linalg.norm(tables.vertices[np.roll(rim, -1)] - tables.vertices[rim], axis=1)
+    arc = np.r_[0.0, np.cumsum(step)[:-1]]
+    length = step.sum()
+    x = (tables.vertices[rim] - centre) @ axis
+    a = int(np.argmin(x))
+    from_a = np.mod(arc - arc[a], length)  # mm along the rim from end a's middle
+    apart = np.minimum(from_a, length - from_a) >= end_share * length  # where end b would not overlap end a
+    b = int(np.flatnonzero(apart)[np.argmax(x[apart])])
+    from_b = np.mod(arc - arc[b], length)
+    half = 0.5 * end_share * length
+    end_a = np.minimum(from_a, length - from_a) <= half
+    end_b = np.minimum(from_b, length - from_b) <= half
+    side_c = ~end_a & ~end_b & (from_a < from_a[b])
+    side_d = ~end_a & ~end_b & ~side_c
+    return rim[end_a], rim[end_b], rim[side_c], rim[side_d]
+
+
+def disc_function(tables: MeshTables, domain: np.ndarray, zero: np.ndarray, one: np.ndarray) -> np.ndarray:
+    """``(n,)`` harmonic on the faces ``domain``, 0 at the vertices ``zero`` and 1 at ``one`` (no flux
+    through the rest of its boundary); NaN off the domain."""
+    used, local = np.unique(tables.faces[domain], return_inverse=True)
+    index = np.full(len(tables.vertices), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    fixed = np.r_[index[zero], index[one]]
+    values = np.r_[np.zeros(len(zero)), np.ones(len(one))]
+    u = np.full(len(tables.vertices), np.nan)
+    u[used] = harmonic_interpolation(tables.vertices[used], local.reshape(-1, 3), fixed, values)
+    return u
+
+
+def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim: np.ndarray, levels: np.ndarray,
+                 wired_first: bool) -> list:
+    """Rows ``(faces, bary)`` of the level sets at ``levels``: each joined piece with an end on the rim
+    (``on_rim`` per vertex) and at least ``MIN_LENGTH_MM`` long, running the way ``other`` grows when
+    both ends are on the rim, else wired at its rim end: its first row if ``wired_first``, else its last."""
+    rows = []
+    for level in levels:
+        faces, p, q = sets(level)
+        if len(faces) == 0:
+            continue
+        breaks = np.flatnonzero(np.linalg.norm(q[:-1] - p[1:], axis=1) > 1e-9) + 1
+        for s, e in zip(np.r_[0, breaks], np.r_[breaks, len(faces)]):
+            points, point_faces = np.vstack([p[s:e], q[e - 1 : e]]), np.r_[faces[s:e], faces[e - 1]]
+            if np.linalg.norm(np.diff(points, axis=0), axis=1).sum() < MIN_LENGTH_MM:
+                continue
+            bary = np.clip(tables.bary_of_points(point_faces[[0, -1]], points[[0, -1]]), 0.0, 1.0)
+            corners = tables.faces[point_faces[[0, -1]]]
+            rim_end = (on_rim[corners] | (bary < 1e-9)).all(axis=1)  # on an edge between rim vertices
+            if not rim_end.any():
+                continue
+            if rim_end.all():
+                ends = (other[corners] * bary).sum(axis=1)
+                forward = ends[0] <= ends[1]
+            else:
+                forward = bool(rim_end[0]) == wired_first
+            if not forward:  # each point's face is the face of the segment leaving it
+                points, point_faces = points[::-1], np.r_[point_faces[:-1][::-1], point_faces[:1]]
+            bary = np.clip(tables.bary_of_points(point_faces, points), 0.0, 1.0)
+            rows.append((point_faces, bary / bary.sum(axis=1, keepdims=True)))
+    return rows
+
+
+@node("curves.trace_grid", params=TraceGridParams, inputs=("mesh", "regions"), outputs=("tx", "rx"))
+def trace_grid(params: TraceGridParams, mesh: Mesh, regions) -> dict[str, object]:
+    """Tx and Rx candidates of the grid family (see the module docstring)."""
+    tables = build_tables(mesh.vertices, mesh.faces)
+    domain = ~(np.asarray(regions.base_faces, dtype=bool) | np.asarray(regions.exclusion_base, dtype=bool))
+    loops = boundary_loops(tables, domain)
+    if not loops or len(loops[0]) < 8:
+        raise UserError("curves.trace_grid: the surface around the base has no rim to wire a grid to; "
+                        "remove the grid nodes (grid, grid_crossings, grid_select, grid_finish) from the pipeline")
+    rim = loops[0]
+    end_a, end_b, side_c, side_d = rim_arcs(tables, domain, rim, params.end_share)
+    across = disc_function(tables, domain, end_a, end_b)
+    along = disc_function(tables, domain, side_c, side_d)
+    on_rim = np.zeros(len(tables.vertices), dtype=bool)
+    on_rim[rim] = True
+    functions = {"across": (across, along, params.n_across), "along": (along, across, params.n_along)}
+    rx_name = "along" if params.tx == "across" else "across"
+    angle = 0.0 if params.tx == "across" else 0.5 * np.pi
+    packed = {}
+    for layer, name in (("tx", params.tx), ("rx", rx_name)):
+        u, other, n = functions[name]
+        sets = LevelSets(tables, u, domain)
+        levels = np.sort(reseeded_levels(sets, (np.arange(n) + 0.5) / n, params.n_reseeded))
+        rows = level_curves(tables, sets, other, on_rim, levels, wired_first=layer == "rx")
+        packed[layer] = pack(tables, rows, np.full(len(rows), int(CurveEnd.BASE), dtype=np.int8), angle, "grid")
+    tx, rx = packed["tx"], packed["rx"]
+    if tx.count == 0 or rx.count == 0:
+        raise UserError("curves.trace_grid: no grid line reaches the rim on both sides; "
+                        "remove the grid nodes (grid, grid_crossings, grid_select, grid_finish) from the pipeline")
+    return {"tx": dataclasses.replace(tx, layer="tx"), "rx": rx}

@@ -1,0 +1,108 @@
+"""curves.trace_grid: lines across and along the surface from rim to rim, a Tx and an Rx family of their own."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from curves_fixture import bunny
+
+from retrotouch.graph.errors import UserError
+from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
+from retrotouch.nodes.curves.grid import TraceGridParams, boundary_loops, disc_function, rim_arcs, trace_grid
+from retrotouch.nodes.data.types import CurveEnd
+from retrotouch.nodes.geometry.mesh_tables import build_tables
+
+
+@pytest.fixture(scope="module")
+def grid():
+    mesh, regions, _, tx_field, rx_field = bunny()
+    tables = build_tables(mesh.vertices, mesh.faces)
+    domain = ~(regions.base_faces | regions.exclusion_base)
+    return mesh, regions, tx_field, rx_field, tables, domain
+
+
+def test_the_rim_is_one_loop_split_into_two_ends_and_two_sides(grid):
+    _, _, _, _, tables, domain = grid
+    loops = boundary_loops(tables, domain)
+    assert len(loops) == 1
+    rim = loops[0]
+    assert len(np.unique(rim)) == len(rim)
+    # each step of the loop is an edge between a domain face (on its left) and a face off it
+    step = np.c_[rim, np.roll(rim, -1)]
+    key = {tuple(e): i for i, e in enumerate(tables.edges.tolist())}
+    edge = np.array([key[tuple(sorted(pair))] for pair in step.tolist()])
+    left = np.where(tables.edges[edge, 0] == step[:, 0], tables.edge_faces[edge, 0], tables.edge_faces[edge, 1])
+    right = np.where(tables.edges[edge, 0] == step[:, 0], tables.edge_faces[edge, 1], tables.edge_faces[edge, 0])
+    assert domain[left].all() and not domain[right].any()
+    share = 0.1
+    arcs = rim_arcs(tables, domain, rim, share)
+    labels = np.full(len(rim), -1)
+    for k, arc in enumerate(arcs):
+        labels[np.isin(rim, arc)] = k
+    assert (labels >= 0).all() and sum(len(a) for a in arcs) == len(rim)  # a partition of the rim
+    # walking the rim: end a, side c, end b, side d, each one run
+    runs = labels[np.r_[True, labels[1:] != labels[:-1]]]
+    runs = runs[:-1] if runs[0] == runs[-1] and len(runs) > 1 else runs
+    assert len(runs) == 4
+    start = int(np.argmax(runs == 0))
+    assert list(np.roll(runs, -start)) == [0, 2, 1, 3]
+    length = np.linalg.norm(tables.vertices[np.roll(rim, -1)] - tables.vertices[rim], axis=1)
+    for end in arcs[:2]:
+        assert np.isin(rim, end) @ length == pytest.approx(share * length.sum(), rel=0.15)
+
+
+def test_the_disc_functions_are_harmonic_and_bounded(grid):
+    _, _, _, _, tables, domain = grid
+    end_a, end_b, _, _ = rim_arcs(tables, domain, boundary_loops(tables, domain)[0], 0.1)
+    u = disc_function(tables, domain, end_a, end_b)
+    inside = np.unique(tables.faces[domain])
+    assert np.isnan(np.delete(u, inside)).all() and np.isfinite(u[inside]).all()
+    assert (u[end_a] == 0).all() and (u[end_b] == 1).all()
+    # the maximum principle, but where an obtuse angle gives the cotan Laplacian a positive weight
+    # (a rim vertex in one face: 1.048 on the bunny fixture)
+    outside = (u[inside] < -1e-9) | (u[inside] > 1 + 1e-9)
+    assert outside.mean() < 0.005 and u[inside].min() > -0.1 and u[inside].max() < 1.1
+
+
+@pytest.mark.parametrize("tx", ["across", "along"])
+def test_grid_lines_run_rim_to_rim_and_cross_once_at_right_angles(grid, tx):
+    mesh, regions, tx_field, rx_field, tables, domain = grid
+    params = TraceGridParams(tx=tx)
+    out = trace_grid(params, mesh, regions)
+    tx_lines, rx_lines = out["tx"], out["rx"]
+    assert tx_lines.layer == "tx" and rx_lines.layer == "rx" and tx_lines.family == rx_lines.family == "grid"
+    n_tx, n_rx = (params.n_across, params.n_along) if tx == "across" else (params.n_along, params.n_across)
+    assert 0.8 * n_tx <= tx_lines.count <= n_tx + params.n_reseeded
+    assert 0.8 * n_rx <= rx_lines.count <= n_rx + params.n_reseeded
+    assert np.all(tx_lines.end_reason == int(CurveEnd.BASE)) and np.all(rx_lines.end_reason == int(CurveEnd.BASE))
+    off_domain = np.flatnonzero(~domain)
+    end_a, end_b, side_c, side_d = rim_arcs(tables, domain, boundary_loops(tables, domain)[0], params.end_share)
+    across, along = disc_function(tables, domain, end_a, end_b), disc_function(tables, domain, side_c, side_d)
+    other = {"across": along, "along": across}
+    for curves, wired, name in ((tx_lines, -1, tx), (rx_lines, 0, "along" if tx == "across" else "across")):
+        assert domain[curves.faces].all()
+        for c in range(curves.count):
+            rows = curves.curve(c)
+            for end in (0, -1):  # both ends lie on an edge of a face off the domain (base or its exclusion)
+                corners = tables.faces[curves.faces[rows][end]][curves.bary[rows][end] > 1e-9]
+                assert np.isin(corners, tables.faces[off_domain]).all()
+            # each runs the way the other function grows: a Tx line towards its wired end, an Rx line from it
+            ends = (other[name][tables.faces[curves.faces[rows][[0, -1]]]] * curves.bary[rows][[0, -1]]).sum(axis=1)
+            assert ends[0] < ends[1]
+    cross = crossings(CrossingsParams(), mesh, tx_lines, rx_lines, tx_field, rx_field)
+    assert len(cross["tx_tx"].curve_a) == 0 and len(cross["rx_rx"].curve_a) == 0  # level sets of one function
+    pairs = np.bincount(cross["tx_rx"].curve_a * rx_lines.count + cross["tx_rx"].curve_b, minlength=tx_lines.count * rx_lines.count)
+    assert (pairs <= 1).mean() > 0.99 and (pairs == 1).mean() > 0.9
+    # the two functions are the coordinates of a conformal map: the lines cross at right angles
+    t = tx_lines.points[tx_lines.offsets[cross["tx_rx"].curve_a] + cross["tx_rx"].seg_a + 1] - tx_lines.points[tx_lines.offsets[cross["tx_rx"].curve_a] + cross["tx_rx"].seg_a]
+    r = rx_lines.points[rx_lines.offsets[cross["tx_rx"].curve_b] + cross["tx_rx"].seg_b + 1] - rx_lines.points[rx_lines.offsets[cross["tx_rx"].curve_b] + cross["tx_rx"].seg_b]
+    cos = np.abs(np.einsum("ij,ij->i", t, r)) / (np.linalg.norm(t, axis=1) * np.linalg.norm(r, axis=1))
+    assert np.median(np.degrees(np.arccos(cos))) > 80.0
+
+
+def test_a_surface_with_no_rim_is_refused_with_the_nodes_to_remove(grid):
+    mesh, regions, *_ = grid
+    none = np.zeros_like(regions.base_faces)
+    with pytest.raises(UserError, match="remove the grid nodes"):
+        trace_grid(TraceGridParams(), mesh, dataclasses.replace(regions, base_faces=none, exclusion_base=none))
