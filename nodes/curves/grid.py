@@ -52,7 +52,7 @@ class TraceGridParams(NodeParams):
 def boundary_loops(tables: MeshTables, domain: np.ndarray) -> list[np.ndarray]:
     """The closed vertex loops bounding the faces ``domain`` (m,) bool, each with the domain on its
     left (counter-clockwise seen from outside), longest first (mm)."""
-    f, k = np.nonzero(np.ones_like(tables.faces, dtype=bool))
+    f, k = np.divmod(np.arange(tables.faces.size), 3)  # every halfedge (f, k): corner k -> corner k + 1
     e = tables.face_edges[f, k]
     other = np.where(tables.edge_faces[e, 0] == f, tables.edge_faces[e, 1], tables.edge_faces[e, 0])
     rim = domain[f] & ~domain[other]
@@ -68,7 +68,7 @@ def boundary_loops(tables: MeshTables, domain: np.ndarray) -> list[np.ndarray]:
             loop.append(v)
             v = following[v]
         loops.append(np.asarray(loop, dtype=np.int64))
-    length = [np.linalg.norm(np.diff(tables.vertices[np.r_[l, l[:1]]], axis=0), axis=1).sum() for l in loops]
+    length = [np.linalg.norm(np.diff(tables.vertices[np.r_[loop, loop[:1]]], axis=0), axis=1).sum() for loop in loops]
     return [loops[i] for i in np.argsort(length)[::-1]]
 
 
