@@ -9,7 +9,8 @@ from curves_fixture import bunny
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.grid import TraceGridParams, boundary_loops, disc_function, rim_arcs, trace_grid
+from retrotouch.nodes.curves.grid import (GridLayersParams, TraceGridParams, boundary_loops, disc_function, grid_layers,
+                                          rim_arcs, trace_grid)
 from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.geometry.mesh_tables import build_tables
 
@@ -68,8 +69,8 @@ def test_the_disc_functions_are_harmonic_and_bounded(grid):
 @pytest.mark.parametrize("tx", ["across", "along"])
 def test_grid_lines_run_rim_to_rim_and_cross_once_at_right_angles(grid, tx):
     mesh, regions, tx_field, rx_field, tables, domain = grid
-    params = TraceGridParams(tx=tx)
-    out = trace_grid(params, mesh, regions)
+    params = TraceGridParams()
+    out = grid_layers(GridLayersParams(tx=tx), mesh, **trace_grid(params, mesh, regions))
     tx_lines, rx_lines = out["tx"], out["rx"]
     assert tx_lines.layer == "tx" and rx_lines.layer == "rx" and tx_lines.family == rx_lines.family == "grid"
     n_tx, n_rx = (params.n_across, params.n_along) if tx == "across" else (params.n_along, params.n_across)
@@ -80,16 +81,16 @@ def test_grid_lines_run_rim_to_rim_and_cross_once_at_right_angles(grid, tx):
     end_a, end_b, side_c, side_d = rim_arcs(tables, domain, boundary_loops(tables, domain)[0], params.end_share)
     across, along = disc_function(tables, domain, end_a, end_b), disc_function(tables, domain, side_c, side_d)
     other = {"across": along, "along": across}
-    for curves, wired, name in ((tx_lines, -1, tx), (rx_lines, 0, "along" if tx == "across" else "across")):
+    for curves, sense, name in ((tx_lines, -1, tx), (rx_lines, 1, "along" if tx == "across" else "across")):
         assert domain[curves.faces].all()
         for c in range(curves.count):
             rows = curves.curve(c)
             for end in (0, -1):  # both ends lie on an edge of a face off the domain (base or its exclusion)
                 corners = tables.faces[curves.faces[rows][end]][curves.bary[rows][end] > 1e-9]
                 assert np.isin(corners, tables.faces[off_domain]).all()
-            # each runs the way the other function grows: a Tx line towards its wired end, an Rx line from it
+            # an Rx line runs the way the other function grows, a Tx line (walked backwards) against it
             ends = (other[name][tables.faces[curves.faces[rows][[0, -1]]]] * curves.bary[rows][[0, -1]]).sum(axis=1)
-            assert ends[0] < ends[1]
+            assert sense * (ends[1] - ends[0]) > 0
     cross = crossings(CrossingsParams(), mesh, tx_lines, rx_lines, tx_field, rx_field)
     assert len(cross["tx_tx"].curve_a) == 0 and len(cross["rx_rx"].curve_a) == 0  # level sets of one function
     pairs = np.bincount(cross["tx_rx"].curve_a * rx_lines.count + cross["tx_rx"].curve_b, minlength=tx_lines.count * rx_lines.count)
@@ -106,3 +107,17 @@ def test_a_surface_with_no_rim_is_refused_with_the_nodes_to_remove(grid):
     none = np.zeros_like(regions.base_faces)
     with pytest.raises(UserError, match="remove the grid nodes"):
         trace_grid(TraceGridParams(), mesh, dataclasses.replace(regions, base_faces=none, exclusion_base=none))
+
+
+def test_the_layers_are_the_two_families_and_the_tx_lines_are_them_walked_backwards(grid):
+    mesh, regions, *_ = grid
+    families = trace_grid(TraceGridParams(), mesh, regions)
+    for tx, rx in (("across", "along"), ("along", "across")):
+        out = grid_layers(GridLayersParams(tx=tx), mesh, **families)
+        source = families[tx]
+        assert out["tx"].count == source.count and out["rx"].count == families[rx].count
+        np.testing.assert_array_equal(out["rx"].points, families[rx].points)
+        for c in range(source.count):
+            np.testing.assert_allclose(out["tx"].points[out["tx"].curve(c)], source.points[source.curve(c)][::-1], atol=1e-9)
+        np.testing.assert_allclose(out["tx"].lengths_mm, source.lengths_mm)
+        assert out["tx"].angle == out["rx"].angle == (0.0 if tx == "across" else np.pi / 2)

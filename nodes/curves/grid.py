@@ -1,4 +1,5 @@
-"""``curves.trace_grid``: a Tx and an Rx family that cross like the grid of a touch panel, with no pole.
+"""``curves.trace_grid``, ``curves.grid_layers``: a Tx and an Rx family that cross like the grid of a
+touch panel, with no pole.
 
 The surface where curves may run, everything but the base and its exclusion, is a disc on a genus-0
 object, and its rim is the base's. Two ends and two sides split the rim as a rectangle's corners
@@ -13,13 +14,14 @@ set) are the two coordinates of its conformal map onto a rectangle, up to discre
 
 Level sets of one function never meet, and a level set of each meets one of the other once, at a
 right angle: on a slender or flat object (a sword, a plate's top, a spoon's bowl) that is a touch
-panel's grid, with no pole where the lines of one layer crowd. ``tx`` says which family drives. The
-levels are evenly spread, and a few more pass through the points farthest from the lines before them
-(where the conformal map shrinks the surface); every curve has both ends on the rim and runs the way
-the other function grows, so a Tx curve is wired at its last row and an Rx curve at its first, as
-``fab.unfold`` expects. A level set that the disc's other boundary loops (holes where the base
-encloses a cut-off region) break into pieces keeps each piece with an end on the rim, wired there.
-Units: mm.
+panel's grid, with no pole where the lines of one layer crowd. The levels are evenly spread, and a
+few more pass through the points farthest from the lines before them (where the conformal map
+shrinks the surface); every curve has both ends on the rim and runs the way the other function
+grows. A level set that the disc's other boundary loops (holes where the base encloses a cut-off
+region) break into pieces keeps each piece with an end on the rim, starting there.
+``curves.trace_grid`` computes both families once; ``curves.grid_layers`` (one branch per choice)
+makes one of them the Tx lines, walked backwards so that they end on the rim, and the other the Rx
+lines, which start on it, as ``fab.unfold`` expects. Units: mm.
 """
 from __future__ import annotations
 
@@ -42,11 +44,14 @@ MIN_LENGTH_MM = 10.0
 
 
 class TraceGridParams(NodeParams):
-    tx: Literal["across", "along"] = Field("across", description="which family drives: the lines across the disc's principal axis or along it")
     n_across: int = Field(40, ge=1, description="evenly spread lines across the principal axis (level sets of 'across')")
     n_along: int = Field(24, ge=1, description="evenly spread lines along the principal axis (level sets of 'along')")
     n_reseeded: int = Field(8, ge=0, description="more lines of each family, each through the point farthest from the lines before it")
     end_share: float = Field(0.1, gt=0.0, lt=0.5, description="each end's share of the rim's length")
+
+
+class GridLayersParams(NodeParams):
+    tx: Literal["across", "along"] = Field("across", description="which family drives: the lines across the disc's principal axis or along it")
 
 
 def boundary_loops(tables: MeshTables, domain: np.ndarray) -> list[np.ndarray]:
@@ -111,11 +116,10 @@ def disc_function(tables: MeshTables, domain: np.ndarray, zero: np.ndarray, one:
     return u
 
 
-def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim: np.ndarray, levels: np.ndarray,
-                 wired_first: bool) -> list:
+def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim: np.ndarray, levels: np.ndarray) -> list:
     """Rows ``(faces, bary)`` of the level sets at ``levels``: each joined piece with an end on the rim
     (``on_rim`` per vertex) and at least ``MIN_LENGTH_MM`` long, running the way ``other`` grows when
-    both ends are on the rim, else wired at its rim end: its first row if ``wired_first``, else its last."""
+    both ends are on the rim, else from its rim end."""
     rows = []
     for level in levels:
         faces, p, q = sets(level)
@@ -135,41 +139,58 @@ def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim:
                 ends = (other[corners] * bary).sum(axis=1)
                 forward = ends[0] <= ends[1]
             else:
-                forward = bool(rim_end[0]) == wired_first
-            if not forward:  # each point's face is the face of the segment leaving it
-                points, point_faces = points[::-1], np.r_[point_faces[:-1][::-1], point_faces[:1]]
-            bary = np.clip(tables.bary_of_points(point_faces, points), 0.0, 1.0)
-            rows.append((point_faces, bary / bary.sum(axis=1, keepdims=True)))
+                forward = bool(rim_end[0])
+            rows.append(polyline_rows(tables, points, point_faces) if forward else reversed_rows(tables, points, point_faces))
     return rows
 
 
-@node("curves.trace_grid", params=TraceGridParams, inputs=("mesh", "regions"), outputs=("tx", "rx"))
+def polyline_rows(tables: MeshTables, points: np.ndarray, point_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(faces, bary)`` rows of a polyline given by its points and the face of the segment leaving
+    each (the last point: its segment's face)."""
+    bary = np.clip(tables.bary_of_points(point_faces, points), 0.0, 1.0)
+    return point_faces, bary / bary.sum(axis=1, keepdims=True)
+
+
+def reversed_rows(tables: MeshTables, points: np.ndarray, point_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`polyline_rows` of the polyline walked backwards."""
+    return polyline_rows(tables, points[::-1], np.r_[point_faces[:-1][::-1], point_faces[:1]])
+
+
+NO_GRID = "remove the grid nodes (grid, grid_layers, grid_crossings, grid_select, grid_finish) from the pipeline"
+
+
+@node("curves.trace_grid", params=TraceGridParams, inputs=("mesh", "regions"), outputs=("across", "along"))
 def trace_grid(params: TraceGridParams, mesh: Mesh, regions) -> dict[str, object]:
-    """Tx and Rx candidates of the grid family (see the module docstring)."""
+    """The grid's two families (see the module docstring), each curve starting on the rim."""
     tables = build_tables(mesh.vertices, mesh.faces)
     domain = ~(np.asarray(regions.base_faces, dtype=bool) | np.asarray(regions.exclusion_base, dtype=bool))
     loops = boundary_loops(tables, domain)
     if not loops or len(loops[0]) < 8:
-        raise UserError("curves.trace_grid: the surface around the base has no rim to wire a grid to; "
-                        "remove the grid nodes (grid, grid_crossings, grid_select, grid_finish) from the pipeline")
+        raise UserError(f"curves.trace_grid: the surface around the base has no rim to wire a grid to; {NO_GRID}")
     rim = loops[0]
     end_a, end_b, side_c, side_d = rim_arcs(tables, domain, rim, params.end_share)
     across = disc_function(tables, domain, end_a, end_b)
     along = disc_function(tables, domain, side_c, side_d)
     on_rim = np.zeros(len(tables.vertices), dtype=bool)
     on_rim[rim] = True
-    functions = {"across": (across, along, params.n_across), "along": (along, across, params.n_along)}
-    rx_name = "along" if params.tx == "across" else "across"
-    angle = 0.0 if params.tx == "across" else 0.5 * np.pi
-    packed = {}
-    for layer, name in (("tx", params.tx), ("rx", rx_name)):
-        u, other, n = functions[name]
+    families = {}
+    for name, u, other, n in (("across", across, along, params.n_across), ("along", along, across, params.n_along)):
         sets = LevelSets(tables, u, domain)
         levels = np.sort(reseeded_levels(sets, (np.arange(n) + 0.5) / n, params.n_reseeded))
-        rows = level_curves(tables, sets, other, on_rim, levels, wired_first=layer == "rx")
-        packed[layer] = pack(tables, rows, np.full(len(rows), int(CurveEnd.BASE), dtype=np.int8), angle, "grid")
-    tx, rx = packed["tx"], packed["rx"]
-    if tx.count == 0 or rx.count == 0:
-        raise UserError("curves.trace_grid: no grid line reaches the rim on both sides; "
-                        "remove the grid nodes (grid, grid_crossings, grid_select, grid_finish) from the pipeline")
-    return {"tx": dataclasses.replace(tx, layer="tx"), "rx": rx}
+        rows = level_curves(tables, sets, other, on_rim, levels)
+        if not rows:
+            raise UserError(f"curves.trace_grid: no line {name} the surface reaches the rim; {NO_GRID}")
+        families[name] = pack(tables, rows, np.full(len(rows), int(CurveEnd.BASE), dtype=np.int8), 0.0, "grid")
+    return families
+
+
+@node("curves.grid_layers", params=GridLayersParams, inputs=("mesh", "across", "along"), outputs=("tx", "rx"))
+def grid_layers(params: GridLayersParams, mesh: Mesh, across: CurveSet, along: CurveSet) -> dict[str, object]:
+    """The grid's ``tx`` family as Tx lines, walked backwards to end on the rim where they are wired,
+    and the other as Rx lines as they are; the angle 0 when the lines across drive, 90 deg otherwise."""
+    tables = build_tables(mesh.vertices, mesh.faces)
+    tx, rx = (across, along) if params.tx == "across" else (along, across)
+    rows = [reversed_rows(tables, tx.points[tx.curve(c)], tx.faces[tx.curve(c)]) for c in range(tx.count)]
+    angle = 0.0 if params.tx == "across" else 0.5 * np.pi
+    tx = dataclasses.replace(pack(tables, rows, tx.end_reason, angle, "grid"), layer="tx")
+    return {"tx": tx, "rx": dataclasses.replace(rx, angle=angle)}

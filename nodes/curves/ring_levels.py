@@ -125,27 +125,26 @@ def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.nda
     tables, u = u_sets.tables, u_sets.values
     vertices = np.unique(tables.faces[u_sets.sensing])
     vertices = vertices[:: -(-len(vertices) // RESEED_POINTS)]
-    nearest = np.full(len(vertices), np.inf)
     chosen = list(levels)
-    for level in chosen:
-        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
+    nearest = level_distance(u_sets, chosen, tables.vertices[vertices])
     for _ in range(count):
         level = float(u[vertices[np.argmax(nearest)]])
         if not 0.0 < level < 1.0:
             break
         chosen.append(level)
-        nearest = np.minimum(nearest, level_distance(u_sets, level, tables.vertices[vertices]))
+        nearest = np.minimum(nearest, level_distance(u_sets, [level], tables.vertices[vertices]))
     return np.sort(np.asarray(chosen))[::-1]
 
 
-def level_distance(u_sets: LevelSets, level: float, points: np.ndarray) -> np.ndarray:
-    """Distance (mm) of ``points`` from the level set ``u = level`` (inf if it is empty)."""
+def level_distance(u_sets: LevelSets, levels, points: np.ndarray) -> np.ndarray:
+    """Distance (mm) of ``points`` from the nearest of the level sets ``u = level`` for ``levels``
+    (inf if they are all empty)."""
     from scipy.spatial import cKDTree
 
-    _, p, q = u_sets(level)
-    if len(p) == 0:
+    ends = [np.vstack([p, q]) for _, p, q in (u_sets(level) for level in levels) if len(p)]
+    if not ends:
         return np.full(len(points), np.inf)
-    return cKDTree(np.vstack([p, q])).query(points)[0]
+    return cKDTree(np.vstack(ends)).query(points)[0]
 
 
 @node("curves.ring_levels", params=RingLevelsParams, inputs=("mesh", "regions", "field", "tx"), outputs=("levels",))
