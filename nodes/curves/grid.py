@@ -56,7 +56,8 @@ class GridLayersParams(NodeParams):
 
 def boundary_loops(tables: MeshTables, domain: np.ndarray) -> list[np.ndarray]:
     """The closed vertex loops bounding the faces ``domain`` (m,) bool, each with the domain on its
-    left (counter-clockwise seen from outside), longest first (mm)."""
+    left (counter-clockwise seen from outside), longest first (mm). Where the boundary passes a vertex
+    twice (two loops touching there), one of the two ways on is followed."""
     f, k = np.divmod(np.arange(tables.faces.size), 3)  # every halfedge (f, k): corner k -> corner k + 1
     e = tables.face_edges[f, k]
     other = np.where(tables.edge_faces[e, 0] == f, tables.edge_faces[e, 1], tables.edge_faces[e, 0])

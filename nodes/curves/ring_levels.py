@@ -136,7 +136,7 @@ def reseeded_levels(u_sets: LevelSets, levels: np.ndarray, count: int) -> np.nda
     return np.sort(np.asarray(chosen))[::-1]
 
 
-def level_distance(u_sets: LevelSets, levels, points: np.ndarray) -> np.ndarray:
+def level_distance(u_sets: LevelSets, levels: list[float], points: np.ndarray) -> np.ndarray:
     """Distance (mm) of ``points`` from the nearest of the level sets ``u = level`` for ``levels``
     (inf if they are all empty)."""
     from scipy.spatial import cKDTree
