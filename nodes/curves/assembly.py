@@ -87,12 +87,21 @@ def assemble(
     return curves, stats
 
 
+def reversed_walk(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A polyline on the mesh (points, and the face of the segment leaving each; the last point its
+    segment's face) walked backwards, in the same convention."""
+    return points[::-1], np.r_[faces[:-1][::-1], faces[:1]]
+
+
+def polyline_rows(tables: MeshTables, points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows ``(faces, bary)`` of a polyline in the convention of :func:`reversed_walk`."""
+    bary = np.clip(tables.bary_of_points(faces, points), 0.0, 1.0)
+    return faces, bary / bary.sum(axis=1, keepdims=True)
+
+
 def reversed_rows(tables: MeshTables, faces: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rows of one curve in reverse order, each restated in the face of the segment it now starts."""
-    points = tables.points(faces, bary)[::-1]
-    rev_faces = np.r_[faces[:-1][::-1], faces[:1]]
-    rev_bary = np.clip(tables.bary_of_points(rev_faces, points), 0.0, 1.0)
-    return rev_faces, rev_bary / rev_bary.sum(axis=1, keepdims=True)
+    return polyline_rows(tables, *reversed_walk(tables.points(faces, bary), faces))
 
 
 def join_both_ways(tables: MeshTables, backward: Traces, forward: Traces, orient_to_base: bool = True) -> Traces:

@@ -36,8 +36,10 @@ from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.harmonic import harmonic_interpolation
 from ..geometry.mesh_tables import MeshTables, build_tables
+from .assembly import polyline_rows, reversed_rows, reversed_walk
 from .ring_levels import LevelSets, reseeded_levels
 from .rings import pack
+from .rx_seeding import chain_walks
 
 MIN_LENGTH_MM = 10.0
 """A level set's piece shorter than this is no candidate (it would carry one pad at most)."""
@@ -123,12 +125,7 @@ def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim:
     both ends are on the rim, else from its rim end."""
     rows = []
     for level in levels:
-        faces, p, q = sets(level)
-        if len(faces) == 0:
-            continue
-        breaks = np.flatnonzero(np.linalg.norm(q[:-1] - p[1:], axis=1) > 1e-9) + 1
-        for s, e in zip(np.r_[0, breaks], np.r_[breaks, len(faces)]):
-            points, point_faces = np.vstack([p[s:e], q[e - 1 : e]]), np.r_[faces[s:e], faces[e - 1]]
+        for points, point_faces in chain_walks(sets(level)):
             if np.linalg.norm(np.diff(points, axis=0), axis=1).sum() < MIN_LENGTH_MM:
                 continue
             bary = np.clip(tables.bary_of_points(point_faces[[0, -1]], points[[0, -1]]), 0.0, 1.0)
@@ -141,20 +138,8 @@ def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim:
                 forward = ends[0] <= ends[1]
             else:
                 forward = bool(rim_end[0])
-            rows.append(polyline_rows(tables, points, point_faces) if forward else reversed_rows(tables, points, point_faces))
+            rows.append(polyline_rows(tables, *((points, point_faces) if forward else reversed_walk(points, point_faces))))
     return rows
-
-
-def polyline_rows(tables: MeshTables, points: np.ndarray, point_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(faces, bary)`` rows of a polyline given by its points and the face of the segment leaving
-    each (the last point: its segment's face)."""
-    bary = np.clip(tables.bary_of_points(point_faces, points), 0.0, 1.0)
-    return point_faces, bary / bary.sum(axis=1, keepdims=True)
-
-
-def reversed_rows(tables: MeshTables, points: np.ndarray, point_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`polyline_rows` of the polyline walked backwards."""
-    return polyline_rows(tables, points[::-1], np.r_[point_faces[:-1][::-1], point_faces[:1]])
 
 
 NO_GRID = "remove the grid nodes (grid, grid_layers, grid_crossings, grid_select, grid_finish) from the pipeline"
@@ -191,7 +176,7 @@ def grid_layers(params: GridLayersParams, mesh: Mesh, across: CurveSet, along: C
     and the other as Rx lines as they are; the angle 0 when the lines across drive, 90 deg otherwise."""
     tables = build_tables(mesh.vertices, mesh.faces)
     tx, rx = (across, along) if params.tx == "across" else (along, across)
-    rows = [reversed_rows(tables, tx.points[tx.curve(c)], tx.faces[tx.curve(c)]) for c in range(tx.count)]
+    rows = [reversed_rows(tables, tx.faces[tx.curve(c)], tx.bary[tx.curve(c)]) for c in range(tx.count)]
     angle = 0.0 if params.tx == "across" else 0.5 * np.pi
     tx = dataclasses.replace(pack(tables, rows, tx.end_reason, angle, "grid"), layer="tx")
     return {"tx": tx, "rx": dataclasses.replace(rx, angle=angle)}

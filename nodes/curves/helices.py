@@ -39,8 +39,9 @@ from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .connection import DirectionField
 from .ring_levels import RingLevels, reseeded_levels, row_values, tx_arc_profile
+from .assembly import polyline_rows, reversed_walk
 from .rings import pack, packed_stats
-from .rx_seeding import zero_set
+from .rx_seeding import chain_walks, zero_set
 
 ACROSS_WEIGHT = 0.05
 """Weight of the angle's change across the Tx lines against along them (:func:`winding_angle`)."""
@@ -172,18 +173,12 @@ class HelixSets:
 def longest_chain(tables: MeshTables, rho: np.ndarray, chain) -> tuple[np.ndarray, np.ndarray] | None:
     """The longest run of joined segments of a :func:`zero_set` chain, from its end nearer the base:
     (points (n, 3), face of the segment each starts), or None if it is empty."""
-    faces, p, q = chain
-    if len(faces) == 0:
+    walks = chain_walks(chain)
+    if not walks:
         return None
-    breaks = np.flatnonzero(np.linalg.norm(q[:-1] - p[1:], axis=1) > 1e-9) + 1
-    starts, stops = np.r_[0, breaks], np.r_[breaks, len(faces)]
-    lengths = np.array([np.linalg.norm(q[s:e] - p[s:e], axis=1).sum() for s, e in zip(starts, stops)])
-    s, e = int(starts[np.argmax(lengths)]), int(stops[np.argmax(lengths)])
-    points, point_faces = np.vstack([p[s:e], q[e - 1 : e]]), np.r_[faces[s:e], faces[e - 1]]
+    points, point_faces = max(walks, key=lambda walk: np.linalg.norm(np.diff(walk[0], axis=0), axis=1).sum())
     rho_ends = row_values(tables, rho, point_faces[[0, -1]], np.clip(tables.bary_of_points(point_faces[[0, -1]], points[[0, -1]]), 0, 1))
-    if rho_ends[0] < rho_ends[-1]:
-        points, point_faces = points[::-1], np.r_[point_faces[:-1][::-1], point_faces[:1]]
-    return points, point_faces
+    return reversed_walk(points, point_faces) if rho_ends[0] < rho_ends[-1] else (points, point_faces)
 
 
 def steep_index(points: np.ndarray, faces: np.ndarray, rho_points: np.ndarray, direction: np.ndarray,
@@ -241,8 +236,7 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
         points, faces = points[:keep], faces[:keep]
         if len(points) < 2:
             continue
-        bary = np.clip(tables.bary_of_points(faces, points), 0.0, 1.0)
-        rows.append((faces, bary / bary.sum(axis=1, keepdims=True)))
+        rows.append(polyline_rows(tables, points, faces))
         ends.append(int(CurveEnd.BASE))
     curves = pack(tables, rows, np.asarray(ends, dtype=np.int8), 0.0 if params.winding == "left" else np.pi, "helices")
     return {"curves": curves, "stats": packed_stats(curves, params.n_helices)}

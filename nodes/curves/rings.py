@@ -53,7 +53,7 @@ from pydantic import Field
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
-from .assembly import TraceStats
+from .assembly import TraceStats, polyline_rows, reversed_walk
 from .ring_levels import LevelSets, RingLevels, row_values
 
 STOP_MARGIN_MM = 0.5
@@ -145,11 +145,8 @@ def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, levels: R
         keep = stop_index(ring_points, all_legs, params.trace_width_mm + params.clearance_mm + STOP_MARGIN_MM)
         if keep < 2:
             continue
-        back_points, back_faces = leg_points[::-1], np.r_[leg_faces[:-1][::-1], leg_faces[:1]]
-        faces = np.r_[back_faces[:-1], ring_faces[:keep]]
-        points = np.vstack([back_points[:-1], ring_points[:keep]])
-        bary = np.clip(tables.bary_of_points(faces, points), 0.0, 1.0)
-        rows.append((faces, bary / bary.sum(axis=1, keepdims=True)))
+        back_points, back_faces = reversed_walk(leg_points, leg_faces)
+        rows.append(polyline_rows(tables, np.vstack([back_points[:-1], ring_points[:keep]]), np.r_[back_faces[:-1], ring_faces[:keep]]))
         ends.append(end)
         kept.append(level)
     return rows, np.asarray(ends, dtype=np.int8), np.asarray(kept)

@@ -52,6 +52,17 @@ def zero_set(tables: MeshTables, values: np.ndarray, faces_allowed: np.ndarray):
     return fidx[order], p[order], q[order]
 
 
+def chain_walks(chain) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The runs of joined segments of a :func:`zero_set` chain, each as a walk: points (k + 1, 3) and
+    the face of the segment leaving each point (the last point: its segment's face)."""
+    faces, p, q = chain
+    if len(faces) == 0:
+        return []
+    breaks = np.flatnonzero(np.linalg.norm(q[:-1] - p[1:], axis=1) > 1e-9) + 1
+    return [(np.vstack([p[s:e], q[e - 1 : e]]), np.r_[faces[s:e], faces[e - 1]])
+            for s, e in zip(np.r_[0, breaks], np.r_[breaks, len(faces)])]
+
+
 def rx_seeds(tables: MeshTables, field: DirectionField, sensing: np.ndarray, n_curves: int):
     """Seeds on the apex line of the dipole loops: where the field is tangent to the geodesic circles
     around the dipole source (``u . grad d = 0``), inside the sensing faces, at equal arc length."""
