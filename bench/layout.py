@@ -101,7 +101,7 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "a
 
 def branch_params(params: OptimizeParams, rx) -> OptimizeParams:
     """``params`` as the default pipeline gives them to the branch of ``rx`` (the helices' free end)."""
-    return params.model_copy(update={"rx_free_end_mm": HELIX_FREE_END_MM}) if rx.family == "helices" else params
+    return params.model_copy(update={"rx_free_end_mm": HELIX_FREE_END_MM}) if rx.family.startswith("helices") else params
 
 
 def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screened: bool = True):

@@ -193,11 +193,11 @@ def test_default_pipeline_end_to_end(repo, default_run, cli):
     assert all(n["status"] == "ran" for n in manifest["nodes"])
     assert sum(n["node"] == "select" for n in manifest["nodes"]) == 5  # one branch per Rx dipole angle
     assert sum(n["node"] == "ring_select" for n in manifest["nodes"]) == 8  # one per ring corridor and kind of legs
-    assert sum(n["node"] == "helix_select" for n in manifest["nodes"]) == 2  # one per winding sense
+    assert sum(n["node"] == "helix_select" for n in manifest["nodes"]) == 4  # one per winding sense and climb
     assert sum(n["node"] == "grid_select" for n in manifest["nodes"]) == 2  # lines across or along as Tx
     metrics = json.loads((out / "metrics.json").read_text())
-    assert len(metrics["angles"]) == 17
-    assert {row["rx_family"] for row in metrics["angles"]} == {"dipole", "rings", "rings_tx", "helices", "grid"}
+    assert len(metrics["angles"]) == 19
+    assert {row["rx_family"] for row in metrics["angles"]} == {"dipole", "rings", "rings_tx", "helices", "helices_per_line", "grid"}
 
     ply = (out / "mesh.ply").read_bytes()
     assert ply.startswith(b"ply\nformat binary_little_endian 1.0\n")

@@ -62,15 +62,15 @@ def test_the_angle_grows_clockwise_seen_from_outside_at_the_pole(family):
     assert np.mean(turn < 0) > 0.9  # counter-clockwise about the outward normal is positive
 
 
-@pytest.mark.parametrize("winding", ["left", "right"])
-def test_helices_start_on_the_base_climb_and_never_meet(family, winding):
+@pytest.mark.parametrize("winding,climb", [("left", "median"), ("right", "median"), ("left", "per_line")])
+def test_helices_start_on_the_base_climb_and_never_meet(family, winding, climb):
     mesh, regions, tx, tx_field, rx_field, levels, tables = family
-    params = TraceHelicesParams(winding=winding)
+    params = TraceHelicesParams(winding=winding, climb=climb)
     helices = trace_helices(params, mesh, regions, levels, tx, tx_field)["curves"]
-    assert helices.layer == "rx" and helices.family == "helices"
+    assert helices.layer == "rx" and helices.family == ("helices" if climb == "median" else "helices_per_line")
     assert params.n_helices - params.n_reseeded <= helices.count <= params.n_helices
     assert np.all(helices.end_reason == int(CurveEnd.BASE))
-    rho, _, _ = helix_function(tables, levels.values, tx, tx_field.face_direction, winding)
+    rho, _, _ = helix_function(tables, levels.values, tx, tx_field.face_direction, winding, climb)
     theta = winding_angle(tables, levels.values, tx_field.face_direction)
     sense = 1 if winding == "left" else -1
     turns = []
@@ -84,6 +84,32 @@ def test_helices_start_on_the_base_climb_and_never_meet(family, winding):
     assert 0.3 < np.median(turns) <= 1.0 + 1e-6  # at most one turn round the pole, in its winding sense
     cross = crossings(CrossingsParams(), mesh, tx, helices, tx_field, rx_field)
     assert len(cross["rx_rx"].curve_a) == 0  # level sets of one function never meet
+
+
+def arc_deviation(tables, tx, u: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Per Tx candidate from the pole's exclusion: the largest difference between ``rho`` and the
+    share of the line's length walked."""
+    deviation = []
+    for c in range(tx.count):
+        rows = tx.curve(c)
+        if row_values(tables, u, tx.faces[rows][:1], tx.bary[rows][:1])[0] > 0.05:
+            continue  # reseeded from a free end, not from the pole
+        step = np.linalg.norm(np.diff(tx.points[rows], axis=0), axis=1)
+        walked = np.r_[0.0, np.cumsum(step)] / step.sum()
+        deviation.append(np.abs(row_values(tables, rho, tx.faces[rows], tx.bary[rows]) - walked).max())
+    return np.asarray(deviation)
+
+
+def test_per_line_climb_is_each_tx_lines_share_of_its_length(family):
+    # The median climb is one function of u for all lines; lines of other lengths (a detour through
+    # the second ear) climb at another rate. The per-line climb follows each line's own length.
+    mesh, regions, tx, tx_field, _, levels, tables = family
+    direction = tx_field.face_direction
+    per_line = arc_deviation(tables, tx, levels.values, helix_function(tables, levels.values, tx, direction, "left", "per_line")[0])
+    median = arc_deviation(tables, tx, levels.values, helix_function(tables, levels.values, tx, direction, "left", "median")[0])
+    assert len(per_line) > 0.5 * tx.count  # most lines start at the pole
+    assert np.percentile(per_line, 90) < 0.1
+    assert np.percentile(per_line, 90) < 0.5 * np.percentile(median, 90)
 
 
 def mean_cos_along(points: np.ndarray, direction: np.ndarray, j: int) -> float:
@@ -107,7 +133,7 @@ def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, min_angle_d
     limit = np.cos(np.radians(min_angle_deg))
     cut = trace_helices(TraceHelicesParams(min_crossing_angle_deg=min_angle_deg), mesh, regions, levels, tx, tx_field)["curves"]
     whole = trace_helices(TraceHelicesParams(min_crossing_angle_deg=0.0), mesh, regions, levels, tx, tx_field)["curves"]
-    rho, _, _ = helix_function(tables, levels.values, tx, tx_field.face_direction, "left")
+    rho, _, _ = helix_function(tables, levels.values, tx, tx_field.face_direction, "left", "median")
     assert cut.count == whole.count
     shortened = 0
     for c in range(cut.count):

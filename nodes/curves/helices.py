@@ -8,9 +8,16 @@ once, and helices of different phases never meet, like the threads of a multi-st
 
 In coordinates: ``theta`` in turns [0, 1) is the angle around the pole, the function that winds
 once around it and is as nearly constant along the Tx lines as it can be (:func:`winding_angle`),
-growing clockwise seen from outside, looking at the pole; ``rho`` in [0, 1] is the radial function
-``u`` of :mod:`.ring_levels` (0 on the pole's exclusion, 1 on the base) re-measured as the median
-distance along the Tx lines (:func:`.ring_levels.tx_arc_profile`). Helix ``k``
+growing clockwise seen from outside, looking at the pole; ``rho`` in [0, 1] climbs from the pole's
+exclusion (0) to the base (1), in one of two ways (``climb``):
+
+* ``"median"``: the radial function ``u`` of :mod:`.ring_levels` re-measured as the median distance
+  along the Tx lines (:func:`.ring_levels.tx_arc_profile`). In a dead end off the pole (a second ear)
+  ``u`` is flat: the Tx lines there are hairpins in and out of it, and the helices run along them;
+* ``"per_line"``: the function that grows along every Tx line at one over that line's own length
+  (:func:`line_climb`), so a hairpin through a dead end climbs there too and the helices cross it.
+
+Helix ``k``
 is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``, ``P = 1 -
 RHO_MIN``, ``s = +1`` for left-handed helices (climbing clockwise seen from the pole) and ``-1`` for
 right-handed ones, inside ``rho >= RHO_MIN``: one turn from the base up to ``RHO_MIN``. Along a line
@@ -71,6 +78,8 @@ class TraceHelicesParams(NodeParams):
     n_helices: int = Field(24, ge=1, description="Rx helix candidates")
     n_reseeded: int = Field(4, ge=0, description="of those, helices through the points farthest from the others (dead ends)")
     winding: Literal["left", "right"] = Field("left", description="handedness: left-handed helices climb clockwise seen from the pole")
+    climb: Literal["median", "per_line"] = Field(
+        "median", description="rho along the Tx lines: the median line's (from the harmonic radial function) or each line's own")
     min_crossing_angle_deg: float = Field(MIN_CROSSING_ANGLE_DEG, ge=0, lt=90,
                                           description="a helix stops where it first runs closer than this to the Tx lines over ALONG_MM (deg)")
 
@@ -101,6 +110,59 @@ def cut_path(tables: MeshTables, u: np.ndarray, region: np.ndarray) -> np.ndarra
     return np.asarray(path[::-1], dtype=np.int64)
 
 
+def between_faces(tables: MeshTables, u: np.ndarray) -> np.ndarray:
+    """``(m,)`` the faces between the pole's exclusion (``u = 0``) and the base (``u = 1``)."""
+    face_u = u[tables.faces]
+    return (face_u.max(axis=1) > 0.0) & (face_u.min(axis=1) < 1.0)
+
+
+def along_energy(tables: MeshTables, idx: np.ndarray, direction: np.ndarray):
+    """(``G`` (3k, n) the gradient of vertex values on the faces ``idx``, ``D`` (3k, 3k) the
+    area-weighted norm ``|direction . g| ^ 2 + ACROSS_WEIGHT |g| ^ 2`` of a gradient ``g`` there),
+    scipy CSR: the energy of :func:`winding_angle` and :func:`line_climb` is ``(G f - t)^T D (G f - t)``."""
+    import scipy.sparse as sp
+
+    k, n = len(idx), len(tables.vertices)
+    grads = tables.bary_gradients[idx]  # (k, 3 corners, 3 xyz)
+    rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+    cols = np.broadcast_to(tables.faces[idx][:, :, None], rows.shape)
+    G = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * k, n))
+    X = direction[idx]
+    blocks = tables.areas[idx][:, None, None] * (X[:, :, None] * X[:, None, :] + ACROSS_WEIGHT * np.eye(3))
+    block_rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+    D = sp.csr_matrix((blocks.ravel(), (block_rows.ravel(), np.swapaxes(block_rows, 1, 2).ravel())), shape=(3 * k, 3 * k))
+    return G, D
+
+
+def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray) -> np.ndarray:
+    """``(n,)`` ``rho`` for ``climb="per_line"``: 0 where ``u`` is 0, 1 where it is 1, and in between
+    the least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``,
+    ``X`` (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
+    candidates through the face (their mean; the nearest face's elsewhere), clipped to [0, 1]."""
+    from scipy.spatial import cKDTree
+    from scipy.sparse.linalg import spsolve
+
+    faces = tables.faces
+    total, count = np.zeros(len(faces)), np.zeros(len(faces))
+    np.add.at(total, tx.faces, np.repeat(1.0 / np.maximum(tx.lengths_mm, 1e-9), np.diff(tx.offsets)))
+    np.add.at(count, tx.faces, 1.0)
+    crossed = count > 0
+    centroids = tables.vertices[faces].mean(axis=1)
+    slope = np.empty(len(faces))
+    slope[crossed] = total[crossed] / count[crossed]
+    slope[~crossed] = slope[crossed][cKDTree(centroids[crossed]).query(centroids[~crossed])[1]]
+    idx = np.flatnonzero(between_faces(tables, u))
+    G, D = along_energy(tables, idx, direction)
+    K = (G.T @ D @ G).tocsr()
+    rho = np.clip(u, 0.0, 1.0)
+    fixed = np.ones(len(u), dtype=bool)
+    fixed[np.unique(faces[idx])] = False
+    fixed |= (u <= 0.0) | (u >= 1.0)
+    rhs = G.T @ (D @ (slope[idx][:, None] * direction[idx]).ravel()) - K[:, fixed] @ rho[fixed]
+    rho[~fixed] = spsolve(K[~fixed][:, ~fixed].tocsc(), rhs[~fixed])
+    return np.clip(rho, 0.0, 1.0)
+
+
 def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """``(n,)`` the angle around the pole in turns [0, 1), constant along the Tx lines as far as it can
     be: on the faces between the pole's exclusion (``u = 0``) and the base (``u = 1``) the function
@@ -112,8 +174,7 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     from scipy.sparse.linalg import spsolve
 
     faces = tables.faces
-    face_u = u[faces]
-    region = (face_u.max(axis=1) > 0.0) & (face_u.min(axis=1) < 1.0)
+    region = between_faces(tables, u)
     path = cut_path(tables, u, region)
     on_path = np.zeros(len(u), dtype=bool)
     on_path[path] = True
@@ -132,16 +193,8 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     left = tables.edge_faces[first, 0] if tables.edges[first, 0] == path[0] else tables.edge_faces[first, 1]
     plus = touching & (label == label[left])  # faces that see the cut's vertices one turn on
     idx = np.flatnonzero(region)
-    k = len(idx)
-    grads = tables.bary_gradients[idx]  # (k, 3 corners, 3 xyz)
-    rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-    cols = np.broadcast_to(faces[idx][:, :, None], rows.shape)
-    G = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * k, n))
-    jump = (grads * (plus[idx][:, None] & on_path[faces[idx]])[:, :, None]).sum(axis=1).ravel()
-    X = direction[idx]
-    blocks = tables.areas[idx][:, None, None] * (X[:, :, None] * X[:, None, :] + ACROSS_WEIGHT * np.eye(3))
-    block_rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
-    D = sp.csr_matrix((blocks.ravel(), (block_rows.ravel(), np.swapaxes(block_rows, 1, 2).ravel())), shape=(3 * k, 3 * k))
+    G, D = along_energy(tables, idx, direction)
+    jump = (tables.bary_gradients[idx] * (plus[idx][:, None] & on_path[faces[idx]])[:, :, None]).sum(axis=1).ravel()
     K = (G.T @ D @ G).tocsr()
     rhs = -(G.T @ (D @ jump))
     free = np.zeros(n, dtype=bool)
@@ -201,11 +254,15 @@ def steep_index(points: np.ndarray, faces: np.ndarray, rho_points: np.ndarray, d
     return int(steep[0]) + 1 if len(steep) else len(points)
 
 
-def helix_function(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray, winding: str) -> tuple[np.ndarray, np.ndarray, float]:
+def helix_function(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray, winding: str,
+                   climb: str) -> tuple[np.ndarray, np.ndarray, float]:
     """(``rho``, ``psi`` per vertex, ``psi``'s period) of the module docstring; ``psi`` is NaN where
     ``theta`` is (:class:`HelixSets` leaves those faces out)."""
-    grid, along = tx_arc_profile(tx, row_values(tables, u, tx.faces, tx.bary))
-    rho = np.interp(u, grid, (along - along[0]) / max(along[-1] - along[0], 1e-12))
+    if climb == "per_line":
+        rho = line_climb(tables, u, tx, direction)
+    else:
+        grid, along = tx_arc_profile(tx, row_values(tables, u, tx.faces, tx.bary))
+        rho = np.interp(u, grid, (along - along[0]) / max(along[-1] - along[0], 1e-12))
     period = 1.0 - RHO_MIN
     theta = winding_angle(tables, u, direction)
     sense = 1.0 if winding == "left" else -1.0
@@ -219,7 +276,7 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
     """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial function."""
     tables = build_tables(mesh.vertices, mesh.faces)
     direction = tx_field.face_direction
-    rho, psi, period = helix_function(tables, levels.values, tx, direction, params.winding)
+    rho, psi, period = helix_function(tables, levels.values, tx, direction, params.winding, params.climb)
     sensing = np.asarray(regions.sensing_faces, dtype=bool) & (rho[tables.faces].min(axis=1) >= RHO_MIN)
     sets = HelixSets(tables, psi, period, sensing)
     n_even = max(params.n_helices - params.n_reseeded, 1)
@@ -238,5 +295,6 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
             continue
         rows.append(polyline_rows(tables, points, faces))
         ends.append(int(CurveEnd.BASE))
-    curves = pack(tables, rows, np.asarray(ends, dtype=np.int8), 0.0 if params.winding == "left" else np.pi, "helices")
+    curves = pack(tables, rows, np.asarray(ends, dtype=np.int8), 0.0 if params.winding == "left" else np.pi,
+                  "helices" if params.climb == "median" else "helices_per_line")
     return {"curves": curves, "stats": packed_stats(curves, params.n_helices)}
