@@ -134,7 +134,7 @@ def main() -> None:
         rows, failures = [], []
         print(
             f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'cells':>6s} {'pads':>5s} "
-            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'Rx family':9s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
+            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -155,7 +155,7 @@ def main() -> None:
                 f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('sensing_percent'), '6.1f')} "
                 f"{fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
                 f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('voronoi_cv_all_crossings'), '6.3f')} "
-                f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {row.get('rx_family') or '-':9s} "
+                f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {row.get('rx_family') or '-':16s} "
                 f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {seconds:7.1f}",
                 flush=True,
             )
