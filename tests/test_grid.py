@@ -5,7 +5,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from curves_fixture import bunny
+from curves_fixture import bunny, load_scaled, regions_for
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
@@ -121,3 +121,22 @@ def test_the_layers_are_the_two_families_and_the_tx_lines_are_them_walked_backwa
             np.testing.assert_allclose(out["tx"].points[out["tx"].curve(c)], source.points[source.curve(c)][::-1], atol=1e-9)
         np.testing.assert_allclose(out["tx"].lengths_mm, source.lengths_mm)
         assert out["tx"].angle == out["rx"].angle == (0.0 if tx == "across" else np.pi / 2)
+
+
+def test_a_strip_narrower_than_a_finger_still_gets_lines_across(tmp_path):
+    # A blade lying flat, 6 mm wide and 1 mm thick: every line across it is about 8 mm long, side to
+    # side over the top. A line that holds one pad is a candidate: 40 of them cross the strip.
+    import trimesh
+
+    path = tmp_path / "strip.ply"
+    trimesh.creation.box(extents=(150.0, 6.0, 1.0)).export(path)
+    mesh = load_scaled(path, diagonal_mm=150.1, target_vertices=4000)
+    regions = regions_for(mesh)
+    params = TraceGridParams()
+    across = trace_grid(params, mesh, regions)["across"]
+    assert params.n_across <= across.count <= params.n_across + params.n_reseeded
+    assert np.median(across.lengths_mm) < 10.0
+    centres = np.array([across.points[across.curve(c)].mean(axis=0) for c in range(across.count)])
+    axis = np.argmax(np.ptp(mesh.vertices, axis=0))
+    spread = np.sort(centres[:, axis])
+    assert spread[-1] - spread[0] > 0.8 * np.ptp(mesh.vertices[:, axis])  # along the whole strip

@@ -41,8 +41,9 @@ from .ring_levels import LevelSets, reseeded_levels
 from .rings import pack
 from .rx_seeding import chain_walks
 
-MIN_LENGTH_MM = 10.0
-"""A level set's piece shorter than this is no candidate (it would carry one pad at most)."""
+MIN_LENGTH_MM = 4.0
+"""A level set's piece shorter than this is no candidate: it cannot hold a pad (2 mm radius by default). A line
+across a strip a little wider than that (a blade lying flat) holds one crossing, which is what covers it."""
 
 
 class TraceGridParams(NodeParams):
