@@ -56,7 +56,7 @@ def trimmed_pipeline(folder: Path) -> Path:
 
 
 def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
-    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one ring corridor,
+    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one ring corridor and climb,
     one helix winding and climb and one grid, plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
     mesh_path = shapes.write_shape(name, tmp_path)
     out = tmp_path / "out"
@@ -65,7 +65,7 @@ def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
         "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
         "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
-        "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
+        "-S", "ring_climbs=[median]", "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
     ]
     for override in overrides:
         command += ["-S", override]

@@ -15,7 +15,7 @@ exclusion (0) to the base (1), in one of two ways (``climb``):
   along the Tx lines (:func:`.ring_levels.tx_arc_profile`). In a dead end off the pole (a second ear)
   ``u`` is flat: the Tx lines there are hairpins in and out of it, and the helices run along them;
 * ``"per_line"``: the function that grows along every Tx line at one over that line's own length
-  (:func:`line_climb`), so a hairpin through a dead end climbs there too and the helices cross it.
+  (:func:`.ring_levels.line_climb`, shared with the rings), so a hairpin through a dead end climbs there too and the helices cross it.
 
 Helix ``k``
 is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``, ``P = 1 -
@@ -45,13 +45,10 @@ from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .connection import DirectionField
-from .ring_levels import RingLevels, reseeded_levels, row_values, tx_arc_profile
+from .ring_levels import RingLevels, along_energy, between_faces, reseeded_levels, row_values, tx_arc_profile
 from .assembly import polyline_rows, reversed_walk
 from .rings import pack, packed_stats
 from .rx_seeding import chain_walks, zero_set
-
-ACROSS_WEIGHT = 0.05
-"""Weight of the angle's change across the Tx lines against along them (:func:`winding_angle`)."""
 
 RHO_MIN = 0.02
 """Where the helices would stop near the pole, as a share of the distance from the pole's exclusion to the base."""
@@ -108,59 +105,6 @@ def cut_path(tables: MeshTables, u: np.ndarray, region: np.ndarray) -> np.ndarra
     while pred[path[-1]] >= 0:
         path.append(int(pred[path[-1]]))
     return np.asarray(path[::-1], dtype=np.int64)
-
-
-def between_faces(tables: MeshTables, u: np.ndarray) -> np.ndarray:
-    """``(m,)`` the faces between the pole's exclusion (``u = 0``) and the base (``u = 1``)."""
-    face_u = u[tables.faces]
-    return (face_u.max(axis=1) > 0.0) & (face_u.min(axis=1) < 1.0)
-
-
-def along_energy(tables: MeshTables, idx: np.ndarray, direction: np.ndarray):
-    """(``G`` (3k, n) the gradient of vertex values on the faces ``idx``, ``D`` (3k, 3k) the
-    area-weighted norm ``|direction . g| ^ 2 + ACROSS_WEIGHT |g| ^ 2`` of a gradient ``g`` there),
-    scipy CSR: the energy of :func:`winding_angle` and :func:`line_climb` is ``(G f - t)^T D (G f - t)``."""
-    import scipy.sparse as sp
-
-    k, n = len(idx), len(tables.vertices)
-    grads = tables.bary_gradients[idx]  # (k, 3 corners, 3 xyz)
-    rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-    cols = np.broadcast_to(tables.faces[idx][:, :, None], rows.shape)
-    G = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * k, n))
-    X = direction[idx]
-    blocks = tables.areas[idx][:, None, None] * (X[:, :, None] * X[:, None, :] + ACROSS_WEIGHT * np.eye(3))
-    block_rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
-    D = sp.csr_matrix((blocks.ravel(), (block_rows.ravel(), np.swapaxes(block_rows, 1, 2).ravel())), shape=(3 * k, 3 * k))
-    return G, D
-
-
-def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray) -> np.ndarray:
-    """``(n,)`` ``rho`` for ``climb="per_line"``: 0 where ``u`` is 0, 1 where it is 1, and in between
-    the least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``,
-    ``X`` (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
-    candidates through the face (their mean; the nearest face's elsewhere), clipped to [0, 1]."""
-    from scipy.spatial import cKDTree
-    from scipy.sparse.linalg import spsolve
-
-    faces = tables.faces
-    total, count = np.zeros(len(faces)), np.zeros(len(faces))
-    np.add.at(total, tx.faces, np.repeat(1.0 / np.maximum(tx.lengths_mm, 1e-9), np.diff(tx.offsets)))
-    np.add.at(count, tx.faces, 1.0)
-    crossed = count > 0
-    centroids = tables.vertices[faces].mean(axis=1)
-    slope = np.empty(len(faces))
-    slope[crossed] = total[crossed] / count[crossed]
-    slope[~crossed] = slope[crossed][cKDTree(centroids[crossed]).query(centroids[~crossed])[1]]
-    idx = np.flatnonzero(between_faces(tables, u))
-    G, D = along_energy(tables, idx, direction)
-    K = (G.T @ D @ G).tocsr()
-    rho = np.clip(u, 0.0, 1.0)
-    fixed = np.ones(len(u), dtype=bool)
-    fixed[np.unique(faces[idx])] = False
-    fixed |= (u <= 0.0) | (u >= 1.0)
-    rhs = G.T @ (D @ (slope[idx][:, None] * direction[idx]).ravel()) - K[:, fixed] @ rho[fixed]
-    rho[~fixed] = spsolve(K[~fixed][:, ~fixed].tocsc(), rhs[~fixed])
-    return np.clip(rho, 0.0, 1.0)
 
 
 def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -254,12 +198,13 @@ def steep_index(points: np.ndarray, faces: np.ndarray, rho_points: np.ndarray, d
     return int(steep[0]) + 1 if len(steep) else len(points)
 
 
-def helix_function(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray, winding: str,
+def helix_function(tables: MeshTables, levels: RingLevels, tx: CurveSet, direction: np.ndarray, winding: str,
                    climb: str) -> tuple[np.ndarray, np.ndarray, float]:
     """(``rho``, ``psi`` per vertex, ``psi``'s period) of the module docstring; ``psi`` is NaN where
     ``theta`` is (:class:`HelixSets` leaves those faces out)."""
+    u = levels.values
     if climb == "per_line":
-        rho = line_climb(tables, u, tx, direction)
+        rho = levels.climb
     else:
         grid, along = tx_arc_profile(tx, row_values(tables, u, tx.faces, tx.bary))
         rho = np.interp(u, grid, (along - along[0]) / max(along[-1] - along[0], 1e-12))
@@ -276,7 +221,7 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
     """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial function."""
     tables = build_tables(mesh.vertices, mesh.faces)
     direction = tx_field.face_direction
-    rho, psi, period = helix_function(tables, levels.values, tx, direction, params.winding, params.climb)
+    rho, psi, period = helix_function(tables, levels, tx, direction, params.winding, params.climb)
     sensing = np.asarray(regions.sensing_faces, dtype=bool) & (rho[tables.faces].min(axis=1) >= RHO_MIN)
     sets = HelixSets(tables, psi, period, sensing)
     n_even = max(params.n_helices - params.n_reseeded, 1)

@@ -1,13 +1,17 @@
 """``curves.ring_levels``: the harmonic radial function around the Tx pole and the levels of the Rx rings.
 
 Shared by every branch of the ring family (``curves.trace_rings`` walks the rings and their legs
-per corridor): ``u`` is 0 on the far exclusion around the Tx pole, 1 on the base and its exclusion,
-harmonic in between (:mod:`retrotouch.nodes.curves.rings` says why its level sets make rings);
-``n_rings - n_reseeded`` levels are spread so that, along the Tx lines (median over the candidates),
+per corridor) and the helices: ``u`` is 0 on the far exclusion around the Tx pole, 1 on the base and
+its exclusion, harmonic in between (:mod:`retrotouch.nodes.curves.rings` says why its level sets
+make rings). The *per-line climb* (:func:`line_climb`) is 0 and 1 where ``u`` is and grows along
+every Tx line at one over that line's own length: where ``u`` is flat in a dead end, the Tx lines
+are hairpins in and out of it, and the climb still grows along them. The branches with
+``climb="per_line"`` take their rings as its level sets and their helices' ``rho`` as the climb.
+For either function, ``n_rings - n_reseeded`` levels are spread so that, along the Tx lines (median over the candidates),
 neighbouring rings are equally far apart from the pole to the base (``level_spacing="area"``: so that
 the bands between them have equal area, fewer rings near the pole, where the Tx lines crowd); the
 others pass through the points farthest from the rings before them, which lie in dead ends (a second
-ear) where ``u`` barely changes and the level set makes a long hairpin. Units: mm.
+ear) where ``u`` barely changes and its level set makes a long hairpin. Units: mm.
 """
 from __future__ import annotations
 
@@ -31,6 +35,9 @@ LEVEL_GRID = 257
 RESEED_POINTS = 20000
 """Most sensing vertices the reseeding's farthest-point search measures (:func:`reseeded_levels`)."""
 
+ACROSS_WEIGHT = 0.05
+"""Weight of a function's change across the Tx lines against along them (:func:`along_energy`)."""
+
 
 class RingLevelsParams(NodeParams):
     n_rings: int = Field(16, ge=1, description="Rx ring candidates, each with its leg in the corridor")
@@ -41,13 +48,20 @@ class RingLevelsParams(NodeParams):
 
 @dataclasses.dataclass(frozen=True)
 class RingLevels:
-    """The radial function and the rings' levels: ``values`` (n_vertices,) ``u`` per vertex, ``levels``
+    """The radial functions and the rings' levels: ``values`` (n_vertices,) ``u`` per vertex, ``levels``
     decreasing (fewer than ``count`` when reseeding runs out of dead ends), ``count`` the rings asked
-    for (at most one per Tx candidate)."""
+    for (at most one per Tx candidate); ``climb`` (n_vertices,) the per-line climb
+    (:func:`line_climb`) and ``climb_levels`` its rings' levels, spread and reseeded the same way."""
 
     values: np.ndarray
     levels: np.ndarray
     count: int
+    climb: np.ndarray
+    climb_levels: np.ndarray
+
+    def function(self, climb: str) -> tuple[np.ndarray, np.ndarray]:
+        """(values per vertex, levels) of the rings of ``climb``: ``"median"`` (``u``) or ``"per_line"``."""
+        return (self.climb, self.climb_levels) if climb == "per_line" else (self.values, self.levels)
 
 
 def row_values(tables: MeshTables, vertex_values: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -147,9 +161,61 @@ def level_distance(u_sets: LevelSets, levels: list[float], points: np.ndarray) -
     return cKDTree(np.vstack(ends)).query(points)[0]
 
 
+def between_faces(tables: MeshTables, u: np.ndarray) -> np.ndarray:
+    """``(m,)`` the faces between the pole's exclusion (``u = 0``) and the base (``u = 1``)."""
+    face_u = u[tables.faces]
+    return (face_u.max(axis=1) > 0.0) & (face_u.min(axis=1) < 1.0)
+
+
+def along_energy(tables: MeshTables, idx: np.ndarray, direction: np.ndarray):
+    """(``G`` (3k, n) the gradient of vertex values on the faces ``idx``, ``D`` (3k, 3k) the
+    area-weighted norm ``|direction . g| ^ 2 + ACROSS_WEIGHT |g| ^ 2`` of a gradient ``g`` there),
+    scipy CSR: the energy of :func:`line_climb` and :func:`.helices.winding_angle` is ``(G f - t)^T D (G f - t)``."""
+    import scipy.sparse as sp
+
+    k, n = len(idx), len(tables.vertices)
+    grads = tables.bary_gradients[idx]  # (k, 3 corners, 3 xyz)
+    rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+    cols = np.broadcast_to(tables.faces[idx][:, :, None], rows.shape)
+    G = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * k, n))
+    X = direction[idx]
+    blocks = tables.areas[idx][:, None, None] * (X[:, :, None] * X[:, None, :] + ACROSS_WEIGHT * np.eye(3))
+    block_rows = (3 * np.arange(k)[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+    D = sp.csr_matrix((blocks.ravel(), (block_rows.ravel(), np.swapaxes(block_rows, 1, 2).ravel())), shape=(3 * k, 3 * k))
+    return G, D
+
+
+def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray) -> np.ndarray:
+    """``(n,)`` the per-line climb: 0 where ``u`` is 0, 1 where it is 1, and in between the least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``,
+    ``X`` (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
+    candidates through the face (their mean; the nearest face's elsewhere), clipped to [0, 1]."""
+    from scipy.spatial import cKDTree
+    from scipy.sparse.linalg import spsolve
+
+    faces = tables.faces
+    total, count = np.zeros(len(faces)), np.zeros(len(faces))
+    np.add.at(total, tx.faces, np.repeat(1.0 / np.maximum(tx.lengths_mm, 1e-9), np.diff(tx.offsets)))
+    np.add.at(count, tx.faces, 1.0)
+    crossed = count > 0
+    centroids = tables.vertices[faces].mean(axis=1)
+    slope = np.empty(len(faces))
+    slope[crossed] = total[crossed] / count[crossed]
+    slope[~crossed] = slope[crossed][cKDTree(centroids[crossed]).query(centroids[~crossed])[1]]
+    idx = np.flatnonzero(between_faces(tables, u))
+    G, D = along_energy(tables, idx, direction)
+    K = (G.T @ D @ G).tocsr()
+    rho = np.clip(u, 0.0, 1.0)
+    fixed = np.ones(len(u), dtype=bool)
+    fixed[np.unique(faces[idx])] = False
+    fixed |= (u <= 0.0) | (u >= 1.0)
+    rhs = G.T @ (D @ (slope[idx][:, None] * direction[idx]).ravel()) - K[:, fixed] @ rho[fixed]
+    rho[~fixed] = spsolve(K[~fixed][:, ~fixed].tocsc(), rhs[~fixed])
+    return np.clip(rho, 0.0, 1.0)
+
+
 @node("curves.ring_levels", params=RingLevelsParams, inputs=("mesh", "regions", "field", "tx"), outputs=("levels",))
 def ring_levels(params: RingLevelsParams, mesh: Mesh, regions, field: DirectionField, tx: CurveSet) -> RingLevels:
-    """The radial function from the Tx pole and the rings' levels (see the module docstring)."""
+    """The radial functions from the Tx pole and the rings' levels (see the module docstring)."""
     if field.layer != "tx":
         raise UserError(f"curves.ring_levels needs the tx field (distance from the Tx pole), got the {field.layer} field")
     tables = build_tables(mesh.vertices, mesh.faces)
@@ -157,8 +223,12 @@ def ring_levels(params: RingLevelsParams, mesh: Mesh, regions, field: DirectionF
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
     n = min(params.n_rings, tx.count)
     n_even = max(n - params.n_reseeded, 1)
-    if params.level_spacing == "tx_arc":
-        even = tx_arc_levels(tx, row_values(tables, u, tx.faces, tx.bary), n_even)
-    else:
-        even = area_levels(tables, u, sensing, n_even)
-    return RingLevels(u, reseeded_levels(LevelSets(tables, u, sensing), even, n - n_even), n)
+    climb = line_climb(tables, u, tx, field.face_direction)
+    spread = []
+    for values in (u, climb):
+        if params.level_spacing == "tx_arc":
+            even = tx_arc_levels(tx, row_values(tables, values, tx.faces, tx.bary), n_even)
+        else:
+            even = area_levels(tables, values, sensing, n_even)
+        spread.append(reseeded_levels(LevelSets(tables, values, sensing), even, n - n_even))
+    return RingLevels(u, spread[0], n, climb, spread[1])

@@ -40,6 +40,12 @@ choose among the rings whose legs come too close), but they take no room beside 
 base at the end of a thin limb, where every Tx line runs down the limb, the side-by-side corridor
 leaves the Tx lines no room.
 
+With ``climb="per_line"`` (families ``rings_per_line``, ``rings_tx_per_line``) the rings are level
+sets of the per-line climb of ``curves.ring_levels`` instead of ``u``: it grows along every Tx line,
+hairpins through a dead end included, so a ring detours through a second ear or a limb where a level
+set of ``u`` stays out of it. It is a least-squares fit, not harmonic: nothing rules out a critical
+point, and a ring then follows the piece of its level set that its leg meets.
+
 ``angle`` of the CurveSet is the corridor position ``2 pi corridor_turn`` (rad), which names the
 branch. Units: mm, radians.
 """
@@ -70,6 +76,8 @@ class TraceRingsParams(NodeParams):
     leg_spacing_mm: float = Field(LEG_SPACING_MM, gt=0, description="offset legs: distance between neighbouring legs (mm)")
     trace_width_mm: float = Field(1.0, gt=0, description="trace width (mm), for where a ring stops")
     clearance_mm: float = Field(1.0, ge=0, description="edge-to-edge clearance (mm), for where a ring stops")
+    climb: Literal["median", "per_line"] = Field(
+        "median", description="rings as level sets of the harmonic radial function, or of the per-line climb (into dead ends)")
 
 
 def ring_walk(level_faces, p, q, start_face: int, start_point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,13 +140,13 @@ def spine(tx: CurveSet, u_rows: np.ndarray, turn: float, levels: np.ndarray) -> 
 
 def ring_curves(params: TraceRingsParams, tables: MeshTables, regions, levels: RingLevels, tx: CurveSet):
     """(rows per candidate as (faces, bary) arrays, end reasons, the levels of the rings) of the family."""
-    u, sensing = levels.values, np.asarray(regions.sensing_faces, dtype=bool)
+    (u, at_levels), sensing = levels.function(params.climb), np.asarray(regions.sensing_faces, dtype=bool)
     u_rows = row_values(tables, u, tx.faces, tx.bary)
     u_sets = LevelSets(tables, u, sensing)
     if params.legs == "offset":
-        legs = offset_legs(params, u_sets, tx, u_rows, levels.levels)
+        legs = offset_legs(params, u_sets, tx, u_rows, at_levels)
     else:
-        legs = tx_line_legs(params, u_sets, tx, u_rows, levels.levels, levels.count)
+        legs = tx_line_legs(params, u_sets, tx, u_rows, at_levels, levels.count)
     all_legs = np.concatenate([resample_polyline(leg[0], 0.25) for leg in legs]) if legs else np.empty((0, 3))
     rows, ends, kept = [], [], []
     for leg_points, leg_faces, ring_points, ring_faces, level, end in legs:
@@ -285,5 +293,6 @@ def trace_rings(params: TraceRingsParams, mesh: Mesh, regions, levels: RingLevel
     tables = build_tables(mesh.vertices, mesh.faces)
     rows, ends, _ = ring_curves(params, tables, regions, levels, tx)
     angle = 2.0 * np.pi * params.corridor_turn
-    curves = pack(tables, rows, ends, angle, "rings" if params.legs == "offset" else "rings_tx")
+    family = ("rings" if params.legs == "offset" else "rings_tx") + ("_per_line" if params.climb == "per_line" else "")
+    curves = pack(tables, rows, ends, angle, family)
     return {"curves": curves, "stats": packed_stats(curves, levels.count)}
