@@ -15,10 +15,10 @@ exclusion (0) to the base (1), in one of two ways (``climb``):
   along the Tx lines (:func:`.ring_levels.tx_arc_profile`). In a dead end off the pole (a second ear)
   ``u`` is flat: the Tx lines there are hairpins in and out of it, and the helices run along them;
 * ``"per_line"``: the function that grows along every Tx line at one over that line's own length
-  (:func:`.ring_levels.line_climb`, shared with the rings), so a hairpin through a dead end climbs there too and the helices cross it.
+  (:func:`.ring_levels.line_climb`, shared with the rings), so a hairpin through a dead end climbs
+  there too and the helices cross it.
 
-Helix ``k``
-is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``, ``P = 1 -
+Helix ``k`` is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``, ``P = 1 -
 RHO_MIN``, ``s = +1`` for left-handed helices (climbing clockwise seen from the pole) and ``-1`` for
 right-handed ones, inside ``rho >= RHO_MIN``: one turn from the base up to ``RHO_MIN``. Along a line
 of constant ``theta`` the helices' levels follow each other every ``P / n`` of ``rho``, so each Tx
