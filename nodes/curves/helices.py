@@ -18,9 +18,9 @@ exclusion (0) to the base (1), in one of two ways (``climb``):
   (:func:`.ring_levels.line_climb`, shared with the rings), so a hairpin through a dead end climbs
   there too and the helices cross it.
 
-Helix ``k`` is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``, ``P = 1 -
-RHO_MIN``, ``s = +1`` for left-handed helices (climbing clockwise seen from the pole) and ``-1`` for
-right-handed ones, inside ``rho >= RHO_MIN``: one turn from the base up to ``RHO_MIN``. Along a line
+Helix ``k`` is the level set ``psi = c_k`` of the circle-valued ``psi = (rho + s P theta) mod P``,
+``P = 1 - RHO_MIN``, ``s = +1`` for left-handed helices (climbing clockwise seen from the pole) and
+``-1`` for right-handed ones, inside ``rho >= RHO_MIN``: one turn from the base up to ``RHO_MIN``. Along a line
 of constant ``theta`` the helices' levels follow each other every ``P / n`` of ``rho``, so each Tx
 line crosses all of them at heights that shift from one Tx line to the next (a sheared grid).
 ``grad rho`` and ``grad theta`` are nearly orthogonal and non-zero, so ``psi`` has no critical point
@@ -218,7 +218,7 @@ def helix_function(tables: MeshTables, levels: RingLevels, tx: CurveSet, directi
 @node("curves.trace_helices", params=TraceHelicesParams, inputs=("mesh", "regions", "levels", "tx", "tx_field"), outputs=("curves", "stats"))
 def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingLevels, tx: CurveSet,
                   tx_field: DirectionField) -> dict[str, object]:
-    """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial function."""
+    """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial functions."""
     tables = build_tables(mesh.vertices, mesh.faces)
     direction = tx_field.face_direction
     rho, psi, period = helix_function(tables, levels, tx, direction, params.winding, params.climb)

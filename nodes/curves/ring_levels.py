@@ -7,11 +7,12 @@ make rings). The *per-line climb* (:func:`line_climb`) is 0 and 1 where ``u`` is
 every Tx line at one over that line's own length: where ``u`` is flat in a dead end, the Tx lines
 are hairpins in and out of it, and the climb still grows along them. The branches with
 ``climb="per_line"`` take their rings as its level sets and their helices' ``rho`` as the climb.
-For either function, ``n_rings - n_reseeded`` levels are spread so that, along the Tx lines (median over the candidates),
-neighbouring rings are equally far apart from the pole to the base (``level_spacing="area"``: so that
-the bands between them have equal area, fewer rings near the pole, where the Tx lines crowd); the
-others pass through the points farthest from the rings before them, which lie in dead ends (a second
-ear) where ``u`` barely changes and its level set makes a long hairpin. Units: mm.
+For either function, ``n_rings - n_reseeded`` levels are spread so that, along the Tx lines (median
+over the candidates), neighbouring rings are equally far apart from the pole to the base
+(``level_spacing="area"``: so that the bands between them have equal area, fewer rings near the
+pole, where the Tx lines crowd); the others pass through the points farthest from the rings before
+them, which lie in dead ends (a second ear) where ``u`` barely changes and its level set makes a
+long hairpin. Units: mm.
 """
 from __future__ import annotations
 
@@ -186,8 +187,9 @@ def along_energy(tables: MeshTables, idx: np.ndarray, direction: np.ndarray):
 
 
 def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.ndarray) -> np.ndarray:
-    """``(n,)`` the per-line climb: 0 where ``u`` is 0, 1 where it is 1, and in between the least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``,
-    ``X`` (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
+    """``(n,)`` the per-line climb ``rho``: 0 where ``u`` is 0, 1 where it is 1, and in between the
+    least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``, ``X``
+    (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
     candidates through the face (their mean; the nearest face's elsewhere), clipped to [0, 1]."""
     from scipy.spatial import cKDTree
     from scipy.sparse.linalg import spsolve

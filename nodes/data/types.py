@@ -54,7 +54,9 @@ class CurveSet:
     lengths_mm: np.ndarray  # (C,) float64, polyline length in mm
     end_reason: np.ndarray  # (C,) int8, CurveEnd codes
     angle: float  # Rx initial angular offset (dipole), corridor position (rings), 0 / pi winding left / right (helices), in radians; 0.0 for Tx
-    family: str = "field"  # "field" (Tx lines), "dipole" (Rx dipole loops), "rings" / "rings_tx" (Rx rings, legs side by side / on Tx lines; "_per_line" on the per-line climb), "helices" / "helices_per_line"
+    # "field" (Tx lines), "dipole" (Rx dipole loops), "rings" / "rings_tx" (Rx rings, legs side by side / on Tx lines),
+    # "helices", "grid"; rings and helices on the per-line climb add "_per_line"
+    family: str = "field"
 
     @property
     def count(self) -> int:
