@@ -1,6 +1,7 @@
-"""Sensing on the REAL default layout (``retrotouch run pipelines/retrofit.yaml``: on the bunny the
-rings around the Tx pole, 136 crossings, dense near the pole and sparser by the base), end to end through the pseudo-terminal: the issue's localization bar,
-no false touches, and scripted gestures recognised."""
+"""Sensing on the REAL default layout (``retrotouch run pipelines/retrofit.yaml``: on the bunny
+helices around the Tx pole, about 190 crossings, dense near the pole and sparser by the base), end
+to end through the pseudo-terminal: the issue's localization bar, no false touches, and scripted
+gestures recognised."""
 from __future__ import annotations
 
 import numpy as np
@@ -34,17 +35,23 @@ def test_localization_on_the_default_layout_through_the_pty_at_snr_60(layout):
 
 
 def test_a_board_whose_coupling_is_not_gaussian_is_localized_once_learned(layout):
-    """Disc coupling (flat top, power-law tail; BoardParams.coupling_model): with the coupling
-    profile learned the protocol stays within the issue's bar; held to its Gaussian start the
-    processing is biased (measured 0.86 vs 1.44 mm mean; 2.1 mm with a learned Gaussian width)."""
-    board = BoardParams(snr=60, coupling_model="disc")
-    surrounded = EvalParams(location_rule="surrounded")
-    learned = evaluate_simulator(layout, board, surrounded, through_pty=False).summary()
-    held = evaluate_simulator(layout, board, surrounded, ProcessingParams(adapt_coupling=False),
-                              through_pty=False).summary()
-    assert learned["missed_presses"] == 0 and learned["false_touches_at_rest"] == 0
-    assert learned["localization_error_mm_mean"] < 1.5
-    assert held["localization_error_mm_mean"] > 1.5 * learned["localization_error_mm_mean"]
+    """Disc coupling (flat top, power-law tail; BoardParams.coupling_model), board seeds 0-3: with
+    the coupling profile learned the protocol stays within the issue's bar on every seed, and
+    learning costs no accuracy on average. What it gains depends on the layout: held to its Gaussian
+    start, the mean error was 1.43-1.91 times the learned one on the previous default layout
+    (helices climbing as the median Tx line does), 0.94-1.45 times (1.21 pooled) on the per-line
+    helices' layout."""
+    learned, held = [], []
+    for seed in range(4):
+        board = BoardParams(snr=60, coupling_model="disc", seed=seed)
+        surrounded = EvalParams(location_rule="surrounded", seed=seed)
+        report = evaluate_simulator(layout, board, surrounded, through_pty=False).summary()
+        assert report["missed_presses"] == 0 and report["false_touches_at_rest"] == 0
+        assert report["localization_error_mm_mean"] < 1.5
+        learned.append(report["localization_error_mm_mean"])
+        held.append(evaluate_simulator(layout, board, surrounded, ProcessingParams(adapt_coupling=False),
+                                       through_pty=False).summary()["localization_error_mm_mean"])
+    assert np.mean(held) > np.mean(learned)
 
 
 def test_locations_in_gaps_of_the_default_layout_are_scored_too(layout):

@@ -36,6 +36,9 @@ LEVEL_GRID = 257
 RESEED_POINTS = 20000
 """Most sensing vertices the reseeding's farthest-point search measures (:func:`reseeded_levels`)."""
 
+POLE_START = 0.05
+"""A Tx candidate whose first point has ``u`` at most this starts at the pole's exclusion (:func:`line_climb`)."""
+
 ACROSS_WEIGHT = 0.05
 """Weight of a function's change across the Tx lines against along them (:func:`along_energy`)."""
 
@@ -190,14 +193,17 @@ def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.nd
     """``(n,)`` the per-line climb ``rho``: 0 where ``u`` is 0, 1 where it is 1, and in between the
     least energy ``sum area ((X . grad rho - g) ^ 2 + ACROSS_WEIGHT |grad rho - g X| ^ 2)``, ``X``
     (m, 3) the Tx lines' unit direction per face and ``g`` (1/mm) one over the length of the Tx
-    candidates through the face (their mean; the nearest face's elsewhere), clipped to [0, 1]."""
+    candidates through the face that start at the pole's exclusion (their mean; the nearest such
+    face's elsewhere: a line reseeded from a free end climbs only part of the way), clipped to [0, 1]."""
     from scipy.spatial import cKDTree
     from scipy.sparse.linalg import spsolve
 
     faces = tables.faces
     total, count = np.zeros(len(faces)), np.zeros(len(faces))
-    np.add.at(total, tx.faces, np.repeat(1.0 / np.maximum(tx.lengths_mm, 1e-9), np.diff(tx.offsets)))
-    np.add.at(count, tx.faces, 1.0)
+    starts = tx.offsets[:-1]
+    whole = np.repeat(row_values(tables, u, tx.faces[starts], tx.bary[starts]) <= POLE_START, np.diff(tx.offsets))
+    np.add.at(total, tx.faces[whole], np.repeat(1.0 / np.maximum(tx.lengths_mm, 1e-9), np.diff(tx.offsets))[whole])
+    np.add.at(count, tx.faces[whole], 1.0)
     crossed = count > 0
     centroids = tables.vertices[faces].mean(axis=1)
     slope = np.empty(len(faces))
