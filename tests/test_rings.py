@@ -233,7 +233,7 @@ def test_per_line_rings_are_legs_then_rings_of_the_climb_and_come_nearer_everywh
     # Rings of the per-line climb follow each Tx line's share of its length, so they go where the
     # harmonic rings leave gaps (the second ear, the hairpins of the Tx lines there). Over 11 remeshes
     # (unperturbed and RETROTOUCH_TEST_JITTER=1e-6:1..10), p95 distance of the sensing vertices from
-    # the rings: 6.3-8.6 mm (harmonic) against 5.8-6.9 mm (per line), lower by 0.5-1.7 mm on every one.
+    # the rings: 6.3-8.6 mm (harmonic) against 5.7-7.1 mm (per line), lower by 0.5-2.0 mm on every one.
     from scipy.spatial import cKDTree
 
     mesh, tx, tx_field, rx_field, _, _, _, _ = families
@@ -251,4 +251,4 @@ def test_per_line_rings_are_legs_then_rings_of_the_climb_and_come_nearer_everywh
             assert rows[0] == pytest.approx(1.0) and rows.min() >= rows[-1] - 1e-3  # wired on the base, never past its ring
         assert len(crossings(CrossingsParams(), mesh, tx, rings, tx_field, rx_field)["rx_rx"].curve_a) == 0
         p95[climb] = np.percentile(cKDTree(rings.points).query(sensing)[0], 95)
-    assert p95["per_line"] < p95["median"] and p95["per_line"] < 7.5
+    assert p95["per_line"] < p95["median"] and p95["per_line"] < 8.0
