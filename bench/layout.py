@@ -1,14 +1,15 @@
-"""Layout benchmark: the 15-branch sweep of both optimisation phases on a ~20k-vertex mesh.
+"""Layout benchmark: the 25-branch sweep of both optimisation phases on a ~20k-vertex mesh.
 
 Preparation (untimed for the sweep): ``mesh.load`` -> ``mesh.repair`` -> ``mesh.scale`` (170 mm
 diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``curves.connection``
 (both layers) -> ``curves.trace_tx`` -> the default pipeline's branches: per angle -40..40 step 20
-``curves.trace_rx``, per corridor position 0, 0.25, 0.5, 0.75 and kind of legs ``curves.trace_rings``
-and per winding sense ``curves.trace_helices``, each with ``curves.crossings`` (``--family dipole``,
-``rings`` or ``helices``: one family only), all called as plain functions.
+``curves.trace_rx``, per corridor position 0, 0.25, 0.5, 0.75, kind of legs and climb
+``curves.trace_rings`` and per winding sense and climb ``curves.trace_helices`` (all but the grid,
+which has Tx lines of its own), each with ``curves.crossings`` (``--family dipole``, ``rings`` or
+``helices``: one family only), all called as plain functions.
 
 Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
-fields, shared by all branches) + ``layout.coverage`` for the 15 branches on ``--jobs`` processes
+fields, shared by all branches) + ``layout.coverage`` for the 25 branches on ``--jobs`` processes
 (joblib/loky; each process factorises the heat operators once) + ``layout.screen`` (default
 parameters; ``--no-screen`` finishes every branch) + ``layout.finish`` the same way +
 ``layout.pick_best``; ``branches_finished`` says how many the screen kept. The sweep is
@@ -72,6 +73,7 @@ ANGLES = tuple(range(-40, 41, 20))
 CORRIDOR_TURNS = (0.0, 0.25, 0.5, 0.75)
 RING_LEGS = ("offset", "tx_lines")
 WINDINGS = ("left", "right")
+CLIMBS = ("median", "per_line")
 
 
 def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "all"):
@@ -88,10 +90,11 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "a
         families += [trace_rx(TraceRxParams(angle_deg=a), mesh, regions, rx_field)["curves"] for a in ANGLES]
     levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx) if family != "dipole" else None
     if family in ("rings", "all"):
-        families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs), mesh, regions, levels, tx)["curves"]
-                     for t in CORRIDOR_TURNS for legs in RING_LEGS]
+        families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs, climb=climb), mesh, regions, levels, tx)["curves"]
+                     for t in CORRIDOR_TURNS for legs in RING_LEGS for climb in CLIMBS]
     if family in ("helices", "all"):
-        families += [trace_helices(TraceHelicesParams(winding=w), mesh, regions, levels, tx, tx_field)["curves"] for w in WINDINGS]
+        families += [trace_helices(TraceHelicesParams(winding=w, climb=climb), mesh, regions, levels, tx, tx_field)["curves"]
+                     for w in WINDINGS for climb in CLIMBS]
     branches = []
     for rx in families:
         cross = crossings(CrossingsParams(), mesh, tx, rx, tx_field, rx_field)
@@ -145,17 +148,19 @@ def solver_comparison(mesh, regions, tx, branches, jobs: int, solvers: tuple[str
                                for b in branches)
     stats = lambda values: {"median": float(np.median(values)), "worst": float(np.max(values))}  # noqa: E731
     seconds, gaps, same = {}, {}, {}
+    names = max((tuple(st["stage"] for st in r[solvers[0]]["stages"]) for r in runs), key=len)
+    # a branch without a feasible radius stage has no power stage: each stage's figures are over the branches that ran it
+    ran = [[r for r in runs if all(len(r[s]["stage_seconds"]) > i and len(r[s]["stages"]) > i for s in solvers)] for i in range(len(names))]
     for solver in solvers:
-        names = [st["stage"] for st in runs[0][solver]["stages"]]
         seconds[solver] = {"phase1_total": round(sum(r[solver]["seconds"] for r in runs), 2)}
         gaps[solver] = {}
         for i, name in enumerate(names):
-            seconds[solver][name] = {k: round(v, 2) for k, v in stats([r[solver]["stage_seconds"][i] for r in runs]).items()}
-            gaps[solver][name] = {"gap": stats([r[solver]["stages"][i]["gap"] for r in runs]),
-                                  "global_gap": stats([r[solver]["stages"][i]["global_gap"] for r in runs]),
-                                  "statuses": sorted({r[solver]["stages"][i]["status"] for r in runs})}
-    for i, name in enumerate(st["stage"] for st in runs[0][solvers[0]]["stages"]):
-        objectives = [[r[s]["stages"][i]["objective"] for s in solvers] for r in runs]
+            seconds[solver][name] = {k: round(v, 2) for k, v in stats([r[solver]["stage_seconds"][i] for r in ran[i]]).items()}
+            gaps[solver][name] = {"gap": stats([r[solver]["stages"][i]["gap"] for r in ran[i]]),
+                                  "global_gap": stats([r[solver]["stages"][i]["global_gap"] for r in ran[i]]),
+                                  "statuses": sorted({r[solver]["stages"][i]["status"] for r in ran[i]})}
+    for i, name in enumerate(names):
+        objectives = [[r[s]["stages"][i]["objective"] for s in solvers] for r in ran[i]]
         same[name] = sum(1 for o in objectives if max(o) - min(o) <= 1e-9 * max(abs(o[0]), 1.0))
     print(f"phase 1 per branch ({len(runs)} branches), seconds / objective / bound / gap per stage")
     for b, r in zip(branches, runs):
