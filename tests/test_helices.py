@@ -9,7 +9,7 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.curves.helices import (ALONG_MM, BASE_RHO, MIN_CROSSING_ANGLE_DEG, TraceHelicesParams, cut_path,
                                              helix_function, trace_helices, winding_angle)
-from retrotouch.nodes.curves.ring_levels import LevelSets, RingLevelsParams, ring_levels, row_values
+from retrotouch.nodes.curves.ring_levels import POLE_START, LevelSets, RingLevelsParams, ring_levels, row_values
 from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.geometry.mesh_tables import build_tables
@@ -92,7 +92,7 @@ def arc_deviation(tables, tx, u: np.ndarray, rho: np.ndarray) -> np.ndarray:
     deviation = []
     for c in range(tx.count):
         rows = tx.curve(c)
-        if row_values(tables, u, tx.faces[rows][:1], tx.bary[rows][:1])[0] > 0.05:
+        if row_values(tables, u, tx.faces[rows][:1], tx.bary[rows][:1])[0] > POLE_START:
             continue  # reseeded from a free end, not from the pole
         step = np.linalg.norm(np.diff(tx.points[rows], axis=0), axis=1)
         walked = np.r_[0.0, np.cumsum(step)] / step.sum()
