@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from retrotouch.nodes.sensing.coupling_profile import CouplingProfile, ProfileLearner
+from retrotouch.nodes.sensing.coupling_profile import CouplingProfile, ProfileLearner, student_profile
 from retrotouch.nodes.sensing.virtual_board import disc_coupling_profile
 
 WIDTH = 6.3  # mm, the default layout's nominal coupling width
@@ -17,6 +17,18 @@ def test_gaussian_start_is_the_gaussian_everywhere():
     assert np.allclose(profile.at_distance(d), np.exp(-d**2 / (2 * WIDTH**2)), rtol=1e-9, atol=0)
     assert profile.reach == pytest.approx(5 * WIDTH)
     assert profile.half_maximum_mm() == pytest.approx(WIDTH * np.sqrt(2 * np.log(2)), rel=1e-9)
+
+
+def test_student_start_matches_its_formula_on_the_knots_and_tends_to_the_gaussian():
+    """The calibration's profile family: exact on the knots, log-linear in d^2 between them (within
+    1 % of K(0) for a heavy tail), and the Gaussian of the same width as the tail grows."""
+    heavy = CouplingProfile.student(WIDTH, 2.0)
+    assert np.allclose(heavy.values, student_profile(heavy.distances**2, WIDTH, 2.0), rtol=1e-12)
+    d = np.linspace(0, 5 * WIDTH, 400)
+    assert np.max(np.abs(heavy.at_distance(d) - student_profile(d**2, WIDTH, 2.0))) < 0.01
+    assert heavy.at_distance(3 * WIDTH) > 5 * np.exp(-4.5)  # a heavier tail than the Gaussian's
+    light = CouplingProfile.student(WIDTH, 1e7)
+    assert np.allclose(light.at_distance(d), np.exp(-d**2 / (2 * WIDTH**2)), atol=1e-5)
 
 
 def test_slope_is_the_derivative_in_squared_distance():

@@ -75,6 +75,26 @@ def test_the_session_prompts_every_crossing_and_measures_the_boards_gains(bunny,
     assert calibration.finger_radius_mm > 4.5
 
 
+def test_the_calibrated_processing_keeps_the_boards_coupling_profile_as_measured(bunny, calibrated):
+    """The board's finger couples by a flat-topped, heavy-tailed disc profile; the calibration's fit
+    (width and tail) follows it out to three half-maxima better than the Gaussian of the same
+    half-maximum, and the processing it builds starts from that profile and does not relearn it."""
+    _, sensing_map = bunny
+    calibration, _, _ = calibrated
+    board = VirtualBoard(sensing_map, REALISTIC_BOARD)  # the truth, read only to check the estimate
+    truth_d, truth_k = board.disc_profile
+    half = float(np.interp(-0.5, -truth_k, truth_d))
+    d = np.linspace(0.0, 3.0 * half, 200)
+    truth = np.interp(d, truth_d, truth_k)
+    processor = calibration.processor(sensing_map)
+    fitted = processor.fit.profile.at_distance(d)
+    gaussian = np.exp(-np.log(2.0) * (d / half) ** 2)
+    assert calibration.coupling_tail is not None and not processor.params.adapt_coupling
+    assert processor.fit.coupling_sigma == calibration.coupling_sigma_mm
+    assert np.max(np.abs(fitted - truth)) < 0.05
+    assert np.max(np.abs(fitted - truth)) < 0.5 * np.max(np.abs(gaussian - truth))
+
+
 def test_calibration_improves_localization_on_the_mismatched_board(bunny, calibrated):
     path, _ = bunny
     calibration, _, _ = calibrated
@@ -96,6 +116,7 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     assert json.loads(path.read_text())["format"] == "retrotouch.sensing_calibration/1"
     assert np.allclose(loaded.cell_gain, calibration.cell_gain, atol=1e-5) and loaded.layout == calibration.layout
     assert np.allclose(loaded.cell_points, calibration.cell_points, atol=1e-4)
+    assert loaded.coupling_tail == pytest.approx(calibration.coupling_tail, rel=1e-3)
     assert loaded.summary()["crossings_moved_mm_median"] == calibration.summary()["crossings_moved_mm_median"]
     loaded.processor(sensing_map)
     other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))

@@ -8,9 +8,9 @@ touches estimates what the processing otherwise assumes:
 * **the no-pad gain**: the median gain of the crossings without a pad (for crossings not measured);
 * **the finger coupling width** ``s``: from each touch, the gain-normalised delta of crossings
   ``0.5..2.5`` pitches away relative to the touched one's, ``r = K(d)``, gives
-  ``s = d / sqrt(-2 ln r)`` for a Gaussian ``K``; the median over all pairs is the width the
-  processing starts from (it learns the profile's shape from touches afterwards), and the finger
-  radius follows from ``s = sqrt(r_f^2 + (pitch/2)^2)``.
+  ``s = d / sqrt(-2 ln r)`` for a Gaussian ``K``; the median over all pairs gives the finger
+  radius by ``s = sqrt(r_f^2 + (pitch/2)^2)``, and without ``locate_crossings`` it is the width the
+  processing starts from (a Gaussian whose width and shape it learns further from touches).
 
 The operator touches the crossings as they are on the object (where the traces cross), never the
 evaluation's locations. A touch that stays down for ``min_frames`` frames after ``settle_ms`` counts,
@@ -23,7 +23,10 @@ processing can put a touch on a crossing 10 mm off).
 
 * **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
   crossing's position on the surface, with its gain and the coupling profile, to all touches; the
-  processing then uses these points instead of the map's (the gains stay the ratios above).
+  processing then uses these points instead of the map's (the gains stay the ratios above), and
+  that fitted profile (width and tail, :func:`.coupling_profile.student_profile`) as its coupling,
+  kept as measured (no online width or shape learning: the calibration fits it to every touch at
+  known crossings, the online learning to touches whose positions it estimates itself).
 
 The result is a versioned JSON file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by
 ``sense --calibration FILE``.
@@ -77,12 +80,13 @@ class Calibration:
     cell_gain: np.ndarray  # (K,)
     measured: np.ndarray  # (K,) bool, crossings whose gain was measured (the others: pad ? 1 : no_pad_gain)
     no_pad_gain: float
-    coupling_sigma_mm: float
+    coupling_sigma_mm: float  # the profile's width
     finger_radius_mm: float
     touches: int
     layout: str  # layout_key of the sensing map
     cell_points: np.ndarray | None = None  # (K, 3) mm, where the crossings really are (None: the map's)
     map_points: np.ndarray | None = None  # (K, 3) mm, the map's crossings (to report how far they moved)
+    coupling_tail: float | None = None  # the profile's tail (None: a Gaussian, learned further online)
 
     def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
         """A touch processor that uses this calibration instead of the default assumptions."""
@@ -90,7 +94,9 @@ class Calibration:
             raise UserError(f"the calibration was made for another layout than {sensing_map.source}: "
                             "run `retrotouch sense --calibrate` on this layout")
         tuned = params.model_copy(update={"no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
-                                          "finger_radius_mm": self.finger_radius_mm})
+                                          "finger_radius_mm": self.finger_radius_mm, "coupling_tail": self.coupling_tail})
+        if self.coupling_tail is not None:
+            tuned = tuned.model_copy(update={"adapt_coupling": False})
         if self.cell_points is not None:
             sensing_map = relocated_map(sensing_map, self.cell_points)
         return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
@@ -103,6 +109,7 @@ class Calibration:
                 "crossings_moved_mm_median": None if moved is None else round(float(np.median(moved)), 3),
                 "crossings_moved_mm_max": None if moved is None else round(float(np.max(moved)), 3),
                 "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
+                "coupling_tail": None if self.coupling_tail is None else round(self.coupling_tail, 4),
                 "finger_radius_mm": round(self.finger_radius_mm, 3),
                 "cell_gain_spread": round(float(np.std(np.log(gains))), 4) if len(gains) > 1 else None}
 
@@ -132,8 +139,12 @@ def load_calibration(path: str | Path) -> Calibration:
                               for key in ("cell_points", "map_points"))
         if points is not None and (len(points) != len(gains) or not np.all(np.isfinite(points))):
             raise ValueError("cell_points")
+        tail = doc.get("coupling_tail")
+        if tail is not None and not float(tail) > 0:
+            raise ValueError("coupling_tail")
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
-                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points)
+                           float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points,
+                           None if tail is None else float(tail))
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
 
@@ -258,11 +269,12 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     else:
         width, radius = None, defaults.finger_radius_mm
     width = width or default_coupling_width_mm(radius, pitch)
-    points = None
+    points, tail = None, None
     if params.locate_crossings:
-        points = locate_crossings(sensing_map, records, sigma, gain, width).points
+        located = locate_crossings(sensing_map, records, sigma, gain, width)
+        points, width, tail = located.points, located.width_mm, located.tail
     return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
-                       sensing_map.cell_points.copy())
+                       sensing_map.cell_points.copy(), tail)
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),

@@ -29,6 +29,12 @@ SLOPE_PENALTY = 0.01  # weight of slope changes between knots, relative to the m
 SMALLEST = 1e-6  # floor of the knot values (their logs are interpolated)
 
 
+def student_profile(squared: np.ndarray, width: float, tail: float) -> np.ndarray:
+    """``(1 + d^2 / (2 tail width^2))^-tail`` at squared distances (mm^2): a Gaussian of ``width``
+    (mm) as ``tail`` grows, heavier-tailed as it shrinks (the family a calibration fits)."""
+    return np.exp(-tail * np.log1p(squared / (2.0 * tail * width**2)))
+
+
 class CouplingProfile:
     """``K`` on knots ``distances`` (mm, increasing from 0) with ``values`` (1 at 0, non-increasing,
     positive); ``log K`` is linear in ``q = d^2`` between knots (exact for a Gaussian) and the last
@@ -49,6 +55,11 @@ class CouplingProfile:
     def gaussian(cls, width: float) -> CouplingProfile:
         """``exp(-d^2 / (2 width^2))`` (``width`` in mm), exactly, on knots out to 5 widths."""
         return cls(KNOTS_IN_WIDTHS * width, np.exp(-(KNOTS_IN_WIDTHS**2) / 2))
+
+    @classmethod
+    def student(cls, width: float, tail: float) -> CouplingProfile:
+        """:func:`student_profile` of ``width`` (mm) and ``tail`` on knots out to 5 widths."""
+        return cls(KNOTS_IN_WIDTHS * width, student_profile((KNOTS_IN_WIDTHS * width) ** 2, width, tail))
 
     def scaled(self, width: float) -> CouplingProfile:
         """This profile's values on the knots ``KNOTS_IN_WIDTHS x width`` (mm): a shape learned in

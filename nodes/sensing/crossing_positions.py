@@ -12,7 +12,8 @@ bundle adjustment, :func:`scipy.optimize.least_squares` with a sparse Jacobian):
 with ``x_j`` the map's point, ``T_j`` its tangent frame (2 columns), ``u_j`` (mm) the crossing's
 displacement, ``v_t`` (mm) the aim error, ``b_j`` the crossing's log gain, ``a_t`` the touch's log
 strength and ``K(d) = (1 + d^2 / (2 nu w^2))^-nu`` a radial profile whose width ``w`` (mm) and tail
-``nu`` are fitted too (a Gaussian as ``nu`` grows; smaller ``nu``: a heavier tail). Residuals are
+``nu`` are fitted too (:func:`.coupling_profile.student_profile`: a Gaussian as ``nu`` grows; smaller
+``nu``: a heavier tail). Residuals are
 in units of ``sqrt(sigma_j^2 + (RELATIVE_ERROR delta)^2)`` (noise plus the model's own error);
 priors ``u ~ N(0, placement_sigma^2)``, ``v ~ N(0, aim_sigma^2)`` and ``b ~ N(log gain, 1)`` fix
 what the touches leave free (a common shift of every crossing and touch, a common gain). Pairs are
@@ -29,6 +30,7 @@ from scipy.sparse import lil_matrix
 from ..data.sensing_map import SensingMap
 from ..geometry.surface import SurfaceProjector
 from ..geometry.triangles import surface_normals
+from .coupling_profile import student_profile
 
 RELATIVE_ERROR = 0.05  # the profile's misfit relative to a delta, added to the noise in the residual scale
 
@@ -50,11 +52,6 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     first = np.cross(normals, helper)
     first /= np.linalg.norm(first, axis=1, keepdims=True)
     return np.stack([first, np.cross(normals, first)], axis=1)
-
-
-def profile(squared: np.ndarray, width: float, tail: float) -> np.ndarray:
-    """``(1 + d^2 / (2 tail width^2))^-tail`` at squared distances (mm^2)."""
-    return np.exp(-tail * np.log1p(squared / (2.0 * tail * width**2)))
 
 
 def locate_crossings(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
@@ -91,7 +88,7 @@ def locate_crossings(sensing_map: SensingMap, records: list[tuple[int, np.ndarra
         y = x + np.einsum("ki,kid->kd", u, frames)
         p = y[touched] + np.einsum("ti,tid->td", v, frames[touched])
         d2 = np.sum((y[pc] - p[pt]) ** 2, axis=1)
-        model = np.exp(b[pc] + a[pt]) * profile(d2, width, tail)
+        model = np.exp(b[pc] + a[pt]) * student_profile(d2, width, tail)
         return np.concatenate([(z - model) / scale, u.ravel() / placement_sigma_mm, v.ravel() / aim_sigma_mm,
                                b - start[ib:iv]])
 

@@ -34,8 +34,9 @@ Per frame (``TouchProcessor.process``):
    plausible amplitude fitted between it and the strongest explains (a finger in a gap between
    crossings far apart, as on ring layouts, raises a peak on either side), are one finger. With
    ``learn_gains`` the crossings' gains and the no-pad gain are learned from well-posed single
-   touches (:mod:`.gain_learning`). ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``;
-   with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
+   touches (:mod:`.gain_learning`). ``K`` starts as the Gaussian of width ``s = sqrt(finger_radius^2 + (pitch/2)^2)``
+   (or as the profile ``coupling_sigma_mm`` / ``coupling_tail`` that ``sense --calibrate`` measured, which
+   a calibrated processing keeps); with ``adapt_coupling`` the width is calibrated from the first touches many crossings see
    (log-quadratic fits over every strong crossing the fit sees), then the shape, in units of that width, is learned from well-posed single
    touches: a board whose coupling is not a Gaussian (flat top, heavy tail) is localized without
    the bias of the wrong shape. Without a crossing above 2 sigma near the peak the coarse point stays.
@@ -82,7 +83,8 @@ class ProcessingParams(NodeParams):
     hold_radius_mm: float | None = Field(None, gt=0, description="cells this close to a touch hold their baseline; None: 2.5 x pitch")
     max_hold_s: float = Field(60.0, gt=0, description="a cell held longer is re-baselined (stuck touch)")
     negative_reset_frames: int = Field(10, ge=1, description="frames below -on threshold before a re-baseline")
-    coupling_sigma_mm: float | None = Field(None, gt=0, description="width of the Gaussian the coupling profile starts from; None: sqrt(finger_radius^2 + (pitch/2)^2)")
+    coupling_sigma_mm: float | None = Field(None, gt=0, description="width of the profile the coupling starts from; None: sqrt(finger_radius^2 + (pitch/2)^2)")
+    coupling_tail: float | None = Field(None, gt=0, description="tail of that profile, (1 + d^2 / (2 tail width^2))^-tail (a calibration measures it); None: a Gaussian")
     finger_radius_mm: float = Field(4.5, gt=0, description="finger contact radius used for the default coupling width")
     interpolation_radius_mm: float | None = Field(None, gt=0, description="vertex-to-cell interpolation radius; None: 1.5 x pitch")
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
