@@ -96,6 +96,27 @@ def test_secondary_stage_stops_once_within_its_relative_gap():
     assert loose["status"] == "FEASIBLE" and loose["stopped_at_relative_gap"] == 0.7
 
 
+def crossing_lines_problem(seed: int) -> SelectionProblem:
+    """A bunny-sized instance: 40 near-vertical Tx and 24 near-horizontal Rx lines over a 150 mm
+    square, each pair crossing once (2 mm jitter), 21 x 21 grid samples."""
+    rng = np.random.default_rng(seed)
+    xs, ys = np.sort(rng.uniform(0, 150, 40)), np.sort(rng.uniform(0, 150, 24))
+    tx, rx = np.meshgrid(np.arange(40), np.arange(24), indexing="ij")
+    points = np.stack([xs[tx.ravel()], ys[rx.ravel()]], axis=1) + rng.normal(0, 2, (tx.size, 2))
+    grid = np.stack(np.meshgrid(np.linspace(0, 150, 21), np.linspace(0, 150, 21)), axis=-1).reshape(-1, 2)
+    none = np.empty((0, 2), dtype=np.int64)
+    return SelectionProblem(np.ones(40, bool), np.ones(24, bool), tx.ravel(), rx.ravel(), np.arange(tx.size),
+                            np.linalg.norm(grid[:, None] - points[None], axis=2), none, none, none)
+
+
+def test_the_power_stage_is_proven_close_to_its_optimum_at_the_pipelines_size():
+    """21 x 12 of 40 x 24 lines, power 6, the default budget: the secondary stage's gap (on the sum of
+    level**6) is at most 0.025 in the median of four instances and 0.15 at worst (0.044 and 0.39
+    with CP-SAT's default LP, linearization level 1)."""
+    gaps = [select_curves(crossing_lines_problem(seed), 21, 12, power=6).report["stages"][1]["gap"] for seed in range(4)]
+    assert np.median(gaps) <= 0.025 and max(gaps) <= 0.15
+
+
 def test_no_single_crossing_is_a_user_error(problem):
     empty = dataclasses.replace(problem, rx_usable=np.zeros_like(problem.rx_usable))
     with pytest.raises(UserError, match="crosses exactly once"):

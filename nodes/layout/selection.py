@@ -44,8 +44,9 @@ are then those of the restricted model). The start is hinted to stage 1 and, aft
 from the stage-1 solution, to stage 2. Without the secondary objective the local search scores the
 radius alone, so nothing in the ablation optimises the mean distance.
 
-Both solvers are deterministic for a fixed input (CP-SAT: deterministic time, fixed seed; HiGHS: one
-thread, fixed seed, a node limit). The secondary stage also stops once its incumbent is proven within
+Both solvers are deterministic for a fixed input (CP-SAT: deterministic time, fixed seed, in the
+secondary stage with every row in its LP, ``POWER_STAGE_LINEARIZATION``; HiGHS: one thread, fixed
+seed, a node limit). The secondary stage also stops once its incumbent is proven within
 ``relative_gap`` of the optimum (status FEASIBLE, ``stopped_at_relative_gap`` in its report); the
 radius stage has no gap limit. Every stage reports status, objective, bound, gap and the solver's
 reproducible work (CP-SAT's deterministic time, HiGHS's nodes and LP iterations; no wall seconds: they
@@ -80,6 +81,7 @@ from .problem import (
     PHASE1_RELATIVE_GAP,
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
+    POWER_STAGE_LINEARIZATION,
     UNREACHABLE_LEVEL,
     SelectionProblem,
     evaluate_selection,
@@ -186,7 +188,8 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     # scaled by (hint + constant) / hint, the hint's cost bounding the solution's, keeps the gap with it
     hinted = max(float(hint @ cost), 1.0)
     limit = settings["relative_gap"] * (hinted + fixed.constant_power_sum) / hinted
-    solved = solve_stage(fixed, cost, hint, settings["solver"], {**settings, "relative_gap": limit})
+    solved = solve_stage(fixed, cost, hint, settings["solver"],
+                         {**settings, "relative_gap": limit, "cpsat_linearization": POWER_STAGE_LINEARIZATION})
     k = len(problem.distance)
     if solved.values is not None:
         tx_sel, rx_sel = _selection(fixed, solved.values)

@@ -34,7 +34,8 @@ class StageSolution:
 def solve_stage(model: LinearModel, cost: np.ndarray, hint: np.ndarray, solver: str, settings: dict) -> StageSolution:
     """Minimise ``cost @ v`` over ``model`` from the feasible ``hint`` with ``solver`` ("cpsat" or
     "highs"); ``settings``: ``time_limit_s`` (CP-SAT deterministic time), ``seed``, ``workers``,
-    ``highs_max_nodes`` and optionally ``relative_gap`` (stop once proven that close to the optimum)."""
+    ``highs_max_nodes`` and optionally ``relative_gap`` (stop once proven that close to the optimum)
+    and ``cpsat_linearization`` (CP-SAT's ``linearization_level``, default 1)."""
     start = time.perf_counter()
     status, values, bound, work = (_cpsat if solver == "cpsat" else _highs)(model, cost, hint, settings)
     objective = None if values is None else float(cost @ values)
@@ -120,6 +121,7 @@ def _cpsat(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     cp, var = cpsat_model(model, cost, hint)
     solver = deterministic_solver(settings["time_limit_s"], settings["seed"], settings["workers"],
                                   settings.get("relative_gap", 0.0))
+    solver.parameters.linearization_level = settings.get("cpsat_linearization", 1)
     status = solver.solve(cp)
     has = status in (cp_model.OPTIMAL, cp_model.FEASIBLE)
     values = np.asarray(solver.response_proto.solution, dtype=np.int64)[var] if has else None
