@@ -49,7 +49,8 @@ def run_calibration(layout_path: Path, source: Any, out: Path, open_frames: Call
     summary = calibration.summary()
     line = (f"calibration written to {out}: {session['accepted']} of {session['targets']} touches "
             f"({summary['crossings_measured']} crossings), no-pad gain {summary['no_pad_gain']:.2f}, coupling width "
-            f"{summary['coupling_sigma_mm']:.2f} mm" + ("" if summary["coupling_tail"] is None else f" tail {summary['coupling_tail']:.2f}")
+            f"{summary['coupling_sigma_mm']:.2f} mm"
+            + ("" if summary["coupling_tail"] is None else f" tail {summary['coupling_tail']:.2f}")
             + f" (finger radius {summary['finger_radius_mm']:.2f} mm)"
             + ("" if summary["crossings_moved_mm_median"] is None else
                f", crossings {summary['crossings_moved_mm_median']:.1f} mm from the map (median; max "

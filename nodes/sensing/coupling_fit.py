@@ -51,7 +51,8 @@ class CouplingFit:
         self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
         self.amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
         self._amplitude_count = 0  # well-posed fits seen
-        shape = CouplingProfile.gaussian(1.0) if params.coupling_tail is None else CouplingProfile.student(1.0, params.coupling_tail)
+        shape = (CouplingProfile.gaussian(1.0) if params.coupling_tail is None
+                 else CouplingProfile.student(1.0, params.coupling_tail))
         self.coupling = ProfileLearner(shape)  # the shape, in units of the width
         self.gains = (GainLearner(cell_gain, sensing_map.cell_pad, measured=measured_gains)
                       if params.learn_gains else None)

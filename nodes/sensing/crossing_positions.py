@@ -12,9 +12,9 @@ bundle adjustment, :func:`scipy.optimize.least_squares` with a sparse Jacobian):
 with ``x_j`` the map's point, ``T_j`` its tangent frame (2 columns), ``u_j`` (mm) the crossing's
 displacement, ``v_t`` (mm) the aim error, ``b_j`` the crossing's log gain, ``a_t`` the touch's log
 strength and ``K(d) = (1 + d^2 / (2 nu w^2))^-nu`` a radial profile whose width ``w`` (mm) and tail
-``nu`` are fitted too (:func:`.coupling_profile.student_profile`: a Gaussian as ``nu`` grows; smaller
-``nu``: a heavier tail). Residuals are
-in units of ``sqrt(sigma_j^2 + (RELATIVE_ERROR delta)^2)`` (noise plus the model's own error);
+``nu`` are fitted too (:func:`.coupling_profile.student_profile`: a Gaussian as ``nu`` grows;
+smaller ``nu``: a heavier tail). Residuals are in units of ``sqrt(sigma_j^2 + (RELATIVE_ERROR
+delta)^2)`` (noise plus the model's own error);
 priors ``u ~ N(0, placement_sigma^2)``, ``v ~ N(0, aim_sigma^2)`` and ``b ~ N(log gain, 1)`` fix
 what the touches leave free (a common shift of every crossing and touch, a common gain). Pairs are
 every crossing within ``reach_pitch`` pitches (on the map) of the touched one, dark ones included.
