@@ -117,6 +117,10 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     assert np.allclose(loaded.cell_gain, calibration.cell_gain, atol=1e-5) and loaded.layout == calibration.layout
     assert np.allclose(loaded.cell_points, calibration.cell_points, atol=1e-4)
     assert loaded.coupling_tail == pytest.approx(calibration.coupling_tail, rel=1e-3)
+    doc = json.loads(path.read_text())
+    (tmp_path / "gaussian.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "coupling_tail"}))
+    older = load_calibration(tmp_path / "gaussian.json")  # a file written before the tail was stored
+    assert older.coupling_tail is None and older.processor(sensing_map).params.adapt_coupling
     assert loaded.summary()["crossings_moved_mm_median"] == calibration.summary()["crossings_moved_mm_median"]
     loaded.processor(sensing_map)
     other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))
