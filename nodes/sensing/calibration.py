@@ -93,10 +93,10 @@ class Calibration:
         if layout_key(sensing_map) != self.layout:
             raise UserError(f"the calibration was made for another layout than {sensing_map.source}: "
                             "run `retrotouch sense --calibrate` on this layout")
-        tuned = params.model_copy(update={"no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
-                                          "finger_radius_mm": self.finger_radius_mm, "coupling_tail": self.coupling_tail})
-        if self.coupling_tail is not None:
-            tuned = tuned.model_copy(update={"adapt_coupling": False})
+        tuned = params.model_copy(update={
+            "no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
+            "finger_radius_mm": self.finger_radius_mm, "coupling_tail": self.coupling_tail,
+            "adapt_coupling": params.adapt_coupling and self.coupling_tail is None})  # a measured profile is kept
         if self.cell_points is not None:
             sensing_map = relocated_map(sensing_map, self.cell_points)
         return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
