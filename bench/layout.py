@@ -61,7 +61,7 @@ from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, sc
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
-from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
+from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices, winding_angle_node
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -93,7 +93,8 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "a
         families += [trace_rings(TraceRingsParams(corridor_turn=t, legs=legs, climb=climb), mesh, regions, levels, tx)["curves"]
                      for t in CORRIDOR_TURNS for legs in RING_LEGS for climb in CLIMBS]
     if family in ("helices", "all"):
-        families += [trace_helices(TraceHelicesParams(winding=w, climb=climb), mesh, regions, levels, tx, tx_field)["curves"]
+        theta = winding_angle_node(None, mesh, levels, tx_field)
+        families += [trace_helices(TraceHelicesParams(winding=w, climb=climb), mesh, regions, levels, theta, tx, tx_field)["curves"]
                      for w in WINDINGS for climb in CLIMBS]
     branches = []
     for rx in families:

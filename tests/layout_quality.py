@@ -17,7 +17,7 @@ import yaml
 from curves_fixture import SHARED_MESHES, prepared, sample_mesh_path
 
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
-from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices
+from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices, winding_angle_node
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -41,7 +41,8 @@ def layout_metrics(path: str, rx_angle_deg: float = 0.0, ring_turn: float | None
     tx = trace_tx(TraceTxParams(n_curves=60), mesh, regions, tx_field)["curves"]
     if helix_winding is not None:
         levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
-        rx = trace_helices(TraceHelicesParams(winding=helix_winding), mesh, regions, levels, tx, tx_field)["curves"]
+        theta = winding_angle_node(None, mesh, levels, tx_field)
+        rx = trace_helices(TraceHelicesParams(winding=helix_winding), mesh, regions, levels, theta, tx, tx_field)["curves"]
     elif ring_turn is None:
         rx = trace_rx(TraceRxParams(angle_deg=rx_angle_deg, n_curves=60), mesh, regions, rx_field)["curves"]
     else:

@@ -1,10 +1,12 @@
-"""geometry.harmonic: the cotan Laplacian and harmonic interpolation over (V, F)."""
+"""geometry.harmonic and geometry.sparse_spd: the cotan Laplacian, harmonic interpolation over (V, F)
+and the Cholesky solves behind them."""
 from __future__ import annotations
 
 import numpy as np
 import trimesh
 
 from retrotouch.nodes.geometry.harmonic import cotan_laplacian, harmonic_interpolation
+from retrotouch.nodes.geometry.sparse_spd import cholesky, solve, spd_solve
 
 
 def flat_grid(n: int = 21, size_mm: float = 40.0, jitter: float = 0.3, seed: int = 0):
@@ -49,3 +51,17 @@ def test_values_stay_between_the_fixed_ones_on_a_sphere_with_two_poles():
     order = np.argsort(V[free, 2])
     assert np.all(np.diff(u[free][order]) > -0.02)
     assert abs(np.median(u[free][np.abs(V[free, 2]) < 2.0]) - 0.5) < 0.01
+
+
+def test_the_cholesky_solves_a_pinned_laplacian_for_one_and_for_many_right_hand_sides():
+    V, F, boundary = flat_grid()
+    L = cotan_laplacian(V, F)
+    free = np.setdiff1d(np.arange(len(V)), boundary)
+    A = L[free][:, free]
+    rhs = np.random.default_rng(1).normal(size=(len(free), 3))
+    x = spd_solve(A, rhs[:, 0])
+    assert x.shape == (len(free),)
+    np.testing.assert_allclose(A @ x, rhs[:, 0], atol=1e-10)
+    many = solve(cholesky(A), rhs)
+    np.testing.assert_allclose(A @ many, rhs, atol=1e-10)
+    np.testing.assert_allclose(many[:, 0], x, atol=1e-12)

@@ -24,13 +24,18 @@ def family():
     return mesh, regions, tx, tx_field, rx_field, levels, tables
 
 
+@pytest.fixture(scope="module")
+def theta(family):
+    _, _, _, tx_field, _, levels, tables = family
+    return winding_angle(tables, levels.values, tx_field.face_direction)
+
+
 def unwrapped(turns: np.ndarray) -> np.ndarray:
     return np.unwrap(turns * 2 * np.pi) / (2 * np.pi)
 
 
-def test_the_angle_winds_once_round_the_pole_and_holds_along_the_tx_lines(family):
+def test_the_angle_winds_once_round_the_pole_and_holds_along_the_tx_lines(family, theta):
     mesh, regions, tx, tx_field, _, levels, tables = family
-    theta = winding_angle(tables, levels.values, tx_field.face_direction)
     u = levels.values
     between = (u > 0) & (u < 1)
     assert np.isfinite(theta[between]).all() and ((theta[between] >= 0) & (theta[between] < 1)).all()
@@ -49,9 +54,8 @@ def test_the_angle_winds_once_round_the_pole_and_holds_along_the_tx_lines(family
     assert np.median(spread) < 0.05
 
 
-def test_the_angle_grows_clockwise_seen_from_outside_at_the_pole(family):
+def test_the_angle_grows_clockwise_seen_from_outside_at_the_pole(family, theta):
     mesh, _, _, tx_field, _, levels, tables = family
-    theta = winding_angle(tables, levels.values, tx_field.face_direction)
     u = levels.values[tables.faces]
     near = np.flatnonzero((u.min(axis=1) > 0.0) & (u.max(axis=1) < 0.3))  # faces round the pole
     corner = theta[tables.faces[near]]
@@ -63,15 +67,14 @@ def test_the_angle_grows_clockwise_seen_from_outside_at_the_pole(family):
 
 
 @pytest.mark.parametrize("winding,climb", [("left", "median"), ("right", "median"), ("left", "per_line")])
-def test_helices_start_on_the_base_climb_and_never_meet(family, winding, climb):
+def test_helices_start_on_the_base_climb_and_never_meet(family, theta, winding, climb):
     mesh, regions, tx, tx_field, rx_field, levels, tables = family
     params = TraceHelicesParams(winding=winding, climb=climb)
-    helices = trace_helices(params, mesh, regions, levels, tx, tx_field)["curves"]
+    helices = trace_helices(params, mesh, regions, levels, theta, tx, tx_field)["curves"]
     assert helices.layer == "rx" and helices.family == ("helices" if climb == "median" else "helices_per_line")
     assert params.n_helices - params.n_reseeded <= helices.count <= params.n_helices
     assert np.all(helices.end_reason == int(CurveEnd.BASE))
-    rho, _, _ = helix_function(tables, levels, tx, tx_field.face_direction, winding, climb)
-    theta = winding_angle(tables, levels.values, tx_field.face_direction)
+    rho, _, _ = helix_function(tables, levels, theta, tx, winding, climb)
     sense = 1 if winding == "left" else -1
     turns = []
     for c in range(helices.count):
@@ -100,13 +103,12 @@ def arc_deviation(tables, tx, u: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return np.asarray(deviation)
 
 
-def test_per_line_climb_is_each_tx_lines_share_of_its_length(family):
+def test_per_line_climb_is_each_tx_lines_share_of_its_length(family, theta):
     # The median climb is one function of u for all lines; lines of other lengths (a detour through
     # the second ear) climb at another rate. The per-line climb follows each line's own length.
     mesh, regions, tx, tx_field, _, levels, tables = family
-    direction = tx_field.face_direction
-    per_line = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, tx, direction, "left", "per_line")[0])
-    median = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, tx, direction, "left", "median")[0])
+    per_line = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "per_line")[0])
+    median = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "median")[0])
     assert len(per_line) > 0.5 * tx.count  # most lines start at the pole
     assert np.percentile(per_line, 90) < 0.1
     assert np.percentile(per_line, 90) < 0.5 * np.percentile(median, 90)
@@ -126,14 +128,14 @@ def mean_cos_along(points: np.ndarray, direction: np.ndarray, j: int) -> float:
 
 
 @pytest.mark.parametrize("min_angle_deg", [MIN_CROSSING_ANGLE_DEG, 20.0])
-def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, min_angle_deg):
+def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, theta, min_angle_deg):
     # Off the base, no ALONG_MM of a kept helix runs nearer the Tx lines' direction than the angle
     # allows, and a helix is cut only there: its uncut walk (angle 0) goes on with a window that does.
     mesh, regions, tx, tx_field, _, levels, tables = family
     limit = np.cos(np.radians(min_angle_deg))
-    cut = trace_helices(TraceHelicesParams(min_crossing_angle_deg=min_angle_deg), mesh, regions, levels, tx, tx_field)["curves"]
-    whole = trace_helices(TraceHelicesParams(min_crossing_angle_deg=0.0), mesh, regions, levels, tx, tx_field)["curves"]
-    rho, _, _ = helix_function(tables, levels, tx, tx_field.face_direction, "left", "median")
+    cut = trace_helices(TraceHelicesParams(min_crossing_angle_deg=min_angle_deg), mesh, regions, levels, theta, tx, tx_field)["curves"]
+    whole = trace_helices(TraceHelicesParams(min_crossing_angle_deg=0.0), mesh, regions, levels, theta, tx, tx_field)["curves"]
+    rho, _, _ = helix_function(tables, levels, theta, tx, "left", "median")
     assert cut.count == whole.count
     shortened = 0
     for c in range(cut.count):
@@ -151,10 +153,10 @@ def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, min_angle_d
         assert shortened > cut.count // 2
 
 
-def test_each_helix_crosses_most_tx_lines_once_and_none_twice(family):
+def test_each_helix_crosses_most_tx_lines_once_and_none_twice(family, theta):
     # Bunny fixture: shares crossed once 0.64-0.86 per helix (rings 0.55-0.675 median over nine remeshes).
     mesh, regions, tx, tx_field, rx_field, levels, _ = family
-    helices = trace_helices(TraceHelicesParams(), mesh, regions, levels, tx, tx_field)["curves"]
+    helices = trace_helices(TraceHelicesParams(), mesh, regions, levels, theta, tx, tx_field)["curves"]
     cross = crossings(CrossingsParams(), mesh, tx, helices, tx_field, rx_field)["tx_rx"]
     counts = np.bincount(cross.curve_a * helices.count + cross.curve_b, minlength=tx.count * helices.count)
     counts = counts.reshape(tx.count, helices.count)

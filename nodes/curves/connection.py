@@ -9,7 +9,7 @@ verified in ``shared/notes/geometry-trivial-connections.md`` (see :mod:`retrotou
 * holonomy constraint per vertex star: ``d0^T x = -K + 2 pi k`` with ``K`` the angle defect and ``k``
   the prescribed index (``sum k = chi = 2``);
 * least-norm solution ``x = d0 beta`` with ``(d0^T d0) beta = -K + 2 pi k`` (graph Laplacian, one
-  vertex pinned), factorised by scipy ``splu`` with COLAMD ordering;
+  vertex pinned), solved by a sparse Cholesky factorisation (:mod:`retrotouch.nodes.geometry.sparse_spd`);
 * field by transport over a BFS tree of the dual graph: ``alpha_g = alpha_f + s (rho_e + x_e)``,
   ``s = +1`` when ``f = edge_faces[e, 0]``;
 * realized index per vertex ``(d0^T wrap(alpha[EF1] - alpha[EF0] - rho) + K) / 2 pi``; it must equal
@@ -28,12 +28,12 @@ from typing import Literal
 import numpy as np
 import potpourri3d as pp3d
 import scipy.sparse.csgraph as csgraph
-import scipy.sparse.linalg as spla
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.mesh_tables import MeshTables, angle_defects, build_tables, edge_transport, wrap_angle
+from ..geometry.sparse_spd import spd_solve
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,8 +101,7 @@ def solve_connection(tables: MeshTables, singular_vertices: np.ndarray, singular
     d0 = tables.d0().tocsc()
     laplacian = (d0.T @ d0).tocsc()
     beta = np.zeros(n)
-    lu = spla.splu(laplacian[1:, 1:].tocsc(), permc_spec="COLAMD")
-    beta[1:] = lu.solve(rhs[1:])
+    beta[1:] = spd_solve(laplacian[1:, 1:], rhs[1:])
     return d0 @ beta
 
 

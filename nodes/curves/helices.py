@@ -44,6 +44,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
+from ..geometry.sparse_spd import spd_solve
 from .connection import DirectionField
 from .ring_levels import RingLevels, along_energy, between_faces, reseeded_levels, row_values, tx_arc_profile
 from .assembly import polyline_rows, reversed_walk
@@ -67,7 +68,7 @@ MIN_CROSSING_ANGLE_DEG = 8.0
 within a trace width of each other for ``ALONG_MM`` (11.5 deg)."""
 
 
-NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (helices, helix_crossings, "
+NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (winding, helices, helix_crossings, "
               "helix_select, helix_finish) and their entries in screen and best from the pipeline")
 
 
@@ -115,7 +116,6 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     the Tx lines' unit direction per face; NaN elsewhere."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
-    from scipy.sparse.linalg import spsolve
 
     faces = tables.faces
     region = between_faces(tables, u)
@@ -146,7 +146,7 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     free[path[0]] = False  # the angle is defined up to a constant: 0 at the cut's first vertex
     theta = np.full(n, np.nan)
     theta[path[0]] = 0.0
-    theta[free] = spsolve(K[free][:, free].tocsc(), rhs[free])
+    theta[free] = spd_solve(K[free][:, free], rhs[free])
     return np.mod(theta, 1.0)
 
 
@@ -198,10 +198,17 @@ def steep_index(points: np.ndarray, faces: np.ndarray, rho_points: np.ndarray, d
     return int(steep[0]) + 1 if len(steep) else len(points)
 
 
-def helix_function(tables: MeshTables, levels: RingLevels, tx: CurveSet, direction: np.ndarray, winding: str,
+@node("curves.winding_angle", inputs=("mesh", "levels", "field"), outputs=("theta",))
+def winding_angle_node(params: NodeParams, mesh: Mesh, levels: RingLevels, field: DirectionField) -> np.ndarray:
+    """:func:`winding_angle` per vertex (turns) around the Tx pole of ``field``, shared by every helix branch."""
+    return winding_angle(build_tables(mesh.vertices, mesh.faces), levels.values, field.face_direction)
+
+
+def helix_function(tables: MeshTables, levels: RingLevels, theta: np.ndarray, tx: CurveSet, winding: str,
                    climb: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """(``rho``, ``psi`` per vertex, ``psi``'s period) of the module docstring; ``psi`` is NaN where
-    ``theta`` is (:class:`HelixSets` leaves those faces out)."""
+    """(``rho``, ``psi`` per vertex, ``psi``'s period) of the module docstring from the winding angle
+    ``theta`` (:func:`winding_angle`); ``psi`` is NaN where ``theta`` is (:class:`HelixSets` leaves those
+    faces out)."""
     u = levels.values
     if climb == "per_line":
         rho = levels.climb
@@ -209,19 +216,20 @@ def helix_function(tables: MeshTables, levels: RingLevels, tx: CurveSet, directi
         grid, along = tx_arc_profile(tx, row_values(tables, u, tx.faces, tx.bary))
         rho = np.interp(u, grid, (along - along[0]) / max(along[-1] - along[0], 1e-12))
     period = 1.0 - RHO_MIN
-    theta = winding_angle(tables, u, direction)
     sense = 1.0 if winding == "left" else -1.0
     psi = np.mod(rho + sense * period * theta, period)  # NaN off the faces between the pole's exclusion and the base
     return rho, psi, period
 
 
-@node("curves.trace_helices", params=TraceHelicesParams, inputs=("mesh", "regions", "levels", "tx", "tx_field"), outputs=("curves", "stats"))
-def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingLevels, tx: CurveSet,
+@node("curves.trace_helices", params=TraceHelicesParams, inputs=("mesh", "regions", "levels", "winding", "tx", "tx_field"),
+      outputs=("curves", "stats"))
+def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingLevels, winding: np.ndarray, tx: CurveSet,
                   tx_field: DirectionField) -> dict[str, object]:
-    """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial functions."""
+    """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial functions,
+    ``winding`` the angle around the pole (``curves.winding_angle``)."""
     tables = build_tables(mesh.vertices, mesh.faces)
     direction = tx_field.face_direction
-    rho, psi, period = helix_function(tables, levels, tx, direction, params.winding, params.climb)
+    rho, psi, period = helix_function(tables, levels, winding, tx, params.winding, params.climb)
     sensing = np.asarray(regions.sensing_faces, dtype=bool) & (rho[tables.faces].min(axis=1) >= RHO_MIN)
     sets = HelixSets(tables, psi, period, sensing)
     n_even = max(params.n_helices - params.n_reseeded, 1)

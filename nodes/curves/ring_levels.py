@@ -27,6 +27,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import CurveSet, Mesh
 from ..geometry.harmonic import harmonic_interpolation
 from ..geometry.mesh_tables import MeshTables, build_tables
+from ..geometry.sparse_spd import spd_solve
 from .connection import DirectionField
 from .rx_seeding import zero_set
 
@@ -196,7 +197,6 @@ def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.nd
     candidates through the face that start at the pole's exclusion (their mean; the nearest such
     face's elsewhere: a line reseeded from a free end climbs only part of the way), clipped to [0, 1]."""
     from scipy.spatial import cKDTree
-    from scipy.sparse.linalg import spsolve
 
     faces = tables.faces
     total, count = np.zeros(len(faces)), np.zeros(len(faces))
@@ -217,7 +217,7 @@ def line_climb(tables: MeshTables, u: np.ndarray, tx: CurveSet, direction: np.nd
     fixed[np.unique(faces[idx])] = False
     fixed |= (u <= 0.0) | (u >= 1.0)
     rhs = G.T @ (D @ (slope[idx][:, None] * direction[idx]).ravel()) - K[:, fixed] @ rho[fixed]
-    rho[~fixed] = spsolve(K[~fixed][:, ~fixed].tocsc(), rhs[~fixed])
+    rho[~fixed] = spd_solve(K[~fixed][:, ~fixed], rhs[~fixed])
     return np.clip(rho, 0.0, 1.0)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sparse_spd import spd_solve
 from .triangles import corners
 
 
@@ -30,8 +31,6 @@ def cotan_laplacian(vertices: np.ndarray, faces: np.ndarray):
 def harmonic_interpolation(vertices: np.ndarray, faces: np.ndarray, fixed: np.ndarray, values: np.ndarray) -> np.ndarray:
     """``(n,)`` values equal to ``values`` at the vertex indices ``fixed`` and harmonic (``(L u)_i = 0``)
     at every other vertex. Every connected component must hold a fixed vertex."""
-    from scipy.sparse.linalg import spsolve
-
     L = cotan_laplacian(vertices, faces)
     n = len(vertices)
     fixed = np.asarray(fixed, dtype=np.int64)
@@ -40,5 +39,5 @@ def harmonic_interpolation(vertices: np.ndarray, faces: np.ndarray, fixed: np.nd
     free = np.ones(n, dtype=bool)
     free[fixed] = False
     if free.any():
-        u[free] = spsolve(L[free][:, free].tocsc(), -(L[free][:, fixed] @ u[fixed]))
+        u[free] = spd_solve(L[free][:, free], -(L[free][:, fixed] @ u[fixed]))
     return u
