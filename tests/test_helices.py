@@ -171,3 +171,20 @@ def test_a_region_that_does_not_join_pole_and_base_is_refused(family):
     region[np.flatnonzero(u[tables.faces].max(axis=1) <= 0.0)[:10]] = True  # faces inside the pole's exclusion only
     with pytest.raises(UserError, match="rings or dipole"):
         cut_path(tables, u, region)
+
+
+def test_an_island_between_the_levels_that_the_cut_misses_gets_no_angle(family, theta):
+    # Faces between the pole's exclusion and the base that the cut's piece does not reach (here: a
+    # patch in the middle of the base lifted to u = 0.5; on the lying sword, 357 vertices on its
+    # other side) have no winding angle: NaN there, the rest unchanged (the Cholesky would fail on them).
+    _, regions, _, tx_field, _, levels, tables = family
+    u = levels.values.copy()
+    island = np.array([regions.base_centre])
+    for _ in range(2):
+        island = np.unique(tables.faces[np.isin(tables.faces, island).any(axis=1)])
+    assert (u[island] >= 1.0).all()
+    u[island] = 0.5
+    lifted = winding_angle(tables, u, tx_field.face_direction)
+    assert np.isnan(lifted[island]).all()
+    kept = np.isfinite(theta)
+    np.testing.assert_allclose(lifted[kept], theta[kept], atol=1e-9)

@@ -144,9 +144,15 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     free = np.zeros(n, dtype=bool)
     free[np.unique(faces[idx])] = True
     free[path[0]] = False  # the angle is defined up to a constant: 0 at the cut's first vertex
+    # only the piece of the region the cut runs through winds round the pole: pieces of it that touch
+    # neither (an island between the pole's exclusion and the base) keep NaN
+    free_vertices = np.flatnonzero(free)
+    _, piece = connected_components(K[free_vertices][:, free_vertices], directed=False)
+    anchored = np.zeros(n, dtype=bool)
+    anchored[free_vertices] = np.isin(piece, piece[np.searchsorted(free_vertices, np.intersect1d(K[path[0]].indices, free_vertices))])
     theta = np.full(n, np.nan)
     theta[path[0]] = 0.0
-    theta[free] = spd_solve(K[free][:, free], rhs[free])
+    theta[anchored] = spd_solve(K[anchored][:, anchored], rhs[anchored])
     return np.mod(theta, 1.0)
 
 
