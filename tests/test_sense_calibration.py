@@ -58,6 +58,9 @@ def test_estimate_recovers_gains_no_pad_gain_and_width_from_noise_free_touches(b
     assert result.no_pad_gain == pytest.approx(np.median(gain[~pad]) / reference, rel=1e-6)
     assert result.coupling_sigma_mm == pytest.approx(width, rel=1e-3)
     assert result.measured.all() and result.touches == sensing_map.cell_count
+    # the finger's amplitude in the processing's units: gain x amplitude is the touched crossing's delta
+    assert result.finger_amplitude[0] == pytest.approx(np.log(300.0 * reference), abs=1e-9)
+    assert result.finger_amplitude[1] == pytest.approx(0.05)  # every touch as strong: the spread's floor
 
 
 def test_the_session_prompts_every_crossing_and_measures_the_boards_gains(bunny, calibrated):
@@ -90,6 +93,7 @@ def test_the_calibrated_processing_keeps_the_boards_coupling_profile_as_measured
     fitted = processor.fit.profile.at_distance(d)
     gaussian = np.exp(-np.log(2.0) * (d / half) ** 2)
     assert calibration.coupling_tail is not None and not processor.params.adapt_coupling
+    assert processor.fit.amplitude_prior == calibration.finger_amplitude  # the fits start from the measured finger
     assert processor.fit.coupling_sigma == calibration.coupling_sigma_mm
     assert np.max(np.abs(fitted - truth)) < 0.05
     assert np.max(np.abs(fitted - truth)) < 0.5 * np.max(np.abs(gaussian - truth))
@@ -117,10 +121,13 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     assert np.allclose(loaded.cell_gain, calibration.cell_gain, atol=1e-5) and loaded.layout == calibration.layout
     assert np.allclose(loaded.cell_points, calibration.cell_points, atol=1e-4)
     assert loaded.coupling_tail == pytest.approx(calibration.coupling_tail, rel=1e-3)
+    assert np.allclose(loaded.finger_amplitude, calibration.finger_amplitude, atol=1e-4)
     doc = json.loads(path.read_text())
-    (tmp_path / "gaussian.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "coupling_tail"}))
-    older = load_calibration(tmp_path / "gaussian.json")  # a file written before the tail was stored
+    older_keys = {"coupling_tail", "finger_amplitude"}
+    (tmp_path / "gaussian.json").write_text(json.dumps({k: v for k, v in doc.items() if k not in older_keys}))
+    older = load_calibration(tmp_path / "gaussian.json")  # a file written before the tail and the amplitude were stored
     assert older.coupling_tail is None and older.processor(sensing_map).params.adapt_coupling
+    assert older.finger_amplitude is None and older.processor(sensing_map).fit.amplitude_prior is None
     assert loaded.summary()["crossings_moved_mm_median"] == calibration.summary()["crossings_moved_mm_median"]
     loaded.processor(sensing_map)
     other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))
@@ -135,6 +142,9 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     (tmp_path / "short.json").write_text(json.dumps({**doc, "cell_points": doc["cell_points"][:-1]}))
     with pytest.raises(UserError, match="malformed"):
         load_calibration(tmp_path / "short.json")
+    (tmp_path / "spread.json").write_text(json.dumps({**doc, "finger_amplitude": [5.0, -0.1]}))
+    with pytest.raises(UserError, match="malformed"):
+        load_calibration(tmp_path / "spread.json")
 
 
 def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_path):

@@ -6,6 +6,10 @@ touches estimates what the processing otherwise assumes:
   to the median over padded crossings (a padded crossing's gain is 1 in the coupling model);
   touch-to-touch strength varies, so the rounds are averaged;
 * **the no-pad gain**: the median gain of the crossings without a pad (for crossings not measured);
+* **a finger's amplitude**: the touched crossing's delta over its gain, per touch, as the prior the
+  processing's fits start from (:func:`.coupling_fit.amplitude_prior`; the processing learns it from
+  well-posed touches too, but only after many of them): it tells one finger between two crossings
+  far apart, which raises a peak at each, from two fingers from the first touches on;
 * **the finger coupling width** ``s``: from each touch, the gain-normalised delta of crossings
   ``0.5..2.5`` pitches away relative to the touched one's, ``r = K(d)``, gives
   ``s = d / sqrt(-2 ln r)`` for a Gaussian ``K``; the median over all pairs gives the finger
@@ -47,6 +51,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams
 from ..data.board import default_coupling_width_mm
 from ..data.sensing_map import SensingMap
+from .coupling_fit import amplitude_prior
 from .crossing_positions import locate_crossings, relocated_map
 from .processing import FrameResult, ProcessingParams, TouchProcessor
 
@@ -87,6 +92,7 @@ class Calibration:
     cell_points: np.ndarray | None = None  # (K, 3) mm, where the crossings really are (None: the map's)
     map_points: np.ndarray | None = None  # (K, 3) mm, the map's crossings (to report how far they moved)
     coupling_tail: float | None = None  # the profile's tail (None: a Gaussian, learned further online)
+    finger_amplitude: tuple[float, float] | None = None  # (log counts, spread) at a padded crossing (None: learned online)
 
     def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
         """A touch processor that uses this calibration instead of the default assumptions."""
@@ -96,6 +102,7 @@ class Calibration:
         tuned = params.model_copy(update={
             "no_pad_gain": self.no_pad_gain, "coupling_sigma_mm": self.coupling_sigma_mm,
             "finger_radius_mm": self.finger_radius_mm, "coupling_tail": self.coupling_tail,
+            "amplitude_prior": self.finger_amplitude,
             "adapt_coupling": params.adapt_coupling and self.coupling_tail is None})  # a measured profile is kept
         if self.cell_points is not None:
             sensing_map = relocated_map(sensing_map, self.cell_points)
@@ -110,6 +117,7 @@ class Calibration:
                 "crossings_moved_mm_max": None if moved is None else round(float(np.max(moved)), 3),
                 "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
                 "coupling_tail": None if self.coupling_tail is None else round(self.coupling_tail, 4),
+                "finger_amplitude": None if self.finger_amplitude is None else [round(v, 5) for v in self.finger_amplitude],
                 "finger_radius_mm": round(self.finger_radius_mm, 3),
                 "cell_gain_spread": round(float(np.std(np.log(gains))), 4) if len(gains) > 1 else None}
 
@@ -142,9 +150,14 @@ def load_calibration(path: str | Path) -> Calibration:
         tail = doc.get("coupling_tail")
         if tail is not None and not float(tail) > 0:
             raise ValueError("coupling_tail")
+        amplitude = doc.get("finger_amplitude")
+        if amplitude is not None:
+            amplitude = (float(amplitude[0]), float(amplitude[1]))
+            if len(doc["finger_amplitude"]) != 2 or not (np.isfinite(amplitude[0]) and amplitude[1] > 0):
+                raise ValueError("finger_amplitude")
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
                            float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points,
-                           None if tail is None else float(tail))
+                           None if tail is None else float(tail), amplitude)
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
 
@@ -273,8 +286,9 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     if params.locate_crossings:
         located = locate_crossings(sensing_map, records, sigma, gain, width)
         points, width, tail = located.points, located.width_mm, located.tail
+    amplitude = amplitude_prior(np.log([max(delta[cell], 1e-9) / gain[cell] for cell, delta in records]))
     return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
-                       sensing_map.cell_points.copy(), tail)
+                       sensing_map.cell_points.copy(), tail, amplitude)
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),

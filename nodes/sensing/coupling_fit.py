@@ -37,6 +37,13 @@ REACH_MARGIN_MM = 0.01  # slack of the joint refit's distance test against round
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
 
 
+def amplitude_prior(log_amplitudes: np.ndarray) -> tuple[float, float]:
+    """``(centre, spread)`` of a finger's log-amplitude (log counts at a padded crossing) from estimates of
+    it: their median and 1.4826 MAD, at least 0.05."""
+    centre = float(np.median(log_amplitudes))
+    return centre, max(1.4826 * float(np.median(np.abs(log_amplitudes - centre))), 0.05)
+
+
 class CouplingFit:
     """The coupling model of one sensing map and what it learned so far (width, shape, amplitude)."""
 
@@ -49,7 +56,7 @@ class CouplingFit:
         self.initial_coupling_sigma = self.coupling_sigma
         self._width_estimates: list[float] = []
         self._amplitude_estimates: collections.deque[float] = collections.deque(maxlen=AMPLITUDE_WINDOW)
-        self.amplitude_prior: tuple[float, float] | None = None  # (log counts, sigma) of a padded crossing
+        self.amplitude_prior: tuple[float, float] | None = params.amplitude_prior  # (log counts, sigma) of a padded crossing
         self._amplitude_count = 0  # well-posed fits seen
         shape = (CouplingProfile.gaussian(1.0) if params.coupling_tail is None
                  else CouplingProfile.student(1.0, params.coupling_tail))
@@ -298,8 +305,8 @@ class CouplingFit:
     def _learn_amplitude(self, log_amplitude: float, information: tuple[float, ...]) -> bool:
         """Keep the log-amplitude of fits whose tangential position the data alone pin within
         ``AMPLITUDE_WELL_POSED_MM`` (1 sigma); from ``AMPLITUDE_MIN_ESTIMATES`` on, their median and
-        spread (1.4826 MAD, at least 0.05), updated every 10th estimate, are the amplitude prior of
-        later fits. Returns whether the fit was well posed."""
+        spread (:func:`amplitude_prior`), updated every 10th estimate, are the amplitude prior of later
+        fits (replacing a calibration's). Returns whether the fit was well posed."""
         # Tangential 2 x 2 block of the inverse by cofactors, its largest eigenvalue in closed form.
         i00, i01, i02, i11, i12, i22 = information  # upper triangle, in (u0, u1, log amplitude)
         c00, c01, c11 = i11 * i22 - i12 * i12, i02 * i12 - i01 * i22, i00 * i22 - i02 * i02
@@ -313,10 +320,7 @@ class CouplingFit:
         self._amplitude_estimates.append(float(log_amplitude))
         self._amplitude_count += 1
         if len(self._amplitude_estimates) >= AMPLITUDE_MIN_ESTIMATES and self._amplitude_count % 10 == 0:
-            estimates = np.array(self._amplitude_estimates)
-            centre = float(np.median(estimates))
-            spread = max(1.4826 * float(np.median(np.abs(estimates - centre))), 0.05)
-            self.amplitude_prior = (centre, spread)
+            self.amplitude_prior = amplitude_prior(np.array(self._amplitude_estimates))
         return True
 
     def _learn_coupling(self, offsets: np.ndarray, frame: np.ndarray, normalised: np.ndarray) -> None:

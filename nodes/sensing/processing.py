@@ -26,7 +26,7 @@ Per frame (``TouchProcessor.process``):
    them, :mod:`.calibration`; ``K`` the radial coupling profile,
    :mod:`.coupling_profile`) fitted by maximum likelihood (Levenberg-Marquardt on
    the deltas of every crossing near the peak, dark ones included) with the finger kept on the
-   surface; weak priors (offset ~ N(0, pitch^2), amplitude learned from well-posed touches) keep
+   surface; weak priors (offset ~ N(0, pitch^2), amplitude as calibrated or learned from well-posed touches) keep
    directions that a sparse layout does not resolve bounded. With several touches each one is
    refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
    whose first fits land within a finger's width (2 ``finger_radius``) of a stronger one's, or that
@@ -54,7 +54,7 @@ import dataclasses
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ...graph.node import NodeParams
 from ..data.sensing_map import SensingMap
@@ -85,6 +85,9 @@ class ProcessingParams(NodeParams):
     negative_reset_frames: int = Field(10, ge=1, description="frames below -on threshold before a re-baseline")
     coupling_sigma_mm: float | None = Field(None, gt=0, description="width of the profile the coupling starts from; None: sqrt(finger_radius^2 + (pitch/2)^2)")
     coupling_tail: float | None = Field(None, gt=0, description="tail of that profile, (1 + d^2 / (2 tail width^2))^-tail (a calibration measures it); None: a Gaussian")
+    amplitude_prior: tuple[float, float] | None = Field(
+        None, description="(log counts, spread) of a finger's reading at a padded crossing that the fits start from "
+                          "(a calibration measures it); None: learned from well-posed touches")
     finger_radius_mm: float = Field(4.5, gt=0, description="finger contact radius used for the default coupling width")
     interpolation_radius_mm: float | None = Field(None, gt=0, description="vertex-to-cell interpolation radius; None: 1.5 x pitch")
     peak_radius_mm: float | None = Field(None, gt=0, description="a touch peak is the strongest cell within this radius; None: 1.5 x pitch")
@@ -95,6 +98,13 @@ class ProcessingParams(NodeParams):
     contact_mesh_faces: int = Field(6000, ge=100, description="faces of the simplified mesh used for contact areas")
     track_gate_mm: float = Field(40.0, gt=0, description="largest move between frames of one of several touches (mm); a lone finger is never gated")
     confirm_frames: int = Field(2, ge=1, description="frames a touch appearing beside live ones must persist before it touches down")
+
+    @field_validator("amplitude_prior")
+    @classmethod
+    def _finite_prior(cls, value: tuple[float, float] | None) -> tuple[float, float] | None:
+        if value is not None and not (np.isfinite(value[0]) and np.isfinite(value[1]) and value[1] > 0):
+            raise ValueError("amplitude_prior must be (finite log counts, spread > 0)")
+        return value
 
 
 @dataclasses.dataclass(frozen=True)
