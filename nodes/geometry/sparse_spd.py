@@ -1,7 +1,5 @@
 """Sparse symmetric positive definite systems, the Laplacian-like ones every stage solves: one
-supernodal Cholesky factorisation (cholespy) reused for any number of right-hand sides. At 164k
-vertices it factors and solves a cotan Laplacian in half the time of SuperLU's LU and grows more slowly
-with the size (``bench/scale.py``)."""
+supernodal Cholesky factorisation (cholespy) reused for any number of right-hand sides."""
 from __future__ import annotations
 
 import numpy as np
