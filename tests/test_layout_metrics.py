@@ -112,8 +112,8 @@ def test_fields_do_not_depend_on_the_scale_of_the_heat(heat_scale, monkeypatch):
     geo = geodesics_for(mesh)
     faces, bary = np.array([0, 17, 301]), np.full((3, 3), 1 / 3)
     expected = geo.fields(faces, bary)
-    solve = samples_module._solve
-    monkeypatch.setattr(samples_module, "_solve",
+    solve = samples_module.solve
+    monkeypatch.setattr(samples_module, "solve",
                         lambda factor, rhs: solve(factor, rhs) * (heat_scale if factor is geo._heat else 1.0))
     scaled = geo.fields(faces, bary)
     assert np.isfinite(scaled).all()
@@ -123,8 +123,8 @@ def test_fields_do_not_depend_on_the_scale_of_the_heat(heat_scale, monkeypatch):
 def test_fields_that_are_not_finite_stop_the_run_instead_of_reaching_phase_1(monkeypatch):
     mesh = sphere_mesh(3)
     geo = geodesics_for(mesh)
-    solve = samples_module._solve
-    monkeypatch.setattr(samples_module, "_solve",
+    solve = samples_module.solve
+    monkeypatch.setattr(samples_module, "solve",
                         lambda factor, rhs: solve(factor, rhs) * (np.inf if factor is geo._poisson else 1.0))
     with pytest.raises(FloatingPointError, match="not finite"):
         geo.fields(np.array([0, 5]), np.full((2, 3), 1 / 3))
