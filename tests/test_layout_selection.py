@@ -111,8 +111,8 @@ def crossing_lines_problem(seed: int) -> SelectionProblem:
 
 def test_the_power_stage_is_proven_close_to_its_optimum_at_the_pipelines_size():
     """21 x 12 of 40 x 24 lines, power 6, the default budget: the secondary stage's gap (on the sum of
-    level**6) is at most 0.025 in the median of four instances and 0.15 at worst (0.014 and 0.018 now;
-    0.042 and 0.42 with CP-SAT's default LP, linearization level 1, with 1 or 4 units of time)."""
+    level**6) is at most 0.025 in the median of four instances and 0.15 at worst (0.044 and 0.39
+    with CP-SAT's default LP, linearization level 1)."""
     gaps = [select_curves(crossing_lines_problem(seed), 21, 12, power=6).report["stages"][1]["gap"] for seed in range(4)]
     assert np.median(gaps) <= 0.025 and max(gaps) <= 0.15
 

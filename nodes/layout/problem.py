@@ -9,8 +9,7 @@ import numpy as np
 
 from ..data.types import Crossings
 
-PHASE1_TIME_LIMIT_S = 1.0  # per CP-SAT solve of the radius stage, deterministic seconds
-PHASE1_POWER_TIME_LIMIT_S = 4.0  # the power-mean stage's: its model is the larger, its gap proven by the bound
+PHASE1_TIME_LIMIT_S = 1.0  # per CP-SAT solve, deterministic seconds
 PHASE1_RESOLUTION_MM = 0.5  # distance quantisation of the model
 PHASE1_MAX_MEMBERSHIPS = 15000  # (sample, crossing) pairs before a trust region
 PHASE1_POWER = 6  # secondary objective: power mean of the sample distances

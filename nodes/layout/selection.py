@@ -78,7 +78,6 @@ from .mip import LinearModel, build_model
 from .problem import (
     PHASE1_MAX_MEMBERSHIPS,
     PHASE1_POWER,
-    PHASE1_POWER_TIME_LIMIT_S,
     PHASE1_RELATIVE_GAP,
     PHASE1_RESOLUTION_MM,
     PHASE1_TIME_LIMIT_S,
@@ -190,8 +189,7 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     hinted = max(float(hint @ cost), 1.0)
     limit = settings["relative_gap"] * (hinted + fixed.constant_power_sum) / hinted
     solved = solve_stage(fixed, cost, hint, settings["solver"],
-                         {**settings, "relative_gap": limit, "cpsat_linearization": POWER_STAGE_LINEARIZATION,
-                          "time_limit_s": settings["power_time_limit_s"]})
+                         {**settings, "relative_gap": limit, "cpsat_linearization": POWER_STAGE_LINEARIZATION})
     k = len(problem.distance)
     if solved.values is not None:
         tx_sel, rx_sel = _selection(fixed, solved.values)
@@ -254,7 +252,6 @@ def solve_radius_stage(
     power: int = PHASE1_POWER,
     solver: str = "cpsat",
     highs_max_nodes: int = HIGHS_MAX_NODES,
-    power_time_limit_s: float = PHASE1_POWER_TIME_LIMIT_S,
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
     ``secondary`` says whether a power-mean stage follows (the start's local search scores it too)."""
@@ -270,8 +267,8 @@ def solve_radius_stage(
             "trust_region_slack_mm": slack * resolution_mm if restricted else None,
             "memberships": len(model.u_sample) + len(q)}
     settings = {"n_drive": n_drive, "n_sense": n_sense, "power": power, "resolution_mm": resolution_mm,
-                "solver": solver, "time_limit_s": time_limit_s, "power_time_limit_s": power_time_limit_s, "seed": seed,
-                "workers": workers, "highs_max_nodes": highs_max_nodes, "restricted": restricted, "secondary": secondary}
+                "solver": solver, "time_limit_s": time_limit_s, "seed": seed, "workers": workers,
+                "highs_max_nodes": highs_max_nodes, "restricted": restricted, "secondary": secondary}
     level = int(q_start.max())
     started = time.perf_counter()
     if level < UNREACHABLE_LEVEL and layer_radius_bound(problem, q, (n_drive, n_sense), level - 1, level, settings) >= level:

@@ -32,7 +32,7 @@ from pydantic import Field
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
-from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_POWER_TIME_LIMIT_S, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
+from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
                       SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
 from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
 from .screen import BranchStart, Screen
@@ -59,8 +59,7 @@ class OptimizeParams(NodeParams):
     solver: Literal["cpsat", "highs"] = Field(
         "cpsat", description="phase-1 solver of the same 0-1 model: CP-SAT or HiGHS (both reproducible)"
     )
-    time_limit_s: float = Field(PHASE1_TIME_LIMIT_S, gt=0, description="per CP-SAT solve of the radius stage, deterministic time (CP-SAT work units, no wall-clock limit)")
-    power_time_limit_s: float = Field(PHASE1_POWER_TIME_LIMIT_S, gt=0, description="the same for the power-mean stage")
+    time_limit_s: float = Field(PHASE1_TIME_LIMIT_S, gt=0, description="per CP-SAT solve, deterministic time (CP-SAT work units, no wall-clock limit)")
     relative_gap: float = Field(PHASE1_RELATIVE_GAP, ge=0, lt=1, description="the secondary stage stops once proven within this share of its optimum (0: prove optimality)")
     highs_max_nodes: int = Field(
         HIGHS_MAX_NODES, ge=1, description="per HiGHS solve, branch-and-bound nodes (its deterministic limit)"
@@ -310,7 +309,7 @@ def coverage(
     try:
         stage = solve_radius_stage(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
                                    params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
-                                   params.secondary_power, params.solver, params.highs_max_nodes, params.power_time_limit_s)
+                                   params.secondary_power, params.solver, params.highs_max_nodes)
     except UserError as exc:
         return BranchStart(params.model_dump(), rx.family, angle_deg, base, None, str(exc))
     return BranchStart(params.model_dump(), rx.family, angle_deg, base, stage, "ok")
