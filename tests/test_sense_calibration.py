@@ -142,9 +142,10 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     (tmp_path / "short.json").write_text(json.dumps({**doc, "cell_points": doc["cell_points"][:-1]}))
     with pytest.raises(UserError, match="malformed"):
         load_calibration(tmp_path / "short.json")
-    (tmp_path / "spread.json").write_text(json.dumps({**doc, "finger_amplitude": [5.0, -0.1]}))
-    with pytest.raises(UserError, match="malformed"):
-        load_calibration(tmp_path / "spread.json")
+    for bad in ([5.0, -0.1], [5.0], "5"):
+        (tmp_path / "amplitude.json").write_text(json.dumps({**doc, "finger_amplitude": bad}))
+        with pytest.raises(UserError, match="malformed"):
+            load_calibration(tmp_path / "amplitude.json")
 
 
 def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_path):

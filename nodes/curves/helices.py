@@ -148,8 +148,9 @@ def winding_angle(tables: MeshTables, u: np.ndarray, direction: np.ndarray) -> n
     # neither (an island between the pole's exclusion and the base) keep NaN
     free_vertices = np.flatnonzero(free)
     _, piece = connected_components(K[free_vertices][:, free_vertices], directed=False)
+    beside_pin = np.searchsorted(free_vertices, np.intersect1d(K[path[0]].indices, free_vertices))
     anchored = np.zeros(n, dtype=bool)
-    anchored[free_vertices] = np.isin(piece, piece[np.searchsorted(free_vertices, np.intersect1d(K[path[0]].indices, free_vertices))])
+    anchored[free_vertices] = np.isin(piece, piece[beside_pin])
     theta = np.full(n, np.nan)
     theta[path[0]] = 0.0
     theta[anchored] = spd_solve(K[anchored][:, anchored], rhs[anchored])

@@ -152,8 +152,10 @@ def load_calibration(path: str | Path) -> Calibration:
             raise ValueError("coupling_tail")
         amplitude = doc.get("finger_amplitude")
         if amplitude is not None:
+            if len(amplitude) != 2:
+                raise ValueError("finger_amplitude")
             amplitude = (float(amplitude[0]), float(amplitude[1]))
-            if len(doc["finger_amplitude"]) != 2 or not (np.isfinite(amplitude[0]) and amplitude[1] > 0):
+            if not (np.isfinite(amplitude[0]) and amplitude[1] > 0):
                 raise ValueError("finger_amplitude")
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
                            float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points,
