@@ -26,12 +26,12 @@ import dataclasses
 from typing import Literal
 
 import numpy as np
+import potpourri3d as pp3d
 import scipy.sparse.csgraph as csgraph
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.heat_distance import heat_distance_solver
 from ..geometry.mesh_tables import MeshTables, angle_defects, build_tables, edge_transport, wrap_angle
 from ..geometry.sparse_spd import spd_solve
 
@@ -179,7 +179,7 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
             "degenerate triangles"
         )
     direction = np.cos(alpha)[:, None] * tables.frame_e1 + np.sin(alpha)[:, None] * tables.frame_e2
-    solver = heat_distance_solver(tables.vertices, tables.faces)
+    solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices, tables.faces)
     distance = np.asarray(solver.compute_distance(start), dtype=np.float64)
     stops = [v for v in singular_vertices.tolist() if v != start] if layer == "tx" else singular_vertices.tolist()
     stop_distance = np.asarray(solver.compute_distance_multisource(stops), dtype=np.float64)

@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..data.types import CurveEnd, CurveSet
-from ..geometry.heat_distance import heat_distance_solver
 from ..geometry.mesh_tables import MeshTables
 from .assembly import assemble, concat_traces, join_both_ways, pick_curves
 from .connection import DirectionField
@@ -183,10 +182,12 @@ def adaptive_tx_traces(params: TraceTxParams, tables: MeshTables, regions, field
     from later seeding, so every round adds a curve or blocks a seed. Stops early when no unblocked
     sensing vertex is farther than the mean edge length from the family.
     """
+    import potpourri3d as pp3d  # heavy: imported when used, not on node discovery
+
     _, _, cum = fan_sectors(tables, field.start_vertex)
     phi = uniform_angles(cum[-1], max(1, round(params.uniform_share * params.n_curves)))
     parts = [tx_traces(params, tables, field, phi, start_region, base, singular)]
-    solver = heat_distance_solver(tables.vertices, tables.faces)
+    solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices, tables.faces)
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
     vertices = np.unique(tables.faces[sensing])
     points = tables.vertices[vertices]

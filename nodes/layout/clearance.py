@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from ..data.types import CurveSet
-from ..geometry.heat_distance import array_digest
+from .samples import array_digest
 
 CONFLICT_STEP_MM = 0.25  # resampling of candidate curves for the conflict pairs
 MEASURE_STEP_MM = 0.1  # resampling of selected traces for the reported clearance

@@ -24,9 +24,9 @@ import numpy as np
 from pydantic import Field
 
 from ...graph.errors import UserError
+from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.heat_distance import array_digest
 from ..geometry.sparse_spd import cholesky, solve
 from ..geometry.triangles import areas, corners, cross_products
 
@@ -130,6 +130,11 @@ class HeatGeodesics:
         D = 0.5 * (D + D.T)
         np.fill_diagonal(D, 0.0)
         return D
+
+
+def array_digest(*arrays: np.ndarray) -> str:
+    """Content hash of arrays (each one's dtype, shape and bytes, length-prefixed: :func:`digest_fields`)."""
+    return digest_fields([f for a in arrays for f in (f"{a.dtype}{a.shape}", np.ascontiguousarray(a).tobytes())])
 
 
 @functools.lru_cache(maxsize=2)

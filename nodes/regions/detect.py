@@ -40,13 +40,13 @@ import dataclasses
 from typing import Literal
 
 import numpy as np
+import potpourri3d as pp3d
 import trimesh
 from pydantic import Field, field_validator, model_validator
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
-from ..geometry.heat_distance import heat_distance_solver
 from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
@@ -326,7 +326,7 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params)
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
-    solver = heat_distance_solver(vertices, faces)
+    solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
     from_boundary, from_base = base_distance(solver, graph, base.faces)
     from_contact, rim_mm, rank = from_base, None, 0
     if params.wiring_room_mm > 0:
