@@ -151,12 +151,8 @@ def load_calibration(path: str | Path) -> Calibration:
         if tail is not None and not float(tail) > 0:
             raise ValueError("coupling_tail")
         amplitude = doc.get("finger_amplitude")
-        if amplitude is not None:
-            if len(amplitude) != 2:
-                raise ValueError("finger_amplitude")
-            amplitude = (float(amplitude[0]), float(amplitude[1]))
-            if not (np.isfinite(amplitude[0]) and amplitude[1] > 0):
-                raise ValueError("finger_amplitude")
+        if amplitude is not None:  # the processing's own check (two numbers, a positive spread); ValidationError is a ValueError
+            amplitude = ProcessingParams(amplitude_prior=amplitude).amplitude_prior
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
                            float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points,
                            None if tail is None else float(tail), amplitude)
