@@ -67,6 +67,7 @@ class HeatGeodesics:
         edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
         h = float(np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1).mean())
         t = t_coef * h * h
+        self.vertices = V
         self.faces = F
         self.vertex_count = n
         self.mean_edge_mm = h
@@ -85,8 +86,12 @@ class HeatGeodesics:
     def fields(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Geodesic distance (mm) from each source point to every vertex: array (n, S), float32.
 
-        Source ``s`` is the surface point ``bary[s] @ V[F[faces[s]]]``; the field is shifted so that
-        its interpolated value at the source is 0 and clipped at 0.
+        Source ``s`` is the surface point ``p = bary[s] @ V[F[faces[s]]]``. The heat method's distance
+        is rounded off over about an edge around its source, so the field's constant is set where it
+        is exact: at the corners of the source's face, whose distances from ``p`` are straight lines,
+        the field matches them on average (weighted by ``bary``; a vertex source is 0 at its vertex).
+        Inside that face the field is the P1 interpolation of those distances (up to an edge length at
+        ``p``, not 0); it is clipped at 0.
         """
         faces = np.asarray(faces, dtype=np.int64)
         bary = np.asarray(bary, dtype=np.float64)
@@ -112,7 +117,9 @@ class HeatGeodesics:
             phi = solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
             del g
             corners = self.faces[faces[sl]]  # (s, 3)
-            phi -= np.sum(phi[corners, np.arange(phi.shape[1])[:, None]] * bary[sl], axis=1)[None, :]
+            corner_points = self.vertices[corners]  # (s, 3, 3)
+            to_corners = np.linalg.norm(corner_points - np.einsum("sc,scd->sd", bary[sl], corner_points)[:, None], axis=2)
+            phi -= np.sum((phi[corners, np.arange(phi.shape[1])[:, None]] - to_corners) * bary[sl], axis=1)[None, :]
             out[:, sl] = np.maximum(phi, 0.0, out=phi)
             if not np.isfinite(out[:, sl]).all():  # never silently: phase 1 would quantise garbage
                 raise FloatingPointError(f"heat-method distances from sources {start}..{start + len(corners) - 1} are not finite")
