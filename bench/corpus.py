@@ -9,7 +9,8 @@ maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the 
 keep their own size). The pose, base and sensing region are read from the run's ``metrics.json``.
 
 Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and sensing area %, cells,
-pads, Voronoi CV over the pads and over all crossings, coverage radius mm, phase 1's gap, the chosen
+pads, Voronoi CV over the pads and over all crossings, coverage radius mm, the % of the sensing area
+farther than 10 mm from every cell (``uncovered_share`` of metrics.json), phase 1's gap, the chosen
 Rx family, sheets, joints, seconds) and, as the LAST line, one JSON object with ``meshes``,
 ``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
 ``median_cells``, the worst cases and per-row details. Usage::
@@ -88,6 +89,7 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "voronoi_cv": metrics.get("voronoi_cv"),
         "voronoi_cv_all_crossings": metrics.get("voronoi_cv_all_crossings"),
         "coverage_radius_mm": metrics.get("coverage_radius_mm"),
+        "uncovered_percent": round(100 * metrics["uncovered_share"], 2),
         "phase1_gap": metrics.get("phase1_gap"),
         "sheets": sheet_count,
         "joints": report.get("joints"),
@@ -135,7 +137,7 @@ def main() -> None:
         rows, failures = [], []
         print(
             f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'cells':>6s} {'pads':>5s} "
-            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
+            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -156,7 +158,8 @@ def main() -> None:
                 f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('sensing_percent'), '6.1f')} "
                 f"{fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
                 f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('voronoi_cv_all_crossings'), '6.3f')} "
-                f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {fmt(row.get('phase1_gap'), '6.3f')} "
+                f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {fmt(row.get('uncovered_percent'), '5.1f')} "
+                f"{fmt(row.get('phase1_gap'), '6.3f')} "
                 f"{row.get('rx_family') or '-':16s} "
                 f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {seconds:7.1f}",
                 flush=True,
@@ -167,6 +170,7 @@ def main() -> None:
     cvs = [r["voronoi_cv"] for r in good if r.get("voronoi_cv") is not None]
     cells = [r["cells"] for r in good if r.get("cells") is not None]
     radii = [r["coverage_radius_mm"] for r in good if r.get("coverage_radius_mm") is not None]
+    uncovered = [r["uncovered_percent"] for r in good]
     summary = {
         "meshes": len(rows),
         "succeeded": len(good),
@@ -177,6 +181,8 @@ def main() -> None:
         "fewest_cells": min(cells) if cells else None,
         "median_coverage_radius_mm": float(np.median(radii)) if radii else None,
         "worst_coverage_radius_mm": max(radii) if radii else None,
+        "median_uncovered_percent": float(np.median(uncovered)) if uncovered else None,
+        "worst_uncovered_percent": max(uncovered) if uncovered else None,
         "worst_phase1_gap": max((r["phase1_gap"] for r in good if r.get("phase1_gap") is not None), default=None),
         "most_sheets": max((r["sheets"] for r in good if r.get("sheets") is not None), default=None),
         "median_seconds": float(np.median([r["seconds"] for r in rows])) if rows else None,

@@ -254,6 +254,7 @@ def main() -> None:
         "channels": [m["tx_channels"], m["rx_channels"]],
         "coverage_radius_mm": m["coverage_radius_mm"],
         "coverage_radius_vertices_mm": m["coverage_radius_vertices_mm"],
+        "uncovered_share": m["uncovered_share"],
         "mean_distance_mm": m["mean_distance_mm"],
         "mean_distance_mm_without_secondary": m_off["mean_distance_mm"],
         "min_pad_spacing_mm": m["min_pad_spacing_mm"],

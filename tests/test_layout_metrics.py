@@ -9,7 +9,9 @@ import pytest
 from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
 
 from retrotouch.nodes.layout import metrics, samples as samples_module
-from retrotouch.nodes.layout.metrics import coefficient_of_variation, farthest_nearest, min_pairwise, voronoi_cell_areas
+from retrotouch.nodes.layout.metrics import (
+    UNCOVERED_SPOTS_LISTED, coefficient_of_variation, min_pairwise, row_minima, uncovered_spots, voronoi_cell_areas,
+)
 from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 
@@ -149,7 +151,7 @@ def test_fields_that_are_not_finite_stop_the_run_instead_of_reaching_phase_1(mon
         geo.fields(np.array([0, 5]), np.full((2, 3), 1 / 3))
 
 
-def test_voronoi_and_farthest_nearest_by_blocks_equal_the_whole_array(monkeypatch):
+def test_voronoi_and_row_minima_by_blocks_equal_the_whole_array(monkeypatch):
     mesh = sphere_mesh(4)
     geo = geodesics_for(mesh)
     rng = np.random.default_rng(1)
@@ -160,5 +162,55 @@ def test_voronoi_and_farthest_nearest_by_blocks_equal_the_whole_array(monkeypatc
     whole = np.bincount(whole_owner, weights=triangle_areas(corners(mesh.vertices, mesh.faces[mask])), minlength=20)
     monkeypatch.setattr(metrics, "_ROWS_PER_BLOCK", 97)  # many blocks, the last one partial
     assert np.array_equal(voronoi_cell_areas(fields, mesh.vertices, mesh.faces, mask), whole)
-    assert farthest_nearest(fields, rows) == float(fields[rows].min(axis=1).max())
+    assert np.array_equal(row_minima(fields, rows), fields[rows].min(axis=1))
 
+
+def plane_grid(size_mm: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square (size_mm x size_mm, z = 0) as an n x n grid of vertices, two triangles per square."""
+    x, y = np.meshgrid(np.linspace(0.0, size_mm, n), np.linspace(0.0, size_mm, n), indexing="ij")
+    vertices = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
+    k = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    faces = np.r_[np.c_[k, k + n, k + n + 1], np.c_[k, k + n + 1, k + 1]]
+    return vertices, faces
+
+
+def test_uncovered_share_and_spot_match_the_disc_left_by_one_cell():
+    # one cell at the centre of a 100 mm square: everything beyond 10 mm of it is one spot, of area
+    # 100^2 - pi 10^2, its farthest point a corner at 50 sqrt(2) mm
+    vertices, faces = plane_grid(100.0, 201)
+    nearest = np.linalg.norm(vertices - [50.0, 50.0, 0.0], axis=1)
+    out = uncovered_spots(nearest, vertices, faces, np.ones(len(faces), dtype=bool), 10.0)
+    expected = 100.0**2 - np.pi * 10.0**2
+    assert len(out["uncovered_spots"]) == 1
+    assert out["uncovered_spots"][0]["area_mm2"] == pytest.approx(expected, rel=0.01)
+    assert out["uncovered_share"] == pytest.approx(expected / 100.0**2, rel=0.01)
+    assert out["uncovered_spots"][0]["max_distance_mm"] == pytest.approx(50.0 * np.sqrt(2.0))
+    assert np.abs(out["uncovered_spots"][0]["point"][:2] - np.array([50.0, 50.0])).tolist() == [50.0, 50.0]
+
+
+def test_uncovered_spots_are_separate_pieces_largest_first_and_outside_faces_do_not_count():
+    # cells along the line x = 40: the strip left of x = 30 and the one right of x = 50 are two spots
+    # (30 x 100 and 50 x 100 mm); faces outside the mask (x > 90) are neither area nor spots
+    vertices, faces = plane_grid(100.0, 201)
+    nearest = np.abs(vertices[:, 0] - 40.0)
+    mask = vertices[faces, 0].max(axis=1) <= 90.0
+    out = uncovered_spots(nearest, vertices, faces, mask, 10.0)
+    areas_found = [s["area_mm2"] for s in out["uncovered_spots"]]
+    assert len(areas_found) == 2 and areas_found == sorted(areas_found, reverse=True)
+    assert areas_found == pytest.approx([40.0 * 100.0, 30.0 * 100.0], rel=0.02)
+    assert out["uncovered_share"] == pytest.approx(70.0 / 90.0, rel=0.02)
+    assert out["uncovered_spots"][0]["max_distance_mm"] == pytest.approx(50.0)
+
+
+def test_uncovered_spots_list_the_largest_only_and_none_when_covered():
+    vertices, faces = plane_grid(100.0, 101)
+    # cells on a 20 mm lattice leave a spot around each lattice square's centre (14.1 mm from its corners)
+    lattice = np.arange(0.0, 101.0, 20.0)
+    cells = np.array([[x, y, 0.0] for x in lattice for y in lattice])
+    nearest = np.linalg.norm(vertices[:, None, :] - cells[None], axis=2).min(axis=1)
+    mask = np.ones(len(faces), dtype=bool)
+    spots = uncovered_spots(nearest, vertices, faces, mask, 10.0)["uncovered_spots"]
+    assert len(spots) == UNCOVERED_SPOTS_LISTED < 25
+    assert all(s["max_distance_mm"] == pytest.approx(10.0 * np.sqrt(2.0)) for s in spots)
+    covered = uncovered_spots(nearest, vertices, faces, mask, 15.0)
+    assert covered["uncovered_spots"] == [] and covered["uncovered_share"] == 0.0

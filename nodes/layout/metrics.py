@@ -3,7 +3,9 @@
 Voronoi CV: every sensing face is assigned to the pad geodesically nearest to its centroid (the
 centroid value of the P1-interpolated heat-method distance field of each pad); the cell area of a
 pad is the summed area of its faces; CV = population std / mean of the cell areas (0 for a perfectly
-regular layout). Distances and lengths in mm, areas in mm^2.
+regular layout). Uncovered spots: the connected pieces of the sensing region whose vertices lie
+farther than ``UNCOVERED_MM`` (geodesic) from every cell, where a touch reaches few crossings and its
+position is poorly determined. Distances and lengths in mm, areas in mm^2.
 """
 from __future__ import annotations
 
@@ -19,6 +21,13 @@ from .selection import SelectionResult
 
 _ROWS_PER_BLOCK = 4096  # faces or vertices per block of the (rows, pads) reductions below
 
+UNCOVERED_MM = 10.0
+"""A sensing point farther than this (geodesic, mm) from every cell is uncovered: a finger there couples
+to one or two crossings at most."""
+
+UNCOVERED_SPOTS_LISTED = 5
+"""Uncovered spots listed in the metrics, largest first."""
+
 
 def voronoi_cell_areas(
     pad_fields: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face_mask: np.ndarray
@@ -33,10 +42,43 @@ def voronoi_cell_areas(
     return np.bincount(owner, weights=areas(corners(vertices, faces[idx])), minlength=P)
 
 
-def farthest_nearest(fields: np.ndarray, rows: np.ndarray) -> float:
-    """Largest over ``rows`` of the smallest value in that row of ``fields`` (n, P), by blocks of rows."""
-    return max(float(fields[rows[start:start + _ROWS_PER_BLOCK]].min(axis=1).max())
-               for start in range(0, len(rows), _ROWS_PER_BLOCK))
+def row_minima(fields: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The smallest value in each of the ``rows`` of ``fields`` (n, P), by blocks of rows."""
+    return np.concatenate([fields[rows[start:start + _ROWS_PER_BLOCK]].min(axis=1)
+                           for start in range(0, len(rows), _ROWS_PER_BLOCK)])
+
+
+def uncovered_spots(nearest_mm: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face_mask: np.ndarray,
+                    threshold_mm: float = UNCOVERED_MM) -> dict:
+    """The share of the ``face_mask`` region's area farther than ``threshold_mm`` from every cell and its
+    spots, largest first (at most ``UNCOVERED_SPOTS_LISTED``): area, largest distance, farthest point.
+    ``nearest_mm`` (n_vertices,) is each vertex's distance to its nearest cell (only the region's are
+    read). A vertex stands for a third of the area of the region's faces around it; a spot is a set of
+    uncovered vertices joined by edges of those faces."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    region = np.asarray(faces)[np.asarray(face_mask, dtype=bool)]
+    vertex_area = np.bincount(region.ravel(), weights=np.repeat(areas(corners(vertices, region)) / 3.0, 3),
+                              minlength=len(vertices))
+    uncovered = np.zeros(len(vertices), dtype=bool)
+    inside = np.unique(region)
+    uncovered[inside] = nearest_mm[inside] > threshold_mm
+    edges = np.concatenate([region[:, [0, 1]], region[:, [1, 2]], region[:, [2, 0]]])
+    edges = edges[uncovered[edges].all(axis=1)]
+    n = len(vertices)
+    _, label = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                    directed=False)
+    members = np.flatnonzero(uncovered)
+    spot_area = np.bincount(label[members], weights=vertex_area[members], minlength=n)
+    spots = []
+    for spot in np.argsort(-spot_area)[:min(UNCOVERED_SPOTS_LISTED, len(np.unique(label[members])))]:
+        own = members[label[members] == spot]
+        far = own[np.argmax(nearest_mm[own])]
+        spots.append({"area_mm2": float(spot_area[spot]), "max_distance_mm": float(nearest_mm[far]),
+                      "point": [float(x) for x in vertices[far]]})
+    return {"uncovered_threshold_mm": float(threshold_mm),
+            "uncovered_share": float(vertex_area[members].sum() / vertex_area.sum()), "uncovered_spots": spots}
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:
@@ -76,6 +118,9 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
     ``power`` the secondary objective's."""
     tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
     nearest = problem.distance[:, cells].min(axis=1)
+    sensing_vertices = np.unique(mesh.faces[samples.sensing_faces])
+    vertex_nearest = np.full(len(mesh.vertices), np.inf)
+    vertex_nearest[sensing_vertices] = row_minima(cell_fields, sensing_vertices)
     cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.sensing_faces)
     all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.sensing_faces)
     tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
@@ -84,7 +129,8 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
     closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]
     return {
         "coverage_radius_mm": float(nearest.max()),
-        "coverage_radius_vertices_mm": farthest_nearest(cell_fields, np.unique(mesh.faces[samples.sensing_faces])),
+        "coverage_radius_vertices_mm": float(vertex_nearest[sensing_vertices].max()),
+        **uncovered_spots(vertex_nearest, mesh.vertices, mesh.faces, samples.sensing_faces),
         "mean_distance_mm": float(nearest.mean()),
         "power_mean_distance_mm": float(np.mean(nearest**power) ** (1.0 / power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,

@@ -145,7 +145,21 @@ def print_angle_table(rows: list[dict], best: int) -> None:
     Console(stderr=True, width=200).print(table)
 
 
-@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics", "regions"))
+def best_note(outputs: dict[str, object]) -> str:
+    """The run summary's line on the chosen layout: family, cells, coverage radius and where it is thin."""
+    m, regions = outputs["metrics"], outputs["regions"]  # type: ignore[assignment]
+    line = (f"chosen {m['rx_family']} at {m['chosen_angle_deg']:+.0f} deg around the {regions.tx_pole} Tx pole: "
+            f"{m['cells']} of {m['channel_pairs']} channel pairs as cells, coverage radius {m['coverage_radius_mm']:.1f} mm "
+            f"({m['coverage_radius_vertices_mm']:.1f} over every sensing vertex); {100 * m['uncovered_share']:.1f}% of the "
+            f"sensing area is farther than {m['uncovered_threshold_mm']:g} mm from every cell")
+    if m["uncovered_spots"]:
+        spot = m["uncovered_spots"][0]
+        line += (f", the largest spot {spot['area_mm2']:.0f} mm2 up to {spot['max_distance_mm']:.1f} mm at "
+                 f"({', '.join(f'{x:.0f}' for x in spot['point'])}) mm")
+    return line
+
+
+@node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics", "regions"), note=best_note)
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
     """Keep the best branch (radius, secondary, cells, Voronoi CV), its regions, and the per-branch table."""
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
