@@ -7,7 +7,7 @@ import pytest
 
 from types import SimpleNamespace
 
-from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, pick_best
+from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, best_note, pick_best
 from retrotouch.nodes.layout.screen import ScreenParams, screen
 from retrotouch.nodes.layout.sweep import AngleLayout
 
@@ -54,6 +54,20 @@ def test_the_chosen_branch_brings_the_regions_of_its_tx_pole():
     out = pick_best(PickParams(print_table=False), candidates)
     assert out["regions"] is centre and out["layout"] is None
     assert [r["tx_pole"] for r in out["metrics"]["angles"]] == ["far", "centre"]
+
+
+def test_the_run_note_names_the_chosen_branch_its_coverage_and_its_largest_uncovered_spot():
+    chosen = branch(20, 15.9, 8.0, 0.4, cells=197)
+    chosen.metrics.update(rx_family="helices_per_line", channel_pairs=252, coverage_radius_vertices_mm=18.47,
+                          uncovered_threshold_mm=10.0, uncovered_share=0.054,
+                          uncovered_spots=[{"area_mm2": 812.4, "max_distance_mm": 18.47, "point": [-30.7, 32.9, -24.0]},
+                                           {"area_mm2": 151.0, "max_distance_mm": 13.9, "point": [42.9, -28.2, 2.4]}])
+    out = pick_best(PickParams(print_table=False), [dataclasses.replace(chosen, regions=SimpleNamespace(tx_pole="far"))])
+    assert best_note(out) == ("chosen helices_per_line at +20 deg around the far Tx pole: 197 of 252 channel pairs as cells, "
+                              "coverage radius 15.9 mm (18.5 over every sensing vertex); 5.4% of the sensing area is farther "
+                              "than 10 mm from every cell, the largest spot 812 mm2 up to 18.5 mm at (-31, 33, -24) mm")
+    out["metrics"].update(uncovered_share=0.0, uncovered_spots=[])
+    assert best_note(out).endswith("0.0% of the sensing area is farther than 10 mm from every cell")
 
 
 def started(radius, lower_bound):

@@ -22,8 +22,8 @@ from .selection import SelectionResult
 _ROWS_PER_BLOCK = 4096  # faces or vertices per block of the (rows, pads) reductions below
 
 UNCOVERED_MM = 10.0
-"""A sensing point farther than this (geodesic, mm) from every cell is uncovered: a finger there couples
-to one or two crossings at most."""
+"""A sensing point farther than this (geodesic, mm) from every cell is uncovered: a finger touching there
+is more than a finger's width (9 mm) from the nearest crossing."""
 
 UNCOVERED_SPOTS_LISTED = 5
 """Uncovered spots listed in the metrics, largest first."""
