@@ -227,3 +227,23 @@ def test_cpsat_proto_is_the_one_the_modelling_api_builds(problem):
             api.add_hint(v[i], bool(hint[i]))
         assert (m.col_hi == 0).any() or m is model
         assert str(cpsat_model(m, cost, hint)[0].proto) == str(api.proto)
+
+
+def test_highs_reports_a_finite_bound_on_a_model_it_proves_infeasible(problem):
+    """HiGHS gives -inf as its dual bound when it proves nothing; the stage report then holds the
+    bound every 0-1 point respects (0 for the non-negative costs of both stages), never -inf, which
+    metrics.json could not carry."""
+    from retrotouch.nodes.layout.mip import build_model
+    from retrotouch.nodes.layout.solvers import solve_stage
+
+    q = np.ceil(problem.distance / 0.5 - 1e-9).astype(np.int64)
+    model = build_model(problem, 6, 4, q, np.full(len(q), int(np.sort(q, axis=1)[:, 3].max())), 2)
+    first = model.columns[model.offsets[0]:model.offsets[1]]
+    impossible = dataclasses.replace(  # one more row: the first row's columns sum to more than they can
+        model, offsets=np.r_[model.offsets, model.offsets[-1] + len(first)], columns=np.r_[model.columns, first],
+        values=np.r_[model.values, np.ones(len(first), dtype=np.int64)], row_lo=np.r_[model.row_lo, len(first) + 1.0],
+        row_hi=np.r_[model.row_hi, np.inf])
+    settings = {"seed": 0, "highs_max_nodes": 100, "time_limit_s": 1.0, "workers": 1}
+    solved = solve_stage(impossible, impossible.radius_objective(), np.zeros(impossible.n_cols, dtype=np.int64), "highs", settings)
+    assert solved.status == "INFEASIBLE" and solved.values is None
+    assert solved.bound == 0.0

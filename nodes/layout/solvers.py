@@ -162,4 +162,7 @@ def _highs(model: LinearModel, cost: np.ndarray, hint: np.ndarray, settings: dic
     work = {"nodes": int(info.mip_node_count), "lp_iterations": int(info.simplex_iteration_count), "highs_status": raw}
     if raw == "Time limit reached":
         work["note"] = f"stopped by the {HIGHS_SAFETY_S:g} s wall-clock safety net: not reproducible"
-    return status, values, float(info.mip_dual_bound), work
+    bound = float(info.mip_dual_bound)
+    if not np.isfinite(bound):  # nothing proven (an infeasible model): the bound every 0-1 point respects
+        bound = float(np.minimum(cost, 0.0) @ model.col_hi)
+    return status, values, bound, work
