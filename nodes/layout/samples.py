@@ -131,9 +131,10 @@ class HeatGeodesics:
         vals = fields[corners]  # (P, 3, S)
         return np.einsum("pcs,pc->sp", vals, np.asarray(bary, dtype=np.float64))
 
-    def pairwise(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Symmetric (P, P) geodesic distances (mm) among surface points (mean of both directions)."""
-        D = self.evaluate(self.fields(faces, bary), faces, bary)
+    def pairwise(self, faces: np.ndarray, bary: np.ndarray, fields: np.ndarray | None = None) -> np.ndarray:
+        """Symmetric (P, P) geodesic distances (mm) among surface points (mean of both directions, 0 on
+        the diagonal); ``fields`` the points' own :meth:`fields` when they are at hand."""
+        D = self.evaluate(self.fields(faces, bary) if fields is None else fields, faces, bary)
         D = 0.5 * (D + D.T)
         np.fill_diagonal(D, 0.0)
         return D

@@ -361,8 +361,7 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
         return _failed(branch.family, angle_deg, base, message, phase1=selection.report)
     active_rows = problem.cross_rows[active]
     fields = geo.fields(tx_rx.faces[active_rows], tx_rx.bary[active_rows])
-    distance = geo.evaluate(fields, tx_rx.faces[active_rows], tx_rx.bary[active_rows])
-    distance = 0.5 * (distance + distance.T)
+    distance = geo.pairwise(tx_rx.faces[active_rows], tx_rx.bary[active_rows], fields)
     pads, keep, pad_radius, relaxations = _pads_with_ladder(params, distance, tx_rx.curve_a[active_rows], tx_rx.curve_b[active_rows])
     if not pads.feasible:
         message = (f"no pad placement even with pad radius {pad_radius:g} mm and fewer curves: lower "
