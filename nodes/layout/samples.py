@@ -73,7 +73,7 @@ class HeatGeodesics:
         self.mean_edge_mm = h
         self._heat = cholesky(sp.diags(mass) + t * self.stiffness)
         # L has the constants as null space; a tiny mass shift makes it definite, then the
-        # distance is re-anchored at the source, so the shift only removes the free constant.
+        # distance is re-anchored at its source (see fields), so the shift only removes the free constant.
         self._poisson = cholesky(self.stiffness + 1e-9 * sp.diags(mass))
 
     def _load(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
