@@ -13,7 +13,7 @@ import trimesh
 from retrotouch.nodes.data.types import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.preview.render import PreviewParams, render_layout_preview, render_preview
 from retrotouch.nodes.preview.views import (
-    CAPTION_LINE_PX, CAPTION_SCALE, CROSSING_RGB, RX_RGB, TABLE_RGB, TX_RGB, UP_RGB, camera, caption_lines, face_colours,
+    CAPTION_LINE_PX, CAPTION_SCALE, CROSSING_RGB, RX_RGB, TABLE_RGB, TX_RGB, UNCOVERED_RGB, UP_RGB, camera, caption_lines, face_colours,
     render_view, segments,
 )
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -106,12 +106,17 @@ def test_pads_of_a_layout_are_marked(sphere: Mesh, regions: SurfaceRegions, laye
     point = np.array([[RADIUS * np.sqrt(1 - (10 / RADIUS) ** 2), 0.0, 10.0]] * 2)
     one = np.zeros(2, np.int64)
     cells = Crossings("tx", "rx", one, one, one, one, np.zeros(2), np.zeros(2), point, one, np.full((2, 3), 1 / 3))
-    def draw(pad: list[bool]) -> np.ndarray:
+    def draw(pad: list[bool], spots: list[list[float]] = ()) -> np.ndarray:
         layout = Layout(tx, rx, cells, np.array(pad), np.arange(tx.count), np.arange(rx.count))
-        files = render_layout_preview(PreviewParams(view_px=200), sphere, regions, layout)
+        metrics = {"uncovered_threshold_mm": 10.0, "uncovered_share": 0.1 if spots else 0.0,
+                   "uncovered_spots": [{"area_mm2": 300.0, "max_distance_mm": 15.0, "point": p} for p in spots]}
+        files = render_layout_preview(PreviewParams(view_px=200), sphere, regions, layout, metrics)
         return cv2.cvtColor(cv2.imdecode(np.frombuffer(files.contents["preview.png"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert colour_pixels(draw([True, False]), CROSSING_RGB) > 5
     assert colour_pixels(draw([False, False]), CROSSING_RGB) == 0
+    # an uncovered spot's farthest point is ringed, in every view that sees it
+    assert colour_pixels(draw([False, False]), UNCOVERED_RGB) == 0
+    assert colour_pixels(draw([False, False], [point[0].tolist()]), UNCOVERED_RGB) > 30
 
 
 def test_html_is_self_contained_and_embeds_the_data(sphere: Mesh, regions: SurfaceRegions, layers) -> None:

@@ -34,14 +34,16 @@ def render_preview(params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, t
     )
 
 
-@node("preview.layout", params=PreviewParams, inputs=("mesh", "regions", "layout"), outputs=("files",), sink=True)
-def render_layout_preview(params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout) -> Files:
+@node("preview.layout", params=PreviewParams, inputs=("mesh", "regions", "layout", "metrics"), outputs=("files",), sink=True)
+def render_layout_preview(params: PreviewParams, mesh: Mesh, regions: SurfaceRegions, layout: Layout, metrics: dict) -> Files:
     """As ``preview.render`` for the optimised layout: the selected curves, with the crossings that
-    carry an electrode pad marked as yellow dots."""
+    carry an electrode pad marked as yellow dots and the largest uncovered spots of ``metrics`` (the
+    layout's) ringed in red."""
     pads = np.asarray(layout.cells.points, dtype=np.float64).reshape(-1, 3)[np.asarray(layout.pad, dtype=bool)]
+    uncovered = {key: metrics[key] for key in ("uncovered_threshold_mm", "uncovered_share", "uncovered_spots")}
     return Files(
         contents={
-            params.png: render_png(mesh, regions, layout.tx, layout.rx, pads, params.view_px, params.line_px),
+            params.png: render_png(mesh, regions, layout.tx, layout.rx, pads, params.view_px, params.line_px, uncovered),
             params.html: render_html(mesh, regions, layout.tx, layout.rx, pads),
         }
     )

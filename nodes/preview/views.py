@@ -4,7 +4,9 @@ The mesh is flat-shaded with OpenCV's triangle rasterizer (base region dark blue
 regions mid grey, sensing surface light grey); Tx curves in ``TX_RGB`` and Rx curves in ``RX_RGB``
 are drawn only where they pass a depth test against the mesh's z-buffer, and so are the resting
 pose's guides (:func:`pose_guides`): the table plane under the object in ``TABLE_RGB`` and an up
-arrow beside it in ``UP_RGB``. A caption under the views names the pose kind and its reason.
+arrow beside it in ``UP_RGB``; the layout's uncovered spots are ringed in ``UNCOVERED_RGB`` at their
+points farthest from every crossing. A caption under the views names the pose kind and its reason, and
+the share of the sensing area the spots hold.
 
 Camera convention: views orbit the bounding-box centre; elevation is measured from the plane
 normal to ``regions.up`` (positive = looking down on the object), azimuth about ``up``; lengths mm.
@@ -20,6 +22,7 @@ from ..geometry.triangles import normals
 TX_RGB = (230, 70, 20)
 RX_RGB = (20, 110, 235)
 CROSSING_RGB = (250, 210, 0)
+UNCOVERED_RGB = (220, 30, 30)
 BACKGROUND_RGB = (255, 255, 255)
 SENSING_RGB = (0.86, 0.85, 0.82)
 EXCLUSION_RGB = (0.66, 0.66, 0.66)
@@ -96,9 +99,10 @@ def render_view(
     size: int,
     line_px: int,
     guides: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int]]] = (),
+    spots: np.ndarray | None = None,
 ) -> np.ndarray:
     """One RGB uint8 view: shaded mesh, then the ``guides`` segments (:func:`pose_guides`) and the
-    curves where they pass the depth test, then crossings."""
+    curves where they pass the depth test, then crossings (dots) and uncovered ``spots`` (rings)."""
     vertices, faces = mesh.vertices, mesh.faces
     corners = vertices[faces]
     face_normals, _ = normals(corners)
@@ -137,12 +141,15 @@ def render_view(
     for curves, rgb in layers:
         visible = visible_curve_mask(curves, world_to_camera, depth, size, tolerance=4 * pixel_mm)
         image[cv2.dilate(visible, kernel) > 0] = rgb
-    if crossings is not None and len(crossings):
-        column, row, point_depth = project(crossings, world_to_camera, size)
+    for points, rgb, radius_px, thickness in ((crossings, CROSSING_RGB, line_px + 1, -1),
+                                              (spots, UNCOVERED_RGB, 3 * line_px + 4, line_px + 1)):
+        if points is None or not len(points):
+            continue
+        column, row, point_depth = project(points, world_to_camera, size)
         for c, r, d in zip(column, row, point_depth):
             ci, ri = int(round(c)), int(round(r))
             if 0 <= ci < size and 0 <= ri < size and d <= depth[ri, ci] + 4 * pixel_mm:
-                cv2.circle(image, (ci, ri), line_px + 1, CROSSING_RGB, -1)
+                cv2.circle(image, (ci, ri), radius_px, rgb, thickness)
     return image
 
 
@@ -239,29 +246,36 @@ def render_png(
     crossings: np.ndarray | None,
     view_px: int,
     line_px: int,
+    uncovered: dict | None = None,
 ) -> bytes:
     """PNG bytes of the 2 x 2 grid of views (``2 view_px`` wide; with ``regions``, the pose caption
-    below them makes it taller)."""
+    below them makes it taller); ``uncovered`` the layout metrics' ``uncovered_*`` entries."""
     up = np.asarray(regions.up, dtype=np.float64) if regions is not None else np.array([0.0, 0.0, 1.0])
     centre = 0.5 * (mesh.vertices.max(0) + mesh.vertices.min(0))
     radius = float(np.linalg.norm(mesh.vertices.max(0) - mesh.vertices.min(0))) / 2
     colours = face_colours(len(mesh.faces), regions)
     guides = pose_guides(mesh, up) if regions is not None else []
+    spots = np.array([spot["point"] for spot in uncovered["uncovered_spots"]]).reshape(-1, 3) if uncovered else None
     tiles = []
     for label, azimuth, elevation in VIEWS:
         world_to_camera = camera(centre, 1.3 * radius, up, np.radians(azimuth), np.radians(elevation))
         tile = render_view(
-            mesh, colours, [(rx, RX_RGB), (tx, TX_RGB)], crossings, world_to_camera, view_px, line_px, guides
+            mesh, colours, [(rx, RX_RGB), (tx, TX_RGB)], crossings, world_to_camera, view_px, line_px, guides, spots
         )
         cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
         tiles.append(tile)
     grid = np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
     legend = f"Tx: {tx.count} curves   Rx: {rx.count} curves   base: dark   exclusions: grey"
     cv2.putText(grid, legend, (8, 2 * view_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    caption = ""
     if regions is not None:
-        grid = with_caption(
-            grid, f"resting pose: {regions.pose_kind} (table brown, up arrow green): {regions.pose_reason}"
-        )
+        caption = f"resting pose: {regions.pose_kind} (table brown, up arrow green): {regions.pose_reason}"
+    if uncovered:
+        caption += (f"{'; ' if caption else ''}uncovered (red rings, the farthest point of each of the largest spots): "
+                    f"{100 * uncovered['uncovered_share']:.1f}% of the sensing area is farther than "
+                    f"{uncovered['uncovered_threshold_mm']:g} mm from every crossing")
+    if caption:
+        grid = with_caption(grid, caption)
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("PNG encoding failed")
