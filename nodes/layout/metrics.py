@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data.types import Layout, Mesh
-from ..geometry.triangles import areas, corners
+from ..geometry.triangles import areas, corners, vertex_areas
 from .clearance import clearance_profile
 from .problem import SelectionProblem
 from .samples import SurfaceSamples
@@ -59,8 +59,7 @@ def uncovered_spots(nearest_mm: np.ndarray, vertices: np.ndarray, faces: np.ndar
     from scipy.sparse.csgraph import connected_components
 
     region = np.asarray(faces)[np.asarray(face_mask, dtype=bool)]
-    vertex_area = np.bincount(region.ravel(), weights=np.repeat(areas(corners(vertices, region)) / 3.0, 3),
-                              minlength=len(vertices))
+    vertex_area = vertex_areas(vertices, region)
     uncovered = np.zeros(len(vertices), dtype=bool)
     inside = np.unique(region)
     uncovered[inside] = nearest_mm[inside] > threshold_mm
@@ -71,8 +70,9 @@ def uncovered_spots(nearest_mm: np.ndarray, vertices: np.ndarray, faces: np.ndar
                                     directed=False)
     members = np.flatnonzero(uncovered)
     spot_area = np.bincount(label[members], weights=vertex_area[members], minlength=n)
+    labels = np.unique(label[members])
     spots = []
-    for spot in np.argsort(-spot_area)[:min(UNCOVERED_SPOTS_LISTED, len(np.unique(label[members])))]:
+    for spot in labels[np.argsort(-spot_area[labels])][:UNCOVERED_SPOTS_LISTED]:
         own = members[label[members] == spot]
         far = own[np.argmax(nearest_mm[own])]
         spots.append({"area_mm2": float(spot_area[spot]), "max_distance_mm": float(nearest_mm[far]),
