@@ -35,6 +35,9 @@ JOINT_AMPLITUDE_FACTOR = 2.0  # a finger fitted between two peaks may read up to
 JOINT_AMPLITUDE_SIGMAS = 3.0  # ... or this many of the prior's spreads, if more
 REACH_MARGIN_MM = 0.01  # slack of the joint refit's distance test against rounding (it only skips hopeless fits)
 AMPLITUDE_WELL_POSED_MM = 0.5  # tangential 1-sigma (from the data alone) of a fit whose amplitude is learned
+RING_STARTS_MAX_CROSSINGS = 3  # a first fit seen by at most this many crossings also starts around its peak ...
+RING_STARTS = 6  # ... from this many points, evenly around the circle the peak's delta and the amplitude prior imply
+RING_MIN_PITCH_SHARE = 0.25  # ... unless that circle is smaller than this share of the pitch
 
 
 def amplitude_prior(log_amplitudes: np.ndarray) -> tuple[float, float]:
@@ -239,8 +242,11 @@ class CouplingFit:
         A first fit (no ``log_amplitude``) starts ``a`` at the log of the largest gain-normalised
         delta, or at the amplitude prior's mean if higher. On thin parts (ears) and tips the strongest
         crossing can sit on the far side, so a first fit also starts from the two strongest crossings
-        facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta) and
-        keeps the lowest cost; a refit starts from its first fit only. A well-posed fit with
+        facing away (normals > 60 degrees apart, at least half the strongest gain-normalised delta),
+        and, when at most :data:`RING_STARTS_MAX_CROSSINGS` crossings carry signal and the amplitude
+        prior is known, from points around the peak (:meth:`_ring_starts`; their fits' prior on the
+        offset stays centred at the peak, as the first start's), and keeps the lowest cost; a refit
+        starts from its first fit only. A well-posed fit with
         ``learn_profile`` gives the coupling profile its (squared distance, delta / (g exp(a)),
         weight) pairs (:class:`~retrotouch.nodes.sensing.coupling_profile.ProfileLearner`); without
         ``update`` the fit changes nothing it has learned.
@@ -261,6 +267,7 @@ class CouplingFit:
             if np.count_nonzero(strong) >= COUPLING_MIN_CELLS:
                 self._learn_coupling(offsets[near[strong]], self.projector.face_frames[face], d[strong] / g[strong])
         starts = [(point, face)]
+        first_ring = math.inf  # index of the first start on the ring around the peak (prior anchored at the peak)
         if log_amplitude is None:
             normalised = d / g
             facing = self.projector.face_normals[face]
@@ -272,9 +279,13 @@ class CouplingFit:
             log_amplitude = math.log(normalised[strong].max())
             if self.amplitude_prior is not None:
                 log_amplitude = max(log_amplitude, self.amplitude_prior[0])
+                if np.count_nonzero(strong) <= RING_STARTS_MAX_CROSSINGS:
+                    first_ring = len(starts)
+                    starts += self._ring_starts(point, face, float(normalised[strong].max()))
         z, h = d / noise, g / noise  # in noise sigmas
         plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
-        fits = [plane_fit.run(p, f, log_amplitude) for p, f in starts]
+        fits = [plane_fit.run(p, f, log_amplitude, anchor=point if k >= first_ring else None)
+                for k, (p, f) in enumerate(starts)]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])
         if not (update and self._learn_amplitude(log_amplitude, information) and learn_profile):
             return point, face, bary, log_amplitude
@@ -287,6 +298,21 @@ class CouplingFit:
             if self.coupling.add(squared, z / scale, scale * scale):
                 self._use_profile()
         return point, face, bary, log_amplitude
+
+    def _ring_starts(self, point: np.ndarray, face: int, peak_normalised: float) -> list[tuple[np.ndarray, int]]:
+        """Surface points around the peak crossing at ``point`` where a finger of the prior amplitude
+        would give its gain-normalised delta ``peak_normalised``: :data:`RING_STARTS` directions in the
+        peak face's tangent plane, projected onto the side facing the same way. Few crossings leave
+        the finger's side unresolved (two crossings: two mirror places), and a fit from the peak
+        alone slides to the nearer local minimum."""
+        radius = self.profile.farthest_reading(peak_normalised / math.exp(self.amplitude_prior[0]))
+        if not math.isfinite(radius) or radius < RING_MIN_PITCH_SHARE * self.pitch:
+            return []
+        frame = self.projector.face_frames[face]
+        turn = 2.0 * math.pi * np.arange(RING_STARTS) / RING_STARTS
+        around = point + radius * (np.cos(turn)[:, None] * frame[0] + np.sin(turn)[:, None] * frame[1])
+        moved, faces, _ = self.projector.project(around, frame[2])
+        return [(p, int(f)) for p, f in zip(moved, faces)]
 
     def _learn_gains(self, cells: np.ndarray, offsets: np.ndarray, log_amplitude: float, values: np.ndarray,
                      noise: np.ndarray) -> None:

@@ -47,11 +47,11 @@ class TangentPlaneFit:
         self.rows = np.empty((4, len(z)))  # J (d model / d (u0, u1, a)) and the residual
         self.start = self.o0 = self.o1 = None
 
-    def run(self, point: np.ndarray, face: int, log_amplitude: float):
-        """Fit from the surface point ``point`` on ``face`` and ``log_amplitude``; returns (cost,
-        point, face, bary, log amplitude, data information as its upper triangle
-        ``(i00, i01, i02, i11, i12, i22)`` in ``(u0, u1, a)``)."""
-        self.start = point
+    def run(self, point: np.ndarray, face: int, log_amplitude: float, anchor: np.ndarray | None = None):
+        """Fit from the surface point ``point`` on ``face`` and ``log_amplitude``, the offset prior
+        centred at ``anchor`` (default ``point``); returns (cost, point, face, bary, log amplitude, data
+        information as its upper triangle ``(i00, i01, i02, i11, i12, i22)`` in ``(u0, u1, a)``)."""
+        self.start = point if anchor is None else anchor
         for _ in range(SURFACE_ROUNDS):
             frame = self._set_plane(point, face)
             u0, u1, log_amplitude, state = self._levenberg_marquardt(log_amplitude)
