@@ -182,6 +182,37 @@ def test_scale_by_units_and_param_validation(bunny: Mesh) -> None:
         ScaleParams()
 
 
+def test_sizes_no_table_object_has_are_refused_in_one_line(bunny: Mesh) -> None:
+    """Below 10 mm or above 10 m across, from a parameter or from a file's units, the run stops at
+    ingest with the size and what to check, before anything allocates per-object arrays."""
+    for bad in (1e300, float("inf"), float("nan"), 1e12, 0.001):
+        with pytest.raises(ValueError, match="diagonal_mm"):
+            ScaleParams(diagonal_mm=bad)
+    huge = as_mesh(trimesh.creation.icosphere(subdivisions=2, radius=1e7))
+    with pytest.raises(UserError, match=r"3.46e\+10 mm across .* read in m: .*check the file's units"):
+        scale_mesh(ScaleParams(units="m"), huge)
+    tiny = as_mesh(trimesh.creation.icosphere(subdivisions=2, radius=1e-3))
+    with pytest.raises(UserError, match=r"0.00[0-9]* mm across .* read in mm"):
+        scale_mesh(ScaleParams(units="mm"), tiny)
+    assert np.linalg.norm(np.ptp(scale_mesh(ScaleParams(diagonal_mm=10.0), bunny).vertices, axis=0)) == pytest.approx(10.0)
+
+
+def test_remeshing_finer_than_a_million_vertices_is_refused_before_it_runs() -> None:
+    sphere = as_mesh(trimesh.creation.icosphere(subdivisions=3, radius=40.0))  # 20,106 mm2
+    with pytest.raises(UserError, match=r"target_edge_mm 0.001 would remesh .* raise target_edge_mm to at least 0.15"):
+        remesh(RemeshParams(target_edge_mm=0.001), sphere)
+    with pytest.raises(ValueError, match="target_vertices"):
+        RemeshParams(target_vertices=100_000_000)
+
+
+def test_non_finite_coordinates_fail_the_topology_check() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    vertices = sphere.vertices.copy()
+    vertices[3] = np.nan
+    with pytest.raises(UserError, match="NaN or infinite coordinates"):
+        check_topology(CheckTopologyParams(), as_mesh(trimesh.Trimesh(vertices, sphere.faces, process=False)))
+
+
 def test_repair_merges_duplicates_and_orients_outward() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
     soup_vertices = sphere.vertices[sphere.faces].reshape(-1, 3)  # every face its own 3 vertices

@@ -15,6 +15,7 @@ Nodes:
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -30,6 +31,9 @@ from ..data.types import Mesh
 from .reconstruct import reconstruct_from_points
 
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "unitless": 1.0}
+OBJECT_DIAGONAL_RANGE_MM = (10.0, 10_000.0)
+"""Bounding-box diagonals (mm) of objects the method can cover: below, a pad and its trace do not fit;
+above, it is no object a person sets on a table (and the per-object arrays outgrow the machine)."""
 """Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
 
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".xyz")
@@ -138,9 +142,12 @@ class ScaleParams(NodeParams):
     units: Literal["mm", "cm", "m", "in"] | None = Field(
         None, description="the mesh's numbers are in this unit: multiply by mm per unit"
     )
-    diagonal_mm: float | None = Field(None, gt=0, description="target bounding-box diagonal (mm)")
+    diagonal_mm: float | None = Field(
+        None, ge=OBJECT_DIAGONAL_RANGE_MM[0], le=OBJECT_DIAGONAL_RANGE_MM[1], description="target bounding-box diagonal (mm)"
+    )
     longest_extent_mm: float | None = Field(
-        None, gt=0, description="target longest bounding-box side (mm)"
+        None, ge=OBJECT_DIAGONAL_RANGE_MM[0] / math.sqrt(3.0), le=OBJECT_DIAGONAL_RANGE_MM[1],
+        description="target longest bounding-box side (mm)",
     )
     about: Literal["origin", "bbox_center"] = Field(
         "origin", description="fixed point of the scaling: the coordinate origin or the bbox centre"
@@ -182,4 +189,11 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     else:
         centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
         vertices = (mesh.vertices - centre) * factor + centre
+    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    low, high = OBJECT_DIAGONAL_RANGE_MM
+    if not low * (1 - 1e-9) <= diagonal <= high * (1 + 1e-9):
+        raise UserError(
+            f"the object is {diagonal:.3g} mm across (bounding-box diagonal){f' read in {params.units}' if params.units else ''}: the method covers "
+            f"{low:g} to {high:g} mm; check the file's units, or set diagonal_mm to its real size"
+        )
     return dataclasses.replace(mesh, vertices=vertices)

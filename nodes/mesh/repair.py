@@ -38,6 +38,8 @@ DECIMATE_TO = 2
 """... to this many times the target's faces (quadric edge collapse), before remeshing."""
 TARGET_TOLERANCE = 0.10
 """mesh.remesh: a vertex count within this share of the target is on target."""
+MAX_REMESH_VERTICES = 1_000_000
+"""mesh.remesh: the largest mesh it makes (the layout's memory grows with it: 1.4 GB at 100,000 vertices)."""
 SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
@@ -200,7 +202,9 @@ class RemeshParams(NodeParams):
     """Set exactly one of ``target_edge_mm`` and ``target_vertices``."""
 
     target_edge_mm: float | None = Field(None, gt=0, description="target edge length (mm)")
-    target_vertices: int | None = Field(None, ge=100, description="target vertex count (within ~10%)")
+    target_vertices: int | None = Field(
+        None, ge=100, le=MAX_REMESH_VERTICES, description="target vertex count (within ~10%)"
+    )
     iterations: int = Field(10, ge=1, le=50, description="remeshing iterations per pass")
     feature_angle_deg: float = Field(30.0, gt=0, lt=180, description="crease angle kept sharp (deg)")
     max_passes: int = Field(3, ge=1, le=6, description="passes to hit target_vertices")
@@ -295,6 +299,12 @@ def remesh(params: RemeshParams, mesh: Mesh) -> Mesh:
     else:
         area = float(areas(corners(mesh.vertices, mesh.faces)).sum())
         target_faces = max(1, int(area / (math.sqrt(3.0) / 4.0 * params.target_edge_mm**2)))
+        if target_faces > 2 * MAX_REMESH_VERTICES:
+            raise UserError(
+                f"target_edge_mm {params.target_edge_mm:g} would remesh the {area:,.0f} mm2 surface into about "
+                f"{target_faces // 2:,} vertices (at most {MAX_REMESH_VERTICES:,}): raise target_edge_mm to at least "
+                f"{edge_length_for_vertices(area, MAX_REMESH_VERTICES):.2g}"
+            )
     vertices, faces, note = decimate_dense(mesh.vertices, mesh.faces, target_faces)
     done = [note] if note else []
     if params.target_edge_mm is not None:

@@ -131,6 +131,9 @@ def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]
     """
     if len(mesh.faces) == 0:
         raise UserError(f"{mesh.source} has no faces: load a triangle mesh")
+    if not np.isfinite(mesh.vertices).all():
+        raise UserError(f"{mesh.source.split(' sha256:')[0]} has vertices at NaN or infinite coordinates: "
+                        "repair the file, or check the scale (units, diagonal_mm)")
     report = topology_report(mesh.vertices, mesh.faces)
     problems = topology_problems(report, params.expected_genus)
     if problems:
