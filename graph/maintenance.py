@@ -8,10 +8,12 @@ hit) for that many days; with both, an entry must be unused by the pipelines AND
 """
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import time
 
+from .errors import UserError
 from .store import CorruptEntry, Store
 
 STALE_TMP_SECONDS = 3600.0
@@ -34,6 +36,9 @@ def info(store: Store) -> list[str]:
 
 
 def gc(store: Store, keep: set[str] | None, older_than_days: float | None) -> list[str]:
+    if older_than_days is not None and not (math.isfinite(older_than_days) and older_than_days >= 0):
+        raise UserError(f"--older-than {older_than_days:g}: DAYS must be a finite number of days >= 0, "
+                        "e.g. --older-than 30")
     now = time.time()
     removed_tmp = 0
     for root in (os.path.join(store.local, "tmp"), os.path.join(store.root, "scratch")):

@@ -127,12 +127,19 @@ def load_document(file: str) -> Document:
         if key not in TOP_KEYS:
             raise doc.fail((key,), f"unknown top-level key {key!r}{did_you_mean(key, TOP_KEYS)} "
                                    f"(allowed: {', '.join(TOP_KEYS)})", key=True)
+    _check_top_level(doc)
+    return doc
+
+
+def _check_top_level(doc: Document) -> None:
+    """Refuse a ``nodes:`` that is not a non-empty mapping or a ``params:`` that is not a mapping
+    (in the file or after an ``-S`` override); an empty ``params:`` becomes ``{}``."""
+    data = doc.data
     if not isinstance(data.get("nodes"), dict) or not data["nodes"]:
         raise doc.fail(("nodes",), "'nodes:' must be a mapping of node name -> {type: ..., ...}")
     if not isinstance(data.setdefault("params", {}) or {}, dict):
         raise doc.fail(("params",), "'params:' must be a mapping of name -> value")
     data["params"] = data["params"] or {}
-    return doc
 
 
 # -- interpolation -----------------------------------------------------------------------------
@@ -219,6 +226,7 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
     overrides = list(overrides)
     for override in overrides:
         apply_override(doc, override)
+        _check_top_level(doc)
     raw_nodes: dict[str, Any] = doc.data["nodes"]
     if registry is None:
         from . import registry as discovery
@@ -307,6 +315,10 @@ def _declare_map(doc: Document, name: str, spec: NodeSpec, params: dict[str, Any
         if not isinstance(values, list) or not values:
             raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
                                   f"got {values!r}")
+        for i, value in enumerate(values):
+            if value in values[:i]:
+                raise doc.fail(mpath + (i,), f"node {name!r}: map {key!r} repeats the value {value!r}; "
+                                             "list each value once")
         mapped[key] = values
     return mapped
 

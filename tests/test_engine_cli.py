@@ -70,6 +70,19 @@ def test_cache_info_gc_clear(tmp_path, capsys, test_nodes, monkeypatch):
     assert code == 0 and store.entries() == []
 
 
+def test_cache_gc_refuses_a_negative_or_infinite_age_and_removes_nothing(tmp_path, capsys, test_nodes, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "p.yaml").write_text(PIPELINE)
+    run_pipeline("p.yaml", scheduler="sync")
+    store = Store(str(tmp_path / "cache"))
+    assert len(store.entries()) == 4
+    for days in ("-3", "nan", "inf"):
+        code, out, err = main(capsys, "cache", "gc", "--older-than", days)
+        assert code == 2 and out == "" and err == f"retrotouch: error: --older-than {days}: DAYS must be a finite " \
+                                                  "number of days >= 0, e.g. --older-than 30\n"
+    assert len(store.entries()) == 4
+
+
 def test_errors_are_one_line(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, _, err = main(capsys, "run")

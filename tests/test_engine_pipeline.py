@@ -89,6 +89,15 @@ def test_bad_map_values(tmp_path, test_nodes):
         "p.yaml:12:11: node 'plus' (t.add): cannot map over unknown param 'delt'; did you mean 'delta'?")
 
 
+def test_repeated_map_values_are_refused_before_anything_runs(tmp_path, test_nodes):
+    assert error_of(tmp_path, GOOD.replace("deltas: [1, 2]", "deltas: [1, 2, 1]")) == \
+        "p.yaml:12:18: node 'plus': map 'delta' repeats the value 1; list each value once"
+    literal = GOOD.replace('map: {delta: "${deltas}"}', "map: {delta: [3, 4, 4]}")
+    assert error_of(tmp_path, literal) == "p.yaml:12:25: node 'plus': map 'delta' repeats the value 4; list each value once"
+    assert error_of(tmp_path, GOOD, ["deltas=[6, 6]"]) == \
+        "-S deltas=[6, 6] (used at p.yaml:12:18): node 'plus': map 'delta' repeats the value 6; list each value once"
+
+
 def test_unknown_interpolation_and_keys(tmp_path, test_nodes):
     assert error_of(tmp_path, GOOD.replace('"${n}"', '"${m}"')) == \
         "p.yaml:8:10: unknown pipeline param ${m} (defined: n, deltas)"
@@ -120,6 +129,15 @@ def test_overrides(tmp_path, test_nodes):
         "-S src.scael=2: node 'src' (t.source): unknown param 'scael'; did you mean 'scale'?"
     assert error_of(tmp_path, GOOD, ["params.n=[1"]).startswith("-S params.n=[1: VALUE is not valid YAML")
     assert error_of(tmp_path, GOOD, ["novalue"]).startswith("-S novalue: expected PATH=VALUE")
+
+
+def test_overrides_replacing_nodes_or_params_by_a_value_are_refused(tmp_path, test_nodes):
+    nodes_error = "'nodes:' must be a mapping of node name -> {type: ..., ...}"
+    assert error_of(tmp_path, GOOD, ["nodes=5"]) == f"-S nodes=5: {nodes_error}"
+    assert error_of(tmp_path, GOOD, ["nodes={}"]) == f"-S nodes={{}}: {nodes_error}"
+    params_error = "'params:' must be a mapping of name -> value"
+    assert error_of(tmp_path, GOOD, ["params=5"]) == f"-S params=5: {params_error}"
+    assert error_of(tmp_path, GOOD, ["params=5", "n=3"]) == f"-S params=5: {params_error}"  # before the next one
 
 
 def test_cli_reports_one_line_and_exit_code_2(tmp_path, cli, test_nodes):
