@@ -172,3 +172,33 @@ def test_sensing_map_json_follows_its_json_schema(bunny):
     del doc["up"]
     with pytest.raises(jsonschema.ValidationError, match="'up' is a required property"):
         jsonschema.validate(doc, schema)
+
+
+def test_a_simulated_stream_cut_short_is_run_again_never_scored(bunny, monkeypatch):
+    """When the reader loses the pseudo-terminal before the board's last frame (seen on a loaded
+    machine: 497 of 1,840 frames, scored as 55 mm mean error), the session runs again on a fresh
+    board and pty; the report is the full stream's. Cut short every time, it is a one-line error."""
+    from retrotouch.nodes.sensing import evaluation, muca_serial
+    from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+
+    path, _ = bunny
+    params = EvalParams(locations=3, repetitions=2)
+    whole = evaluate_simulator(path, REALISTIC_BOARD, params, through_pty=False).summary()
+    full_frames = muca_serial.MucaReader.frames
+    cuts = {"left": 1}
+
+    def frames_losing_the_port_once(reader):
+        for k, frame in enumerate(full_frames(reader)):
+            if cuts["left"] and k == 40:
+                cuts["left"] -= 1
+                return
+            yield frame
+
+    monkeypatch.setattr(muca_serial.MucaReader, "frames", frames_losing_the_port_once)
+    rerun = evaluate_simulator(path, REALISTIC_BOARD, params).summary()
+    assert cuts["left"] == 0 and rerun["frames"] == whole["frames"]
+    assert rerun["localization_error_mm_mean"] == pytest.approx(whole["localization_error_mm_mean"])
+    cuts["left"] = evaluation.PTY_ATTEMPTS
+    with pytest.raises(UserError, match=r"stream ended after 40 of \d+ frames .*, 3 times: .*rerun") as error:
+        evaluate_simulator(path, REALISTIC_BOARD, params)
+    assert "\n" not in str(error.value)

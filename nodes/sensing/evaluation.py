@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterable
+import logging
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import Field
@@ -39,7 +40,7 @@ from .calibration import CalibParams, Calibration, calibrate, calibration_target
 from .frames import Frame
 from .locations import crossing_locations, load_locations, nearest_crossing_mm, spread_locations
 from .processing import ProcessingParams, TouchProcessor
-from .pty_board import frames_through_pty
+from .pty_board import LinkCutShort, frames_through_pty
 from .recording import replay_frames
 from .scripts import ScriptBuilder
 from .virtual_board import BoardParams, VirtualBoard
@@ -211,12 +212,35 @@ def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarr
     return tuple(out)
 
 
+log = logging.getLogger(__name__)
+Result = TypeVar("Result")
+
+PTY_ATTEMPTS = 3
+"""Runs of a simulated session through the pseudo-terminal before a stream cut short is an error."""
+
+
+def rerun_if_cut_short(session: Callable[[], Result]) -> Result:
+    """``session()``, a simulated session read through a new pseudo-terminal, run again (the virtual
+    board is deterministic) when the reader lost the port before the last frame, at most
+    :data:`PTY_ATTEMPTS` times; then a one-line error."""
+    for attempt in range(1, PTY_ATTEMPTS + 1):
+        try:
+            return session()
+        except LinkCutShort as exc:
+            if attempt == PTY_ATTEMPTS:
+                raise UserError(f"{exc}, {PTY_ATTEMPTS} times: the machine is too busy for the pseudo-terminal; "
+                                "rerun when it is quieter") from None
+            log.warning("%s: running the simulated session again (%d of %d)", exc, attempt + 1, PTY_ATTEMPTS)
+    raise AssertionError("unreachable")
+
+
 def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, params: CalibParams = CalibParams(),
                         seed: int = 0, prompt=lambda text: None, **session: Any) -> tuple[Calibration, dict[str, Any]]:
     """``sense --calibrate`` on the virtual board: a simulated operator touches each prompted crossing
     where it really is on the board (the crossings of a hand-laid sensor sit off the map) with an aim
     error of up to 1.5 mm, 0.9 s per touch and 0.6 s between touches, in the order prompted;
-    ``session`` goes to :func:`.calibration.calibrate` (processor, on_result)."""
+    ``session`` goes to :func:`.calibration.calibrate` (processor, on_result). Through the pseudo-terminal,
+    rerun when the stream is cut short (:func:`rerun_if_cut_short`)."""
     board = VirtualBoard(sensing_map, board_params)
     rng = np.random.default_rng([seed, 7])
     steps = []
@@ -228,7 +252,14 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
         steps.append({"gesture": "press", "at": (board.cell_points[cell] + aim).tolist(), "ms": 900, "gap_ms": 600,
                       "calibration_touch": k})
     script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
-    return calibrate(frames_through_pty(board, script, fast=True), sensing_map, params, prompt, **session)
+
+    def run_once() -> tuple[Calibration, dict[str, Any]]:
+        if session.get("processor") is not None:
+            session["processor"].reset()  # a run cut short left its baseline and tracks
+        frames = frames_through_pty(VirtualBoard(sensing_map, board_params), script, fast=True)
+        return calibrate(frames, sensing_map, params, prompt, **session)
+
+    return rerun_if_cut_short(run_once)
 
 
 def evaluate_simulator(
@@ -244,7 +275,8 @@ def evaluate_simulator(
     """The protocol on the virtual board, read back through a pseudo-terminal in fast mode (or fed to
     the processor directly when ``through_pty`` is False); ``locations`` a user's JSON list of points
     (:func:`.locations.load_locations`) instead of ``eval_params.location_rule``'s; ``calibration``
-    (:mod:`.calibration`) replaces the processing's default assumptions."""
+    (:mod:`.calibration`) replaces the processing's default assumptions. Through the pseudo-terminal,
+    rerun when the stream is cut short (:func:`rerun_if_cut_short`)."""
     sensing_map = load_sensing_map(sensing_map_path)
     board = VirtualBoard(sensing_map, board_params)
     if locations is not None:
@@ -255,15 +287,18 @@ def evaluate_simulator(
         points, choice = crossing_locations(sensing_map, eval_params.locations, eval_params.location_rule,
                                             eval_params.seed, board_params)
     script = ScriptBuilder(sensing_map, board_params, eval_params.seed).build(press_steps(points, eval_params))
-    processor = (TouchProcessor(sensing_map, processing_params) if calibration is None
-                 else calibration.processor(sensing_map, processing_params))
+
+    def session(frames: Iterable[Frame]) -> EvalReport:
+        processor = (TouchProcessor(sensing_map, processing_params) if calibration is None
+                     else calibration.processor(sensing_map, processing_params))
+        return dataclasses.replace(evaluate(frames, list(script.labels), processor, eval_params), choice=choice)
+
     if through_pty:
-        frames: Iterable[Frame] = frames_through_pty(board, script, fast=True, record=record)
-    else:
-        total = int(np.ceil(script.duration * board_params.rate_hz))
-        frames = (Frame(board.frame(k / board_params.rate_hz, script.fingers_at(k / board_params.rate_hz)),
-                        k / board_params.rate_hz, k) for k in range(total))
-    return dataclasses.replace(evaluate(frames, list(script.labels), processor, eval_params), choice=choice)
+        return rerun_if_cut_short(lambda: session(
+            frames_through_pty(VirtualBoard(sensing_map, board_params), script, fast=True, record=record)))
+    total = int(np.ceil(script.duration * board_params.rate_hz))
+    return session(Frame(board.frame(k / board_params.rate_hz, script.fingers_at(k / board_params.rate_hz)),
+                         k / board_params.rate_hz, k) for k in range(total))
 
 
 def load_protocol(path: str | Path) -> tuple[np.ndarray, int]:

@@ -22,6 +22,10 @@ from .scripts import Script
 from .virtual_board import VirtualBoard
 
 
+class LinkCutShort(RuntimeError):
+    """The reader got fewer of a finite stream's frames than the board sent."""
+
+
 class PtyBoard:
     """Serves a virtual board's frames on a pseudo-terminal; open :attr:`port` with pyserial.
 
@@ -187,14 +191,24 @@ def frames_through_pty(
 ) -> Iterator[Frame]:
     """Run ``board`` on a pseudo-terminal and read it back with :class:`MucaReader` (the real serial
     path). Frames carry board time ``seq / rate_hz`` (s), so fast mode keeps the script's timing.
-    Ends after the board's last frame (never with ``loop``); the script's labels go into the recording."""
+    Ends after the board's last frame (never with ``loop``); the script's labels go into the recording.
+    Raises :class:`LinkCutShort` when a finite stream ends before its last frame came through (the
+    reader lost the port; not counted with ``drop_byte_every``, which loses frames on purpose), so that
+    no caller scores a stream cut short."""
     simulator = PtyBoard(board, script, frame_format=frame_format, fast=fast, frames=frames,
                          garbage_every=garbage_every, loop=loop, separate_process=separate_process,
                          prerender=prerender, drop_byte_every=drop_byte_every)
     options = FrameOptions(flip_tx=board.params.flip_tx, flip_rx=board.params.flip_rx)
+    statuses: list[str] = []
+
+    def status(line: str) -> None:
+        statuses.append(line)
+        if on_status is not None:
+            on_status(line)
+
     # Open before the board starts: pyserial flushes the input queue when it opens a port.
     reader = MucaReader(simulator.port, frame_format=frame_format, options=options, record=record,
-                        reconnect_timeout_s=0.0, on_status=on_status,
+                        reconnect_timeout_s=0.0, on_status=status,
                         record_header={"timebase": "board", "rate_hz": board.params.rate_hz, "simulated": True})
     simulator.start()
     if reader.recorder is not None and script is not None:
@@ -222,6 +236,9 @@ def frames_through_pty(
             reader_seq[0] = frame.seq + 1
             if simulator.frames_total is not None and reader_seq[0] >= simulator.frames_total:
                 break
+        if simulator.frames_total is not None and reader_seq[0] < simulator.frames_total and not drop_byte_every:
+            raise LinkCutShort(f"the virtual board's stream ended after {reader_seq[0]} of {simulator.frames_total} "
+                               f"frames ({statuses[-1] if statuses else 'the port went quiet'})")
     finally:
         stalled.set()
         reader.close()
