@@ -146,12 +146,33 @@ def test_websocket_clients_get_events():
     (["--simulate", "--udp", "nowhere", "--layout", "LAYOUT"], "give HOST:PORT"),
     (["--replay", "MISSING", "--layout", "LAYOUT"], "recording MISSING not found"),
     (["--simulate", "--coupling", "lorentz", "--layout", "LAYOUT"], "--coupling 'lorentz': use gaussian or disc"),
+    (["--simulate", "--websocket", "-1", "--layout", "LAYOUT"], "--websocket -1: a port is 0-65535"),
+    (["--simulate", "--websocket", "70000", "--layout", "LAYOUT"], "--websocket 70000: a port is 0-65535"),
+    (["--simulate", "--view", "--view-port", "-5", "--layout", "LAYOUT"], "--view-port -5: a port is 0-65535"),
+    (["--simulate", "--udp", "127.0.0.1:99999", "--layout", "LAYOUT"],
+     "--udp 127.0.0.1:99999: the port must be 1-65535"),
+    (["--simulate", "--udp", "nonexistent.invalid:9000", "--layout", "LAYOUT"],
+     "--udp nonexistent.invalid:9000: cannot resolve host nonexistent.invalid"),
+    (["--simulate", "--skip-tx", "99", "--layout", "LAYOUT"], "--skip-tx 99: the board's channels are 0-20"),
+    (["--simulate", "--skip-rx", "3,12", "--layout", "LAYOUT"], "--skip-rx 12: the board's channels are 0-11"),
+    (["--simulate", "--duration", "-1", "--layout", "LAYOUT"], "--duration -1.0: use a number above 0"),
+    (["--port", "/dev/nonexistent-muca", "--baud", "0", "--layout", "LAYOUT"], "--baud 0: use a number above 0"),
+    (["--port", "/dev/nonexistent-muca", "--skip-lines", "-3", "--layout", "LAYOUT"], "--skip-lines -3: use 0 or more"),
+    (["--replay", "MISSING", "--speed", "-1", "--layout", "LAYOUT"], "--speed -1.0: use 0 or more"),
 ])
 def test_operator_errors_are_user_errors(app, layout, tmp_path, args, message):
     args = [str(layout) if a == "LAYOUT" else str(tmp_path / "missing") if a == "MISSING" else a for a in args]
     message = message.replace("MISSING", str(tmp_path / "missing"))
     with pytest.raises(UserError, match=re.escape(message)):
         invoke(app, *args)
+
+
+def test_record_refuses_an_existing_file_and_leaves_it_as_it_was(app, layout, tmp_path):
+    recording = tmp_path / "session.jsonl"
+    recording.write_text("an earlier session\n")
+    with pytest.raises(UserError, match=re.escape(f"--record {recording} exists: choose another name or delete it")):
+        invoke(app, "--simulate", "--fast", "--layout", layout, "--record", recording)
+    assert recording.read_text() == "an earlier session\n"
 
 
 def test_operator_errors_are_one_line_and_exit_2_in_the_real_cli(layout):

@@ -163,6 +163,45 @@ def test_replay_of_missing_file_is_user_error(tmp_path):
         list(replay_frames(tmp_path / "nope.jsonl"))
 
 
+def _recording(path, frames: int, header: dict | None = None) -> bytes:
+    """A recording of ``frames`` ASCII frames, one record each; returns its bytes."""
+    recorder = Recorder(path, {"frame_format": "ascii", "port": "test", **(header or {})})
+    for k in range(frames):
+        recorder.bytes(encode_ascii_frame(grid(k)), t=0.1 * k)
+    recorder.close()
+    return path.read_bytes()
+
+
+def test_a_recording_cut_off_mid_line_replays_its_complete_lines_and_says_so_once(tmp_path, capsys):
+    path = tmp_path / "crashed.jsonl"
+    path.write_bytes(_recording(path, 5)[:-50])
+    out = list(replay_frames(path))
+    assert len(out) == 4 and np.array_equal(out[-1].values, grid(3))
+    (note,) = capsys.readouterr().err.splitlines()
+    assert note == f"recording {path}: dropped its incomplete last line (the session was cut off)"
+
+
+@pytest.mark.parametrize("damage", ["cut header", "garbage line", "garbage last line"])
+def test_a_recording_with_a_bad_header_or_a_bad_complete_line_is_refused(tmp_path, capsys, damage):
+    path = tmp_path / "damaged.jsonl"
+    lines = _recording(path, 3).splitlines(keepends=True)
+    damaged = {"cut header": lines[0][:40], "garbage line": b"".join([*lines[:2], b"garbage\n", *lines[2:]]),
+               "garbage last line": b"".join([*lines, b"garbage\n"])}[damage]
+    path.write_bytes(damaged)
+    with pytest.raises(UserError, match=re.escape(f"recording {path} is not a recording (not UTF-8 JSON lines")):
+        list(replay_frames(path))
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(("field", "value"), [("num_tx", -3), ("num_tx", 30), ("num_rx", 0), ("num_rx", "12"),
+                                              ("skip_tx", [21]), ("skip_rx", [-1])])
+def test_a_recording_header_with_channels_off_the_board_is_refused_naming_the_field(tmp_path, field, value):
+    path = tmp_path / "edited.jsonl"
+    _recording(path, 2, {field: value})
+    with pytest.raises(UserError, match=re.escape(f"recording {path} header: {field} {value!r} is not")):
+        list(replay_frames(path))
+
+
 def test_missing_port_is_user_error():
     with pytest.raises(UserError, match="serial port /dev/nonexistent-muca not found"):
         MucaReader("/dev/nonexistent-muca")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -39,14 +40,21 @@ from ...graph.app import current
 from ...graph.errors import UserError
 from .sinks import EventSinks, status_event
 
+MAX_PORT = 65535
 
-def _parse_channels(text: Optional[str], option: str) -> tuple[int, ...]:
+
+def _parse_channels(text: Optional[str], option: str, board_channels: int) -> tuple[int, ...]:
+    """``--skip-tx``/``--skip-rx`` text -> channel numbers, each one of the board's ``board_channels``."""
     if not text:
         return ()
     try:
-        return tuple(int(part) for part in text.split(",") if part.strip())
+        channels = tuple(int(part) for part in text.split(",") if part.strip())
     except ValueError:
         raise UserError(f"{option} takes channel numbers separated by commas, e.g. {option} 3,7") from None
+    for channel in channels:
+        if not 0 <= channel < board_channels:
+            raise UserError(f"{option} {channel}: the board's channels are 0-{board_channels - 1}")
+    return channels
 
 
 def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
@@ -93,7 +101,7 @@ def sense(
                                            "processing's model) or disc (flat top, power-law tail; the default board's)."),
     replay: Optional[str] = typer.Option(None, "--replay", help="Replay a recording made with --record."),
     speed: float = typer.Option(1.0, "--speed", help="Replay speed (1 = real time, 0 = as fast as possible)."),
-    record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE."),
+    record: Optional[str] = typer.Option(None, "--record", help="Record the raw serial bytes to FILE (a new file)."),
     frame_format: str = typer.Option("ascii", "--format", help="Board output: ascii, binary (Muca_Raw_Basic) or "
                                      "handshake (SYNC, then one frame per request); --probe tells which."),
     baudrate: int = typer.Option(115200, "--baud", help="Serial baud rate."),
@@ -141,6 +149,7 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
 
+    _check_numbers(baudrate, probe_seconds, speed, skip_lines, duration, websocket, view_port)
     if probe:
         if port or simulate or replay or evaluate:
             raise UserError("--probe PORT only listens: leave out --port, --simulate, --replay and --evaluate")
@@ -168,10 +177,11 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
         _evaluate(layout_path, replay, board_params, record, protocol or (locations if replay else None),
                   None if replay else locations, loaded, calibrate, calibration)
         return
+    from ..data.board import NUM_RX, NUM_TX
     from .frames import FrameOptions
 
-    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx"),
-                           skip_rx=_parse_channels(skip_rx, "--skip-rx"))
+    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx", NUM_TX),
+                           skip_rx=_parse_channels(skip_rx, "--skip-rx", NUM_RX))
     source = Source(port=port, baudrate=baudrate, frame_format=frame_format, options=options, skip_lines=skip_lines,
                     record=record, replay=replay, replay_options=flip_tx or flip_rx or bool(skip_tx or skip_rx),
                     speed=speed, steps=None if not simulate else _steps(script), board_params=board_params,
@@ -186,7 +196,7 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
 
 
 def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format) -> None:
-    """One-line UserErrors for option combinations that cannot work."""
+    """One-line UserErrors for option combinations that cannot work and for a ``--record`` file that exists."""
     sources = [name for name, on in (("--port", port), ("--simulate", simulate), ("--replay", replay)) if on]
     if len(sources) != 1:
         raise UserError("choose one input: --port DEVICE, --simulate [SCRIPT] or --replay FILE")
@@ -194,6 +204,8 @@ def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, co
         raise UserError(f"unexpected argument {script!r}: a script goes with --simulate")
     if record and replay:
         raise UserError("--record and --replay together: a replay is already recorded")
+    if record and Path(record).exists():
+        raise UserError(f"--record {record} exists: choose another name or delete it")
     if evaluate and port:
         raise UserError("--evaluate needs --simulate or a labelled --replay recording")
     if protocol and not (evaluate and replay):
@@ -204,6 +216,32 @@ def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, co
 
     if frame_format not in FRAME_FORMATS:
         raise UserError(f"--format {frame_format!r}: use {', '.join(FRAME_FORMATS)} (--probe PORT tells which)")
+
+
+def _check_numbers(baudrate: int, probe_seconds: float, speed: float, skip_lines: int, duration: Optional[float],
+                   websocket: Optional[int], view_port: int) -> None:
+    """One-line UserErrors for numeric options outside their range."""
+    for option, value in (("--baud", baudrate), ("--probe-seconds", probe_seconds), ("--duration", duration)):
+        if value is not None and not value > 0:
+            raise UserError(f"{option} {value}: use a number above 0")
+    for option, value in (("--speed", speed), ("--skip-lines", skip_lines)):
+        if not value >= 0:
+            raise UserError(f"{option} {value}: use 0 or more")
+    for option, port in (("--websocket", websocket), ("--view-port", view_port)):
+        if port is not None and not 0 <= port <= MAX_PORT:
+            raise UserError(f"{option} {port}: a port is 0-{MAX_PORT} (0 = any free port)")
+
+
+def _check_udp_targets(targets: Iterable[tuple[str, int]]) -> None:
+    """One-line UserErrors for ``--udp`` targets whose port is out of range or whose host does not resolve."""
+    for host, port in targets:
+        if not 1 <= port <= MAX_PORT:
+            raise UserError(f"--udp {host}:{port}: the port must be 1-{MAX_PORT}")
+        try:
+            socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+        except (socket.gaierror, UnicodeError):
+            raise UserError(f"--udp {host}:{port}: cannot resolve host {host} to an IPv4 address: "
+                            "check the name") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -257,6 +295,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
     sinks = EventSinks(udp=udp, websocket_port=websocket)
     live = reader = frames = None
     try:
+        _check_udp_targets(sinks.udp_targets)
         if view_port is not None:
             live = _live_view(processor, view_port)
         frames, reader = _open_frames(source, sensing_map, sinks)

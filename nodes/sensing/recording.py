@@ -8,12 +8,15 @@ Recording file (JSON lines)::
 
 ``t`` is seconds since the recording started; a header with ``"timebase": "board"`` (simulator
 recordings made in fast mode) replays frame ``k`` at ``k / rate_hz`` instead, the time its labels use.
+A last line cut off without its newline (a session ended by a crash or power loss) is dropped with a
+note on stderr; the lines before it replay.
 """
 from __future__ import annotations
 
 import base64
 import binascii
 import json
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -57,7 +60,7 @@ def read_recording(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any
     if not path.is_file():
         raise UserError(f"recording {path} not found: {fix}")
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = _complete_lines(path, path.read_text(encoding="utf-8"))
         header = json.loads(lines[0]) if lines else {}
         records = [json.loads(line) for line in lines[1:] if line.strip()]
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -68,12 +71,39 @@ def read_recording(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any
     found = header.get("format") if isinstance(header, dict) else type(header).__name__
     if found != RECORDING_FORMAT:
         raise UserError(f"recording {path} has format {found!r}, expected {RECORDING_FORMAT!r}: {fix}")
+    _check_channels(path, header)
     for number, record in enumerate(records, start=2):
         if not (isinstance(record, dict) and isinstance(record.get("t"), (int, float))
                 and (isinstance(record.get("b64"), str) or "label" in record)):
             raise UserError(f"recording {path} line {number} is not a {{\"t\", \"b64\"}} or {{\"t\", \"label\"}} "
                             f"record: {fix}")
     return header, records
+
+
+def _complete_lines(path: Path, text: str) -> list[str]:
+    """The lines of ``text`` without a last line cut off before its newline (said on stderr); a
+    header alone is kept, to be judged as one."""
+    lines = text.splitlines()
+    if len(lines) > 1 and not text.endswith("\n"):
+        try:
+            json.loads(lines[-1])
+        except json.JSONDecodeError:
+            print(f"recording {path}: dropped its incomplete last line (the session was cut off)", file=sys.stderr)
+            return lines[:-1]
+    return lines
+
+
+def _check_channels(path: Path, header: dict[str, Any]) -> None:
+    """One-line UserError for header channel counts or skipped channels outside the board's."""
+    for count_field, skip_field, board_count in (("num_tx", "skip_tx", NUM_TX), ("num_rx", "skip_rx", NUM_RX)):
+        count = header.get(count_field, board_count)
+        if type(count) is not int or not 1 <= count <= board_count:
+            raise UserError(f"recording {path} header: {count_field} {count!r} is not 1-{board_count} (the board's "
+                            f"channels): correct the header's first line or record again")
+        skipped = header.get(skip_field, [])
+        if not (isinstance(skipped, list) and all(type(c) is int and 0 <= c < count for c in skipped)):
+            raise UserError(f"recording {path} header: {skip_field} {skipped!r} is not a list of channels "
+                            f"0-{count - 1}: correct the header's first line or record again")
 
 
 def replay_frames(
