@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import socket
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -38,24 +37,8 @@ import typer
 from ...graph import interrupts
 from ...graph.app import current
 from ...graph.errors import UserError
+from .cli_checks import check_inputs, check_numbers, check_udp_targets, parse_channels
 from .sinks import EventSinks, status_event
-
-MAX_PORT = 65535
-
-
-def _parse_channels(text: Optional[str], option: str, board_channels: int) -> tuple[int, ...]:
-    """``--skip-tx``/``--skip-rx`` text -> channel numbers, each one of the board's ``board_channels``."""
-    if not text:
-        return ()
-    try:
-        channels = tuple(int(part) for part in text.split(",") if part.strip())
-    except ValueError:
-        raise UserError(f"{option} takes channel numbers separated by commas, e.g. {option} 3,7") from None
-    for channel in channels:
-        if not 0 <= channel < board_channels:
-            raise UserError(f"{option} {channel}: the board's channels are 0-{board_channels - 1}")
-    return channels
-
 
 def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
                 duration_s: float | None = None, on_frame: Callable[[Any], None] | None = None) -> int:
@@ -149,7 +132,7 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     """:func:`sense` with its options as plain values."""
     from ..data.sensing_map import resolve_sensing_map_path
 
-    _check_numbers(baudrate, probe_seconds, speed, skip_lines, duration, websocket, view_port)
+    check_numbers(baudrate, probe_seconds, speed, skip_lines, duration, websocket, view_port)
     if probe:
         if port or simulate or replay or evaluate:
             raise UserError("--probe PORT only listens: leave out --port, --simulate, --replay and --evaluate")
@@ -159,7 +142,7 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
         return
     if as_json:
         raise UserError("--json goes with --probe (events are JSON lines already)")
-    _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
+    check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format)
     if locations and not evaluate:
         raise UserError("--locations goes with --evaluate (the points touched in the protocol)")
     if board and not simulate:
@@ -180,8 +163,8 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
     from ..data.board import NUM_RX, NUM_TX
     from .frames import FrameOptions
 
-    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=_parse_channels(skip_tx, "--skip-tx", NUM_TX),
-                           skip_rx=_parse_channels(skip_rx, "--skip-rx", NUM_RX))
+    options = FrameOptions(flip_tx=flip_tx, flip_rx=flip_rx, skip_tx=parse_channels(skip_tx, "--skip-tx", NUM_TX),
+                           skip_rx=parse_channels(skip_rx, "--skip-rx", NUM_RX))
     source = Source(port=port, baudrate=baudrate, frame_format=frame_format, options=options, skip_lines=skip_lines,
                     record=record, replay=replay, replay_options=flip_tx or flip_rx or bool(skip_tx or skip_rx),
                     speed=speed, steps=None if not simulate else _steps(script), board_params=board_params,
@@ -193,55 +176,6 @@ def _sense(port, layout, simulate, script, fast, loop, board, snr, seed, couplin
                         (lambda processor: _live_view(processor, view_port)) if view else None)
         return
     _stream(layout_path, source, udp or (), websocket, view_port if view else None, duration, loaded)
-
-
-def _check_inputs(port, simulate, replay, script, record, evaluate, protocol, coupling, frame_format) -> None:
-    """One-line UserErrors for option combinations that cannot work and for a ``--record`` file that exists."""
-    sources = [name for name, on in (("--port", port), ("--simulate", simulate), ("--replay", replay)) if on]
-    if len(sources) != 1:
-        raise UserError("choose one input: --port DEVICE, --simulate [SCRIPT] or --replay FILE")
-    if script is not None and not simulate:
-        raise UserError(f"unexpected argument {script!r}: a script goes with --simulate")
-    if record and replay:
-        raise UserError("--record and --replay together: a replay is already recorded")
-    if record and Path(record).exists():
-        raise UserError(f"--record {record} exists: choose another name or delete it")
-    if evaluate and port:
-        raise UserError("--evaluate needs --simulate or a labelled --replay recording")
-    if protocol and not (evaluate and replay):
-        raise UserError("--protocol goes with --evaluate --replay FILE (scoring a recorded hardware session)")
-    if coupling not in (None, "gaussian", "disc"):
-        raise UserError(f"--coupling {coupling!r}: use gaussian or disc")
-    from .frames import FRAME_FORMATS
-
-    if frame_format not in FRAME_FORMATS:
-        raise UserError(f"--format {frame_format!r}: use {', '.join(FRAME_FORMATS)} (--probe PORT tells which)")
-
-
-def _check_numbers(baudrate: int, probe_seconds: float, speed: float, skip_lines: int, duration: Optional[float],
-                   websocket: Optional[int], view_port: int) -> None:
-    """One-line UserErrors for numeric options outside their range."""
-    for option, value in (("--baud", baudrate), ("--probe-seconds", probe_seconds), ("--duration", duration)):
-        if value is not None and not value > 0:
-            raise UserError(f"{option} {value}: use a number above 0")
-    for option, value in (("--speed", speed), ("--skip-lines", skip_lines)):
-        if not value >= 0:
-            raise UserError(f"{option} {value}: use 0 or more")
-    for option, port in (("--websocket", websocket), ("--view-port", view_port)):
-        if port is not None and not 0 <= port <= MAX_PORT:
-            raise UserError(f"{option} {port}: a port is 0-{MAX_PORT} (0 = any free port)")
-
-
-def _check_udp_targets(targets: Iterable[tuple[str, int]]) -> None:
-    """One-line UserErrors for ``--udp`` targets whose port is out of range or whose host does not resolve."""
-    for host, port in targets:
-        if not 1 <= port <= MAX_PORT:
-            raise UserError(f"--udp {host}:{port}: the port must be 1-{MAX_PORT}")
-        try:
-            socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
-        except (socket.gaierror, UnicodeError):
-            raise UserError(f"--udp {host}:{port}: cannot resolve host {host} to an IPv4 address: "
-                            "check the name") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,7 +229,7 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
     sinks = EventSinks(udp=udp, websocket_port=websocket)
     live = reader = frames = None
     try:
-        _check_udp_targets(sinks.udp_targets)
+        check_udp_targets(sinks.udp_targets)
         if view_port is not None:
             live = _live_view(processor, view_port)
         frames, reader = _open_frames(source, sensing_map, sinks)
