@@ -37,6 +37,8 @@ Conventions (the engine relies on them):
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from typing import Any, Callable
 
 from pydantic import BaseModel, ConfigDict
@@ -76,6 +78,22 @@ class NodeSpec:
     sink: bool
     doc: str
     note: Callable[[Any], str | None] | None = None
+
+    def takes_one_value(self, input_name: str) -> bool:
+        """Whether the function's annotation of ``input_name`` is known and admits no ``list`` (the
+        value a ``node[*]`` fan-in hands over); False when unannotated or unresolvable."""
+        try:
+            hint = typing.get_type_hints(self.func).get(input_name)
+        except Exception:  # noqa: BLE001 - an annotation that does not resolve says nothing
+            return False
+        if hint is None:
+            return False
+        members = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+        for member in members:
+            origin = typing.get_origin(member) or member
+            if member is Any or not isinstance(origin, type) or issubclass(list, origin):
+                return False
+        return True
 
     def note_of(self, value: Any) -> str | None:
         """The node's one-line note on its output ``value`` (``note=`` of :func:`node`), or None."""

@@ -287,6 +287,10 @@ def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[
             if several and not m.group(3):
                 raise doc.fail(rpath, f"node {name!r}: input {input_name!r} lists several nodes, so each must "
                                       f"fan in: write {ref_text}[*]")
+            if m.group(3) and spec.takes_one_value(input_name):
+                raise doc.fail(rpath, f"node {name!r} ({spec.name}): input {input_name!r} takes one value, but "
+                                      f"{ref_text} hands it a list of every branch: write {ref_text[:-3]} (the node "
+                                      "then runs once per branch), or feed the list to a node that takes one")
             refs.append(InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), rpath))
         if not refs:
             raise doc.fail(ipath, f"node {name!r}: input {input_name!r} lists no node")

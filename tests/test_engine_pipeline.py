@@ -112,6 +112,21 @@ def test_fan_in_of_an_unmapped_node_is_refused(tmp_path, test_nodes):
     assert msg.startswith("p.yaml:15:18: node 'tot': input 'xs' fans in src[*]")
 
 
+def test_a_fan_in_list_into_an_input_that_takes_one_value_is_refused(tmp_path, test_nodes):
+    """t.stats annotates ``x`` as one array, t.sum ``xs`` as a list: only the list takes plus[*]."""
+    text = GOOD + '  st:\n    type: t.stats\n    inputs: {x: "plus[*]"}\n'
+    assert error_of(tmp_path, text) == (
+        "p.yaml:18:17: node 'st' (t.stats): input 'x' takes one value, but plus[*] hands it a list of every "
+        "branch: write plus (the node then runs once per branch), or feed the list to a node that takes one")
+    make_plan(str(_written(tmp_path, text.replace('"plus[*]"}\n', "plus}\n"))), [], str(tmp_path / "cache"))
+
+
+def _written(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "q.yaml"
+    path.write_text(text)
+    return path
+
+
 def test_overrides(tmp_path, test_nodes):
     path = tmp_path / "p.yaml"
     path.write_text(GOOD)
