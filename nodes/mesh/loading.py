@@ -31,10 +31,10 @@ from ..data.types import Mesh
 from .reconstruct import reconstruct_from_points
 
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "unitless": 1.0}
+"""Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
 OBJECT_DIAGONAL_RANGE_MM = (10.0, 10_000.0)
 """Bounding-box diagonals (mm) of objects the method can cover: below, a pad and its trace do not fit;
 above, it is no object a person sets on a table (and the per-object arrays outgrow the machine)."""
-"""Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
 
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".xyz")
 
@@ -192,8 +192,9 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     low, high = OBJECT_DIAGONAL_RANGE_MM
     if not low * (1 - 1e-9) <= diagonal <= high * (1 + 1e-9):
+        read_in = f" read in {params.units}" if params.units else ""
         raise UserError(
-            f"the object is {diagonal:.3g} mm across (bounding-box diagonal){f' read in {params.units}' if params.units else ''}: the method covers "
+            f"the object is {diagonal:.3g} mm across (bounding-box diagonal){read_in}: the method covers "
             f"{low:g} to {high:g} mm; check the file's units, or set diagonal_mm to its real size"
         )
     return dataclasses.replace(mesh, vertices=vertices)

@@ -45,6 +45,12 @@ from .recording import replay_frames
 from .scripts import ScriptBuilder
 from .virtual_board import BoardParams, VirtualBoard
 
+log = logging.getLogger(__name__)
+Result = TypeVar("Result")
+
+PTY_ATTEMPTS = 3
+"""Runs of a simulated session through the pseudo-terminal before a stream cut short is an error."""
+
 
 class EvalParams(NodeParams):
     """Evaluation protocol settings (ms)."""
@@ -212,13 +218,6 @@ def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarr
     return tuple(out)
 
 
-log = logging.getLogger(__name__)
-Result = TypeVar("Result")
-
-PTY_ATTEMPTS = 3
-"""Runs of a simulated session through the pseudo-terminal before a stream cut short is an error."""
-
-
 def rerun_if_cut_short(session: Callable[[], Result]) -> Result:
     """``session()``, a simulated session read through a new pseudo-terminal, run again (the virtual
     board is deterministic) when the reader lost the port before the last frame, at most
@@ -278,7 +277,6 @@ def evaluate_simulator(
     (:mod:`.calibration`) replaces the processing's default assumptions. Through the pseudo-terminal,
     rerun when the stream is cut short (:func:`rerun_if_cut_short`)."""
     sensing_map = load_sensing_map(sensing_map_path)
-    board = VirtualBoard(sensing_map, board_params)
     if locations is not None:
         points, choice = load_locations(locations, sensing_map), {"location_rule": f"file {locations}"}
     elif eval_params.location_rule == "spread":
@@ -296,6 +294,7 @@ def evaluate_simulator(
     if through_pty:
         return rerun_if_cut_short(lambda: session(
             frames_through_pty(VirtualBoard(sensing_map, board_params), script, fast=True, record=record)))
+    board = VirtualBoard(sensing_map, board_params)
     total = int(np.ceil(script.duration * board_params.rate_hz))
     return session(Frame(board.frame(k / board_params.rate_hz, script.fingers_at(k / board_params.rate_hz)),
                          k / board_params.rate_hz, k) for k in range(total))

@@ -199,10 +199,10 @@ def frames_through_pty(
                          garbage_every=garbage_every, loop=loop, separate_process=separate_process,
                          prerender=prerender, drop_byte_every=drop_byte_every)
     options = FrameOptions(flip_tx=board.params.flip_tx, flip_rx=board.params.flip_rx)
-    statuses: list[str] = []
+    last_status = ["the port went quiet"]
 
     def status(line: str) -> None:
-        statuses.append(line)
+        last_status[0] = line
         if on_status is not None:
             on_status(line)
 
@@ -238,7 +238,7 @@ def frames_through_pty(
                 break
         if simulator.frames_total is not None and reader_seq[0] < simulator.frames_total and not drop_byte_every:
             raise LinkCutShort(f"the virtual board's stream ended after {reader_seq[0]} of {simulator.frames_total} "
-                               f"frames ({statuses[-1] if statuses else 'the port went quiet'})")
+                               f"frames ({last_status[0]})")
     finally:
         stalled.set()
         reader.close()
