@@ -24,8 +24,8 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
     """
     if len(points) < MIN_POINTS:
         raise UserError(
-            f"{name} holds {len(points)} points and no faces: a scan needs at least {MIN_POINTS} "
-            "points to be reconstructed, export the scan with more points or as a mesh"
+            f"{name} holds {len(points)} point{'' if len(points) == 1 else 's'} and no faces: a scan needs at "
+            f"least {MIN_POINTS} points to be reconstructed, export the scan with more points or as a mesh"
         )
     meshset = pymeshlab.MeshSet()
     meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64)))

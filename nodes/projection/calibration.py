@@ -145,7 +145,8 @@ def load_calibration(path: Path) -> ProCamCalibration:
     except json.JSONDecodeError as exc:
         raise UserError(f"calibration file {path} is not JSON ({exc.msg}, line {exc.lineno}): re-save it") from exc
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
-        raise UserError(f"{path} is not a {CALIBRATION_FORMAT} file: write it with save_calibration")
+        raise UserError(f"{path} is not a {CALIBRATION_FORMAT} file: write it with "
+                        "`retrotouch project-calibrate ... --out FILE`")
 
     def device(d: dict, name: str) -> DeviceIntrinsics:
         try:
