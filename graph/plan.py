@@ -121,8 +121,12 @@ def _validate(pipeline: Pipeline, decl: NodeDecl, raw: dict[str, Any], mapped_in
         path = decl.path + ("map", field, mapped_index[field])
     else:
         path = decl.path + ("params",) + tuple(loc)
-    if not field:  # a model validator, about the params together
-        raise doc.fail(path, f"{what}: params: {err['msg']}")
+    if not field:  # a model validator, about the params together: named by an -S override among them, if any
+        params_path = decl.path + ("params",)
+        below = [p for p in (*doc.via, *doc.marks)
+                 if len(p) > len(params_path) and p[:len(params_path)] == params_path]
+        overridden = next((p for p in below if p in doc.via or doc.marks[p].startswith("-S ")), path)
+        raise doc.fail(overridden, f"{what}: params: {err['msg'].removeprefix('Value error, ')}")
     got = f" (got {err['input']!r})" if "input" in err else ""
     raise doc.fail(path, f"{what}: param {field!r}: {err['msg']}{got}")
 

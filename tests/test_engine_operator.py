@@ -323,8 +323,11 @@ def test_a_params_model_validator_is_reported_without_an_empty_param_name(tmp_pa
     (tmp_path / "p.yaml").write_text("nodes:\n  r: {type: t.range, params: {low: 2, high: 1}}\n")
     with pytest.raises(UserError) as info:
         run_pipeline(str(tmp_path / "p.yaml"), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"))
-    assert str(info.value) == f"{tmp_path / 'p.yaml'}:2:30: node 'r' (t.range): params: Value error, high must be " \
-                              "above low"
+    assert str(info.value) == f"{tmp_path / 'p.yaml'}:2:30: node 'r' (t.range): params: high must be above low"
+    (tmp_path / "q.yaml").write_text("nodes:\n  r: {type: t.range, params: {low: 0, high: 1}}\n")
+    with pytest.raises(UserError) as info:  # the params are fine in the file: the override is named
+        run_pipeline(str(tmp_path / "q.yaml"), ["r.low=3"], out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"))
+    assert str(info.value) == "-S r.low=3: node 'r' (t.range): params: high must be above low"
 
 
 def test_source_date_epoch_fixes_the_manifest_time(tmp_path, test_nodes, monkeypatch):
