@@ -37,7 +37,7 @@ import typer
 from ...graph import interrupts
 from ...graph.app import current
 from ...graph.errors import UserError
-from .cli_checks import check_inputs, check_numbers, check_udp_targets, parse_channels
+from .cli_checks import check_inputs, check_numbers, parse_channels
 from .sinks import EventSinks, status_event
 
 def run_session(frames: Iterable[Any], processor, recognizer, sinks: EventSinks, view=None,
@@ -229,7 +229,6 @@ def _stream(layout_path: Path, source: Source, udp: Iterable[str], websocket: Op
     sinks = EventSinks(udp=udp, websocket_port=websocket)
     live = reader = frames = None
     try:
-        check_udp_targets(sinks.udp_targets)
         if view_port is not None:
             live = _live_view(processor, view_port)
         frames, reader = _open_frames(source, sensing_map, sinks)

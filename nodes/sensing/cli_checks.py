@@ -2,14 +2,11 @@
 option and its range or the combination that cannot work."""
 from __future__ import annotations
 
-import socket
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Optional
 
 from ...graph.errors import UserError
-
-MAX_PORT = 65535
+from .sinks import MAX_PORT
 
 
 def parse_channels(text: Optional[str], option: str, board_channels: int) -> tuple[int, ...]:
@@ -61,15 +58,3 @@ def check_numbers(baudrate: int, probe_seconds: float, speed: float, skip_lines:
     for option, port in (("--websocket", websocket), ("--view-port", view_port)):
         if port is not None and not 0 <= port <= MAX_PORT:
             raise UserError(f"{option} {port}: a port is 0-{MAX_PORT} (0 = any free port)")
-
-
-def check_udp_targets(targets: Iterable[tuple[str, int]]) -> None:
-    """One-line UserErrors for ``--udp`` targets whose port is out of range or whose host does not resolve."""
-    for host, port in targets:
-        if not 1 <= port <= MAX_PORT:
-            raise UserError(f"--udp {host}:{port}: the port must be 1-{MAX_PORT}")
-        try:
-            socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
-        except (socket.gaierror, UnicodeError):
-            raise UserError(f"--udp {host}:{port}: cannot resolve host {host} to an IPv4 address: "
-                            "check the name") from None

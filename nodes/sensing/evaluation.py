@@ -218,13 +218,13 @@ def _per_location(processor: TouchProcessor, presses: _Presses, errors: np.ndarr
     return tuple(out)
 
 
-def rerun_if_cut_short(session: Callable[[], Result]) -> Result:
-    """``session()``, a simulated session read through a new pseudo-terminal, run again (the virtual
-    board is deterministic) when the reader lost the port before the last frame, at most
-    :data:`PTY_ATTEMPTS` times; then a one-line error."""
+def rerun_if_cut_short(session: Callable[[VirtualBoard], Result], board: VirtualBoard) -> Result:
+    """``session(board)``, a simulated session read through a new pseudo-terminal, run again on a new
+    board like it (the virtual board is deterministic) when the reader lost the port before the last
+    frame, at most :data:`PTY_ATTEMPTS` times; then a one-line error."""
     for attempt in range(1, PTY_ATTEMPTS + 1):
         try:
-            return session()
+            return session(board if attempt == 1 else VirtualBoard(board.map, board.params))
         except LinkCutShort as exc:
             if attempt == PTY_ATTEMPTS:
                 raise UserError(f"{exc}, {PTY_ATTEMPTS} times: the machine is too busy for the pseudo-terminal; "
@@ -252,13 +252,12 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
                       "calibration_touch": k})
     script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
 
-    def run_once() -> tuple[Calibration, dict[str, Any]]:
+    def run_once(fresh: VirtualBoard) -> tuple[Calibration, dict[str, Any]]:
         if session.get("processor") is not None:
             session["processor"].reset()  # a run cut short left its baseline and tracks
-        frames = frames_through_pty(VirtualBoard(sensing_map, board_params), script, fast=True)
-        return calibrate(frames, sensing_map, params, prompt, **session)
+        return calibrate(frames_through_pty(fresh, script, fast=True), sensing_map, params, prompt, **session)
 
-    return rerun_if_cut_short(run_once)
+    return rerun_if_cut_short(run_once, board)
 
 
 def evaluate_simulator(
@@ -291,10 +290,10 @@ def evaluate_simulator(
                      else calibration.processor(sensing_map, processing_params))
         return dataclasses.replace(evaluate(frames, list(script.labels), processor, eval_params), choice=choice)
 
-    if through_pty:
-        return rerun_if_cut_short(lambda: session(
-            frames_through_pty(VirtualBoard(sensing_map, board_params), script, fast=True, record=record)))
     board = VirtualBoard(sensing_map, board_params)
+    if through_pty:
+        return rerun_if_cut_short(
+            lambda fresh: session(frames_through_pty(fresh, script, fast=True, record=record)), board)
     total = int(np.ceil(script.duration * board_params.rate_hz))
     return session(Frame(board.frame(k / board_params.rate_hz, script.fingers_at(k / board_params.rate_hz)),
                          k / board_params.rate_hz, k) for k in range(total))

@@ -13,6 +13,8 @@ from typing import Any
 
 from ...graph.errors import UserError
 
+MAX_PORT = 65535  # the largest TCP/UDP port number
+
 EVENTS_FORMAT = "retrotouch.events/1"
 
 
@@ -22,10 +24,17 @@ def status_event(kind: str, message: str, t: float | None = None) -> dict[str, A
 
 
 def _udp_target(text: str) -> tuple[str, int]:
+    """``--udp HOST:PORT`` -> (IPv4 address, port), the host resolved once here, not per event."""
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit():
         raise UserError(f"--udp {text!r}: give HOST:PORT, e.g. --udp 127.0.0.1:9000")
-    return host, int(port)
+    if not 1 <= int(port) <= MAX_PORT:
+        raise UserError(f"--udp {text}: the port must be 1-{MAX_PORT}")
+    try:
+        address = socket.getaddrinfo(host, int(port), socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    except (socket.gaierror, UnicodeError):
+        raise UserError(f"--udp {text}: cannot resolve host {host} to an IPv4 address: check the name") from None
+    return address, int(port)
 
 
 class EventSinks:
