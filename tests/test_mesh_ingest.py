@@ -386,6 +386,23 @@ def test_a_pinch_vertex_split_by_repair_stays_split_after_remeshing() -> None:
     assert report["non_manifold_vertices"] == 0 and report["euler_characteristic"] == 2 and report["boundary_edges"] == 0
 
 
+def test_a_single_triangle_is_refused_as_an_open_flat_sheet_not_as_holes_to_close() -> None:
+    """A lone triangle has one boundary loop that mesh.repair cannot close (the patch would repeat
+    the face): the check says it is a flat sheet, not that holes should be closed by the repair that
+    already ran."""
+    triangle = Mesh(np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]]),
+                    np.array([[0, 1, 2]], dtype=np.int64), "triangle.obj")
+    repaired = remesh(RemeshParams(target_vertices=500), repair_mesh(RepairParams(), triangle))
+    with pytest.raises(UserError, match=r"triangle.obj: the surface is an open flat sheet \(\d+ boundary edges, every "
+                       r"point in one plane\), not a solid object: give it its thickness") as error:
+        check_topology(CheckTopologyParams(), repaired)
+    assert "close_holes" not in str(error.value)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    bowl = Mesh(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] < 20.0], "open_bowl.obj")  # a curved open scan
+    with pytest.raises(UserError, match=r"\d+ boundary edges \(1 hole\(s\)\) left open"):
+        check_topology(CheckTopologyParams(), bowl)
+
+
 def test_a_flat_outline_closed_into_a_double_sheet_is_refused_as_no_solid() -> None:
     """A 2D outline exported as a mesh (every vertex at z = 0) whose open side mesh.repair closes with
     a coplanar patch is closed, manifold and genus 0 but encloses nothing: one line says so."""

@@ -20,7 +20,8 @@ from ..geometry.triangles import areas, corners, signed_volume
 from .repair import face_components, to_meshset
 
 MIN_MEAN_THICKNESS_MM = 0.01
-"""A closed surface thinner than this on average (2 x volume / area) is a flat sheet, not an object."""
+"""A closed surface thinner than this on average (2 x volume / area), or an open one whose points all lie
+this close to one plane, is a flat sheet, not an object."""
 
 
 def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | float]:
@@ -28,7 +29,8 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
 
     ``genus`` is ``(2 C - chi - holes) / 2`` over the referenced vertices, meaningful for manifold
     meshes; ``inconsistent_edges`` counts edges whose two faces traverse them in the same direction;
-    ``mean_thickness_mm`` is 2 x |signed volume| / area (a slab's thickness, 0 for a flat sheet).
+    ``mean_thickness_mm`` is 2 x |signed volume| / area (a slab's thickness, 0 for a flat sheet);
+    ``flat_extent_mm`` is the vertices' extent along their axis of least spread (0 for a plane figure).
     """
     faces = np.asarray(faces, dtype=np.int64)
     used = np.unique(faces)
@@ -63,7 +65,18 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "genus": int((2 * components - chi - holes) // 2),
         "signed_volume_mm3": volume,
         "mean_thickness_mm": 2.0 * abs(volume) / max(float(areas(corners(vertices, faces)).sum()), 1e-300),
+        "flat_extent_mm": flat_extent(vertices[used]),
     }
+
+
+def flat_extent(points: np.ndarray) -> float:
+    """The extent (mm) of ``points`` along their principal axis of least variance."""
+    if len(points) < 3:
+        return 0.0
+    centred = points - points.mean(axis=0)
+    least = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    along = centred @ least
+    return float(along.max() - along.min())
 
 
 def topology_problems(report: dict[str, int | float], expected_genus: int | None) -> list[str]:
@@ -79,7 +92,12 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
         problems.append(
             f"{report['components']} components: add mesh.repair (keep_largest: true keeps the largest)"
         )
-    if report["boundary_edges"]:
+    if report["boundary_edges"] and report["flat_extent_mm"] < MIN_MEAN_THICKNESS_MM:
+        problems.append(
+            f"the surface is an open flat sheet ({report['boundary_edges']} boundary edges, every point in one "
+            "plane), not a solid object: give it its thickness in a mesh editor"
+        )
+    elif report["boundary_edges"]:
         problems.append(
             f"{report['boundary_edges']} boundary edges ({report['holes']} hole(s)) left open: add "
             "mesh.repair with close_holes, raise its max_hole_edges, or fill them in a mesh editor"
