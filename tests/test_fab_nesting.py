@@ -6,13 +6,16 @@ import numpy as np
 import pydantic
 import pytest
 import shapely
+import shapely.affinity
+from shapely.geometry import Polygon
 from test_fab_outline import straight, unfolded_from_polylines
 
 from retrotouch.graph.errors import UserError
-from retrotouch.nodes.fab.mats import MATS_MM
+from retrotouch.nodes.fab.mats import MARGIN_MM, MATS_MM, fit_angles, usable_sides
 from retrotouch.nodes.fab.nesting import Params, nest, placed_polygons
 from retrotouch.nodes.fab.outline import Params as OutlineParams
 from retrotouch.nodes.fab.outline import outline
+from retrotouch.nodes.fab.raster_nest import Part, raster_nest
 
 
 def traces(lengths, bend: float = 0.0, fit_mat: str = "12x12"):
@@ -115,6 +118,26 @@ def test_part_fitting_only_diagonally_gets_its_own_sheet():
     for nester in ("raster", "shelf"):
         params = Params(mat="custom", sheet_width_mm=120, sheet_height_mm=40, nester=nester)
         check_layout(outlines, nest(params, outlines), params)
+
+
+TIGHT_ARC = [(0.0, 3.2), (207.2, 162.8), (241.2, 196.9), (260.5, 224.8), (274.7, 242.0), (293.0, 253.7), (306.3, 258.9),
+             (309.9, 258.6), (293.4, 252.8), (275.3, 241.2), (234.9, 188.1), (194.1, 150.4), (72.9, 57.8), (9.6, 5.3),
+             (2.3, 0.0)]
+"""A piece of a 1.5 m object's trace (simplified to 2 mm), split to fit the 12 x 12 in mat: about 400 mm
+along its arc, it fits the usable area only within about 1.5 deg of one angle."""
+
+
+def test_a_piece_that_fits_the_mat_only_tightly_is_placed_by_the_raster_nester():
+    """On its coarse grid the ranking places the piece at none of the 96 angles, so its finalists were the
+    first four angles, none of which fits: the raster nester raised and the whole nest fell back to
+    shelves (a 1.5 m bunny: 114 sheets, 18 with the raster nester)."""
+    long_side, short_side = usable_sides(*MATS_MM["12x12"], MARGIN_MM)
+    piece = Polygon(TIGHT_ARC)
+    assert 0 < len(fit_angles(piece, long_side, short_side)) <= 8  # 4 angles 0.5 deg apart, either way round the square
+    [(sheet, angle, shift)] = raster_nest([Part(piece, 1.0, 0.5, long_side, short_side)], long_side, short_side,
+                                          1.0, 0.5, 96, 4, [0])
+    placed = shapely.affinity.translate(shapely.affinity.rotate(piece, angle, origin=(0, 0)), *shift)
+    assert sheet == 0 and shapely.box(0, 0, long_side, short_side).buffer(1e-6).contains(placed)
 
 
 def test_a_trace_longer_than_any_mat_never_fails_late():

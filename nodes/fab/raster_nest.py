@@ -9,7 +9,8 @@ the rounding. Parts are moved by whole cells only, so a placed part's cells are 
 Parts are placed one by one in the caller's order. At each trial angle the free positions on a
 sheet are those where the correlation of the part's raster with the sheet's occupied cells is zero
 (OpenCV ``matchTemplate``, DFT-based) and the outline lies inside the usable area. The angles are
-ranked on a coarse grid first, the best few are placed exactly; the part takes the free position
+ranked on a coarse grid first, the best few are placed exactly (on an empty sheet where none of them
+fits, as with a piece that fits the sheet only within a degree or two, every angle is); the part takes the free position
 and angle that end leftmost (then lowest) on the first sheet that has one; a part no sheet holds
 opens the next sheet. The result depends only on the input: no clock, no random numbers.
 
@@ -229,6 +230,18 @@ def _ranked_angles(part: Part, sheet: Sheet, angles: np.ndarray, finalists: int)
     return [a for *_, a in ranked[:finalists]]
 
 
+def _exact_positions(part: Part, sheet: Sheet, angles, pixel: float) -> list[tuple]:
+    """The part's placements on ``sheet``'s fine grid at ``angles`` (in that order, ties to the earlier):
+    (right end, bottom, index, angle, raster, column, row), best (leftmost, then lowest) first."""
+    found = []
+    for n, (a, raster) in enumerate(part.rasters(np.asarray(angles), pixel, True, sheet.long_side, sheet.short_side)):
+        position = sheet.best_position(raster, found[0][0] if found else np.inf)
+        if position:
+            found = sorted(found + [(round(position[0], 6), round(position[1], 6), n, a, raster, *position[2:])],
+                           key=lambda f: f[:3])
+    return found
+
+
 def _own_angles(polygon: Polygon, long_side: float, short_side: float) -> np.ndarray:
     """The angles (deg) that lay the part's minimum rotated rectangle along the strip, and the
     middle of the angles at which it fits the sheet (both ways round)."""
@@ -263,21 +276,18 @@ def raster_nest(parts: list[Part], long_side: float, short_side: float, spacing:
                 sheets.append(Sheet(long_side, short_side, pixel, pad))
                 extents.append([np.inf, -np.inf])
             sheet = sheets[k]
+            empty = not sheet.cells.any()
             chosen = _ranked_angles(part, sheet, angles, finalists)
-            fine = part.rasters(np.asarray(chosen), pixel, True, long_side, short_side)
-            found = []  # (right end, bottom, finalist, angle, raster, column, row), best first
-            for n, (a, raster) in enumerate(fine):
-                position = sheet.best_position(raster, found[0][0] if found else np.inf)
-                if position:
-                    found = sorted(found + [(round(position[0], 6), round(position[1], 6), n, a, raster, *position[2:])],
-                                   key=lambda f: f[:3])
+            found = _exact_positions(part, sheet, chosen, pixel)
+            if not found and empty:  # a tight fit the coarse grid misses: every angle, exactly
+                found = _exact_positions(part, sheet, angles, pixel)
             if found:
                 *_, a, raster, col, row = found[0]
                 result[i] = (k, a, sheet.occupy(raster, col, row))
                 bounds, shift = raster[2], result[i][2][0]
                 extents[k] = [min(extents[k][0], bounds[0] + shift), max(extents[k][1], bounds[2] + shift)]
                 break
-            if not sheet.cells.any():
+            if empty:
                 raise ValueError(f"part {i} fits no empty sheet at any of {rotations} rotations")
         if beaten_by is not None and (len(sheets), extents[-1][1] - extents[-1][0]) > beaten_by:
             return None
