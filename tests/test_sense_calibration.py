@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.sensing_map import load_sensing_map
-from retrotouch.nodes.sensing.calibration import CalibParams, estimate, load_calibration
+from retrotouch.nodes.sensing.calibration import CalibParams, CalibrationSession, estimate, load_calibration
 from retrotouch.nodes.sensing.cli import register
 from retrotouch.nodes.sensing.evaluation import EvalParams, calibrate_simulator, evaluate_simulator
 from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
@@ -76,6 +76,26 @@ def test_the_session_prompts_every_crossing_and_measures_the_boards_gains(bunny,
     assert np.sqrt(np.mean((np.log(calibration.cell_gain[measured]) - truth) ** 2)) < 0.15  # the board spreads 0.2
     # The board's finger (5.5 mm disc) couples wider than the processing's default (4.5 mm Gaussian).
     assert calibration.finger_radius_mm > 4.5
+
+
+def test_a_touch_counts_for_the_prompted_crossing_within_its_reach_even_nearer_the_next(bunny):
+    """The uncalibrated point of a touch on the prompted crossing can sit nearer the next one: it
+    still counts for the prompted one; only out of the prompted one's reach does the session take the
+    operator to have skipped ahead (to the nearest of the next crossings)."""
+    _, sensing_map = bunny
+    session = CalibrationSession(sensing_map)
+    points, targets, reach = sensing_map.cell_points, session.targets, session.reach
+    index = next(i for i in range(len(targets) - 1)
+                 if 0.3 * reach < np.linalg.norm(points[targets[i + 1]] - points[targets[i]]) < reach)
+    session.next = index
+    prompted, following = points[targets[index]], points[targets[index + 1]]
+    step = following - prompted
+    nearer_next = prompted + 0.7 * step
+    assert session._target(nearer_next, [int(targets[index + 1])]) == index
+    past_reach = prompted + step * 1.1 * reach / np.linalg.norm(step)  # out of the prompted one's reach only
+    ahead = targets[index:index + 4]
+    nearest = index + int(np.argmin(np.linalg.norm(points[ahead] - past_reach, axis=1)))
+    assert nearest > index and session._target(past_reach, [int(targets[index + 1])]) == nearest
 
 
 def test_the_calibrated_processing_keeps_the_boards_coupling_profile_as_measured(bunny, calibrated):

@@ -19,11 +19,15 @@ touches estimates what the processing otherwise assumes:
 The operator touches the crossings as they are on the object (where the traces cross), never the
 evaluation's locations. A touch that stays down for ``min_frames`` frames after ``settle_ms`` counts,
 when it lifts, for the crossing it is prompted for when the processing puts its mean point within
-``1.2`` pitches of that crossing (or of one of the next three, the nearest: the operator skipped
-some; a hand-laid crossing sits 1-3 mm off the map, and the processing does not know the board
-yet, so a tighter reach turns away most touches of a layout whose median pitch is small), else
-for the one of them that was its peak crossing most often (at a layout's edge the uncalibrated
-processing can put a touch on a crossing 10 mm off).
+``1.2`` pitches of that crossing (a hand-laid crossing sits 1-3 mm off the map, and the processing
+does not know the board yet, so a tighter reach turns away most touches of a layout whose median
+pitch is small), else for the nearest of the next three within that reach (the operator skipped
+some), else for the one of them that was its peak crossing most often (at a layout's edge the
+uncalibrated processing can put a touch on a crossing 10 mm off). The prompted crossing comes
+first, not the nearest: the uncalibrated point can sit nearer the next crossing than the touched
+one (two crossings a few mm apart, one without a pad reading less than assumed), and a touch
+counted for the next crossing gives it the touched one's deltas (a wrong gain and position) and
+turns away the touch that follows.
 
 * **where each crossing really is** (``locate_crossings``): :mod:`.crossing_positions` fits every
   crossing's position on the surface, with its gain and the coupling profile, to all touches; the
@@ -236,12 +240,14 @@ class CalibrationSession:
                 return
 
     def _target(self, point: np.ndarray, peaks: list[int]) -> int | None:
-        """Index into the targets of the crossing a settled touch was on: the prompted one or one of
-        the next few, the nearest to the touch's mean point (mm) within reach, else the one that was
-        the touch's peak crossing most often (the processing does not know the board yet and may
-        place a touch at the layout's edge far off); None when neither."""
+        """Index into the targets of the crossing a settled touch was on: the prompted one if the
+        touch's mean point (mm) is within reach of it, else the nearest of the next few within
+        reach, else the one that was the touch's peak crossing most often (the processing does not
+        know the board yet and may place a touch at the layout's edge far off); None when neither."""
         ahead = self.targets[self.next:self.next + 1 + SKIP_AHEAD]
         distance = np.linalg.norm(self.map.cell_points[ahead] - point, axis=1)
+        if distance[0] <= self.reach:
+            return self.next
         if distance.min() <= self.reach:
             return self.next + int(np.argmin(distance))
         peak = int(np.bincount(peaks).argmax())
