@@ -16,8 +16,12 @@ strength and ``K(d) = (1 + d^2 / (2 nu w^2))^-nu`` a radial profile whose width 
 smaller ``nu``: a heavier tail). Residuals are in units of ``sqrt(sigma_j^2 + (RELATIVE_ERROR
 delta)^2)`` (noise plus the model's own error);
 priors ``u ~ N(0, placement_sigma^2)``, ``v ~ N(0, aim_sigma^2)`` and ``b ~ N(log gain, 1)`` fix
-what the touches leave free (a common shift of every crossing and touch, a common gain). Pairs are
-every crossing within ``reach_pitch`` pitches (on the map) of the touched one, dark ones included.
+what the touches leave free (a common shift of every crossing and touch, a common gain).
+``placement_sigma`` is the placement's own spread (1-3 mm off the map: about 1.5 mm RMS along each
+tangent direction): the touches pin only distances, so a sparse patch (two crossings within 1.5
+pitches) and its touches move together at little cost, and a looser prior let one drift as a block.
+Pairs are every crossing within ``reach_pitch`` pitches (on the map) of the touched one, dark ones
+included.
 """
 from __future__ import annotations
 
@@ -55,7 +59,7 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
 
 
 def locate_crossings(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sigma: np.ndarray,
-                     gain: np.ndarray, width_mm: float, placement_sigma_mm: float = 3.0,
+                     gain: np.ndarray, width_mm: float, placement_sigma_mm: float = 1.5,
                      aim_sigma_mm: float = 1.0, reach_pitch: float = 3.0) -> CrossingFit:
     """The joint fit of the module docstring over ``records`` ((touched crossing, mean delta (K,)
     counts) per calibration touch), ``sigma`` (K,) noise sigma (counts), starting from ``gain`` (K,)
