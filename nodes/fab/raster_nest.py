@@ -9,10 +9,10 @@ the rounding. Parts are moved by whole cells only, so a placed part's cells are 
 Parts are placed one by one in the caller's order. At each trial angle the free positions on a
 sheet are those where the correlation of the part's raster with the sheet's occupied cells is zero
 (OpenCV ``matchTemplate``, DFT-based) and the outline lies inside the usable area. The angles are
-ranked on a coarse grid first, the best few are placed exactly (on an empty sheet where none of them
-fits, as with a piece that fits the sheet only within a degree or two, every angle is); the part takes the free position
-and angle that end leftmost (then lowest) on the first sheet that has one; a part no sheet holds
-opens the next sheet. The result depends only on the input: no clock, no random numbers.
+ranked on a coarse grid first, the best few are placed exactly (on an empty sheet where none of
+them fits, as with a piece that fits the sheet only within a degree or two, every angle is); the
+part takes the free position and angle that end leftmost (then lowest) on the first sheet that has
+one; a part no sheet holds opens the next sheet. The result depends only on the input: no clock, no random numbers.
 
 Speed: each part's grown outlines are built once (:class:`Part`) and rotated with plain array
 arithmetic (the same operations as ``shapely.affinity.rotate``, so the same numbers); angles whose

@@ -25,16 +25,17 @@ def status_event(kind: str, message: str, t: float | None = None) -> dict[str, A
 
 def _udp_target(text: str) -> tuple[str, int]:
     """``--udp HOST:PORT`` -> (IPv4 address, port), the host resolved once here, not per event."""
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
+    host, _, digits = text.rpartition(":")
+    if not host or not digits.isdigit():
         raise UserError(f"--udp {text!r}: give HOST:PORT, e.g. --udp 127.0.0.1:9000")
-    if not 1 <= int(port) <= MAX_PORT:
+    port = int(digits)
+    if not 1 <= port <= MAX_PORT:
         raise UserError(f"--udp {text}: the port must be 1-{MAX_PORT}")
     try:
-        address = socket.getaddrinfo(host, int(port), socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+        address = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
     except (socket.gaierror, UnicodeError):
         raise UserError(f"--udp {text}: cannot resolve host {host} to an IPv4 address: check the name") from None
-    return address, int(port)
+    return address, port
 
 
 class EventSinks:
