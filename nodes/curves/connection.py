@@ -26,7 +26,6 @@ import dataclasses
 from typing import Literal
 
 import numpy as np
-import potpourri3d as pp3d
 import scipy.sparse.csgraph as csgraph
 
 from ...graph.errors import UserError
@@ -44,7 +43,8 @@ class DirectionField:
     ``face_direction[f] = cos a e1 + sin a e2``. ``start_vertex`` is the singularity curves start from
     (Tx: far vertex; Rx: the dipole source) and ``start_distance`` the geodesic (heat method)
     distance of every vertex from it; ``stop_distance`` is the distance from the singularities
-    curves end at (Tx: the base centre; Rx: both dipole vertices).
+    curves end at (Tx: the base centre; Rx: both dipole vertices). Both come with the regions
+    (``regions.detect`` computes them with its distance solver).
     """
 
     layer: str  # "tx" or "rx"
@@ -179,10 +179,10 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
             "degenerate triangles"
         )
     direction = np.cos(alpha)[:, None] * tables.frame_e1 + np.sin(alpha)[:, None] * tables.frame_e2
-    solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices, tables.faces)
-    distance = np.asarray(solver.compute_distance(start), dtype=np.float64)
-    stops = [v for v in singular_vertices.tolist() if v != start] if layer == "tx" else singular_vertices.tolist()
-    stop_distance = np.asarray(solver.compute_distance_multisource(stops), dtype=np.float64)
+    if layer == "tx":  # from the far vertex to the base centre
+        distance, stop_distance = regions.far_distance_mm, regions.centre_distance_mm
+    else:  # from the dipole's first vertex (the base centre) to either of its vertices
+        distance, stop_distance = regions.centre_distance_mm, regions.dipole_distance_mm
     return DirectionField(
         layer=layer,
         singular_vertices=singular_vertices,
@@ -195,8 +195,8 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
         face_angle=alpha,
         face_direction=direction,
         start_vertex=start,
-        start_distance=distance,
-        stop_distance=stop_distance,
+        start_distance=np.asarray(distance, dtype=np.float64),
+        stop_distance=np.asarray(stop_distance, dtype=np.float64),
     )
 
 

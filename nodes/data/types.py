@@ -145,6 +145,9 @@ class SurfaceRegions:
     up: np.ndarray  # (3,) float64 unit vector, opposite to the resting direction
     base_boundary_edges: np.ndarray  # (E, 2) int64 vertex pairs, see above
     base_distance_mm: np.ndarray  # (n,) float64, geodesic distance of each vertex from the base
+    far_distance_mm: np.ndarray  # (n,) float64, from far_vertex (where Tx lines start)
+    centre_distance_mm: np.ndarray  # (n,) float64, from base_centre (where Tx lines end and Rx lines start)
+    dipole_distance_mm: np.ndarray  # (n,) float64, from the nearer of the base_dipole vertices (where Rx lines end)
     pose_kind: str  # what the object rests on: flat, foot_ring, patches, round or thin
     pose_reason: str  # one sentence: the base, its share of the surface, the stability, why
     tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
