@@ -10,17 +10,18 @@ joints (✕) where a piece's tab overlaps the previous piece; below, its flat cu
 side with the joint overlap drawn dashed and the crossing labels placed so they do not overlap.
 Last page: the wiring table (solder tab -> Muca pin), also written as ``wiring.csv``.
 
-Speed: every candidate view is rendered once; the trace pages share one figure whose axes and
-images are reused (only the image data and the drawn lines change from page to page), and each
-attached trace is burnt into the views' images once instead of being drawn again on every later page;
-images are written cropped to the object; the flat pieces are patches added without data-limit
-updates, with one line collection for the label glyphs and one for all leader lines (annotation
-arrows cost more than their text), and a scale bar instead of graduated axes; the wiring table is
-aligned monospace text.
+Speed: every candidate view is rendered once and its image, cropped to the object, is one array
+that the PDF holds once however many pages show it (the traces attached before a page's trace are
+thin lines over it, one per view); the trace pages share one figure whose axes are reused (only the
+shown images and the drawn artists change from page to page); lines and patches are added without
+data-limit updates (every axes' limits are set); the flat pieces' labels are texts at offsets in
+points (annotations cost more), with one line collection for the label glyphs and one for all leader
+lines, and a scale bar instead of graduated axes; the wiring table is aligned monospace text.
 """
 from __future__ import annotations
 
 import csv
+import functools
 import io
 
 import numpy as np
@@ -97,7 +98,14 @@ def wiring_csv(rows: list[dict]) -> bytes:
 def _draw_curve(ax, view: View, points: np.ndarray, tolerance: float, **style) -> None:
     px, _ = view.project(points)
     shown = np.where(view.visible(points, tolerance)[:, None], px, np.nan)
-    ax.plot(shown[:, 0], shown[:, 1], **style)
+    _line(ax, shown[:, 0], shown[:, 1], **style)
+
+
+def _line(ax, x, y, **style) -> None:
+    """``ax.plot(x, y, **style)`` without its data-limit update (every axes' limits are set)."""
+    from matplotlib.lines import Line2D
+
+    ax.add_artist(Line2D(x, y, **style))
 
 
 PAGE_INCHES = (11.69, 8.27)
@@ -105,6 +113,10 @@ PAGE_INCHES = (11.69, 8.27)
 
 TABLE_ROWS = 38
 """Wiring table rows per page."""
+
+ATTACHED_GREY, ATTACHED_WIDTH_PT = "#404040", 0.45
+"""Colour and line width (points; about one pixel of the default 420-pixel views) of the traces
+attached before the page's trace."""
 
 
 def _arc_points(points: np.ndarray, arcs: np.ndarray) -> np.ndarray:
@@ -127,7 +139,8 @@ def object_frame(mesh: Mesh, layout: Layout) -> ObjectFrame:
     return ObjectFrame.from_up(-down / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0]))
 
 
-def _overview_page(figure_type, views, frame: ObjectFrame, traces, tolerance: float, source: str, layout: Layout):
+def _overview_page(figure_type, views, crops, frame: ObjectFrame, traces, tolerance: float, source: str,
+                   layout: Layout):
     fig = figure_type(figsize=PAGE_INCHES)
     grid = fig.add_gridspec(2, 3, height_ratios=[3, 2], top=0.9, bottom=0.02)
     fig.suptitle(f"retrotouch assembly guide: {source}\n{layout.tx.count} Tx (blue, bottom layer) then "
@@ -136,7 +149,7 @@ def _overview_page(figure_type, views, frame: ObjectFrame, traces, tolerance: fl
     overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
     for col, v in enumerate(overview[::-1][:3]):
         ax = fig.add_subplot(grid[0, col])
-        _show(ax.imshow(views[v].shade, interpolation="none"), views[v], views[v].shade)
+        _show(ax, crops[v], views[v].size)
         for points, name, _ in traces:
             _draw_curve(ax, views[v], points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
         ax.set_title(frame.name(views[v].direction), fontsize=8, y=1.0)
@@ -145,17 +158,54 @@ def _overview_page(figure_type, views, frame: ObjectFrame, traces, tolerance: fl
     return fig
 
 
-def _show(image, view: View, pixels: np.ndarray) -> None:
-    """Show a view's image (``pixels``, shaped like ``view.shade``) cropped to the object and 2
-    pixels around it, in place in the axes' full view: fewer pixels to write into the PDF."""
+def _crop(view: View) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """A view's image as RGBA cropped to the object and 2 pixels around it (fewer pixels to write
+    into the PDF), and the rows and columns ``(r0, r1, c0, c1)`` it keeps."""
     covered = np.isfinite(view.depth)
     rows, cols = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
     r0, r1 = (max(rows[0] - 2, 0), min(rows[-1] + 3, view.size)) if len(rows) else (0, view.size)
     c0, c1 = (max(cols[0] - 2, 0), min(cols[-1] + 3, view.size)) if len(cols) else (0, view.size)
-    image.set_data(pixels[r0:r1, c0:c1])
-    image.set_extent((c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
-    image.axes.set_xlim(-0.5, view.size - 0.5)
-    image.axes.set_ylim(view.size - 0.5, -0.5)
+    pixels = np.full((r1 - r0, c1 - c0, 4), 255, np.uint8)
+    pixels[:, :, :3] = view.shade[r0:r1, c0:c1]
+    return pixels, (r0, r1, c0, c1)
+
+
+@functools.cache
+def _raster_type():
+    """The artist type that draws a cropped view (:func:`_crop`) unsampled in place in its axes
+    (pixel centres at integer data coordinates) and hands the renderer the same array on every
+    draw: the PDF backend writes one image object per array, however many pages show it (an
+    ``imshow`` image hands it a new array, a new image object, on every page). Made on first use:
+    matplotlib is heavy to import."""
+    from matplotlib.artist import Artist
+    from matplotlib.transforms import Affine2D
+
+    class Raster(Artist):
+        zorder = 0
+
+        def __init__(self, crop):
+            super().__init__()
+            self.crop = crop
+
+        def draw(self, renderer):
+            pixels, (r0, r1, c0, c1) = self.crop
+            gc = renderer.new_gc()
+            self._set_gc_clip(gc)
+            placed = Affine2D().scale(c1 - c0, r1 - r0).translate(c0 - 0.5, r0 - 0.5) + self.axes.transData
+            renderer.draw_image(gc, 0.0, 0.0, pixels, placed)
+            gc.restore()
+
+    return Raster
+
+
+def _show(ax, crop: tuple, size: int):
+    """Show a cropped view (:func:`_crop`) of ``size`` pixels in place in the axes' full view, as
+    ``imshow`` would; return its artist."""
+    raster = ax.add_artist(_raster_type()(crop))
+    ax.set_aspect("equal")
+    ax.set_xlim(-0.5, size - 0.5)
+    ax.set_ylim(size - 0.5, -0.5)
+    return raster
 
 
 def _label_offsets(anchors_pt: np.ndarray, sizes_pt: np.ndarray, taken: list) -> list[tuple[float, float]]:
@@ -203,6 +253,7 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
     label glyphs and the leader lines of all labels as one line collection each."""
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Polygon as PolygonPatch
+    from matplotlib.transforms import offset_copy
 
     gap = 12.0
     shifts, x = [], 0.0
@@ -221,7 +272,8 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
     taken, glyphs, leaders = [], [], []  # leaders: (anchor (mm), ends (points from it), (line width, colour))
 
     def label(text, at, offset, half_box, line, **style):
-        ax.annotate(text, at, xytext=offset, textcoords="offset points", ha="center", va="center", **style)
+        ax.text(*at, text, transform=offset_copy(ax.transData, fig, *offset, units="points"), ha="center",
+                va="center", **style)
         leaders.append((np.asarray(at, float), _leader(offset, half_box), line))
 
     for k, (i, shift, ring) in enumerate(zip(parts, shifts, rings)):
@@ -233,7 +285,7 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
         taken.append((centre_pt[0] - 25, centre_pt[1] - 7, centre_pt[0] + 25, centre_pt[1] + 7))
         if k + 1 < len(parts):  # the next piece's tab lies over this piece's end
             joint = np.vstack([outlines.tab[parts[k + 1]], outlines.tab[parts[k + 1]][:1]]) + shift
-            ax.plot(joint[:, 0], joint[:, 1], "--", color="black", lw=0.9)
+            _line(ax, joint[:, 0], joint[:, 1], ls="--", color="black", lw=0.9)
             label(f"✕ joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0), (0, -22),
                   (60, 4.5), (0.5, "black"), fontsize=7)
         mine = outlines.landmark_part == i
@@ -250,9 +302,9 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
     bar = _scale_bar_mm(hi[0] - lo[0])  # a scale bar instead of graduated axes (a third of the page's time)
     ax.xaxis.set_visible(False)
     ax.yaxis.set_visible(False)
-    ax.plot([lo[0] + 3, lo[0] + 3 + bar], [lo[1] + 2.5] * 2, color="black", lw=2, solid_capstyle="butt")
-    ax.annotate(f"{bar:g} mm", (lo[0] + 3 + bar / 2, lo[1] + 2.5), xytext=(0, 3), textcoords="offset points",
-                ha="center", va="bottom", fontsize=7)
+    _line(ax, [lo[0] + 3, lo[0] + 3 + bar], [lo[1] + 2.5] * 2, color="black", lw=2, solid_capstyle="butt")
+    ax.text(lo[0] + 3 + bar / 2, lo[1] + 2.5, f"{bar:g} mm", ha="center", va="bottom", fontsize=7,
+            transform=offset_copy(ax.transData, fig, 0, 3, units="points"))
     ax.set_aspect("equal", adjustable="box")
     ax.set_title("flat cut piece(s) to scale, seen from outside; small bulges = landmarks where the named trace of the "
                  "other layer crosses (○ in the views)", fontsize=9, y=1.0)
@@ -265,13 +317,12 @@ class _TracePages:
         self.fig = figure_type(figsize=PAGE_INCHES)
         grid = self.fig.add_gridspec(2, views_per_trace, height_ratios=[3, 2], top=0.9, bottom=0.05)
         self.view_axes = [self.fig.add_subplot(grid[0, col]) for col in range(views_per_trace)]
-        self.images = [ax.imshow(views[0].shade, interpolation="none") for ax in self.view_axes]
-        for image in self.images:
-            _show(image, views[0], views[0].shade)
+        self.crops = [_crop(view) for view in views]  # one array per view for all pages (and the overview)
+        self.images = [_show(ax, self.crops[0], views[0].size) for ax in self.view_axes]
         for ax in self.view_axes:
             ax.set_axis_off()
         self.flat = self.fig.add_subplot(grid[1, :])
-        self.attached = [view.shade.copy() for view in views]  # per view, with the attached traces burnt in
+        self.attached = [[] for _ in views]  # per view: the attached traces' visible pixels, NaN-separated
 
     def clear(self) -> None:
         for ax in self.view_axes + [self.flat]:
@@ -297,31 +348,27 @@ class _TracePages:
         joints = _arc_points(points, _joint_arcs(outlines, step, base_at_end))
         for ax, image, v in zip(self.view_axes, self.images, best):
             view = views[v]
-            _show(image, view, self.attached[v])
+            image.crop = self.crops[v]
+            if self.attached[v]:
+                trail = np.vstack(self.attached[v])
+                _line(ax, trail[:, 0], trail[:, 1], color=ATTACHED_GREY, lw=ATTACHED_WIDTH_PT)
             _draw_curve(ax, view, points, tolerance, lw=2.5, color="tab:red" if layer == "rx" else "tab:blue")
             cx, _ = view.project(crossings[view.visible(crossings, tolerance)])
-            ax.plot(cx[:, 0], cx[:, 1], "o", mfc="white", mec="black", ms=4, mew=0.8)
+            _line(ax, cx[:, 0], cx[:, 1], ls="none", marker="o", mfc="white", mec="black", ms=4, mew=0.8)
             jx, _ = view.project(joints[view.visible(joints, tolerance)])
-            ax.plot(jx[:, 0], jx[:, 1], "x", color="black", ms=8, mew=2)
+            _line(ax, jx[:, 0], jx[:, 1], ls="none", marker="x", color="black", ms=8, mew=2)
             if view.visible(base[None], tolerance)[0]:
                 bx, _ = view.project(base[None])
-                ax.plot(bx[0, 0], bx[0, 1], "o", color="black", ms=7)
+                _line(ax, bx[:1, 0], bx[:1, 1], ls="none", marker="o", color="black", ms=7)
             ax.set_title(frame.name(view.direction), fontsize=9, y=1.0)
         _draw_pieces(self.fig, self.flat, outlines, np.nonzero(outlines.trace == step)[0])
         return self.fig
 
     def attach(self, points: np.ndarray, views, tolerance: float) -> None:
-        """Burn an attached trace into every view's image (thin, dark grey, where visible), so later
-        pages show it without drawing it again."""
-        import cv2  # heavy: imported when used
-
-        for image, view in zip(self.attached, views):
+        """Add an attached trace to every view of the later pages (thin, dark grey, where visible)."""
+        for trail, view in zip(self.attached, views):
             px, _ = view.project(points)
-            seen = view.visible(points, tolerance)
-            runs = np.split(np.round(px * 16).astype(np.int32), np.nonzero(np.diff(seen.astype(int)))[0] + 1)
-            starts_seen = seen[0]
-            shown = [run for k, run in enumerate(runs) if (k % 2 == 0) == starts_seen and len(run) > 1]
-            cv2.polylines(image, shown, False, (64, 64, 64), 1, lineType=cv2.LINE_AA, shift=4)
+            trail.append(np.vstack([np.where(view.visible(points, tolerance)[:, None], px, np.nan), [[np.nan] * 2]]))
 
 
 def _wiring_pages(figure_type, rows: list[dict]):
@@ -355,8 +402,8 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     metadata = {"Title": "retrotouch assembly guide", "Creator": "retrotouch", "CreationDate": source_date()}
     source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]
     with PdfPages(buffer, metadata=metadata) as pdf:
-        pdf.savefig(_overview_page(Figure, views, frame, traces, tolerance, source, layout))
         pages = _TracePages(Figure, views, params.views_per_trace)
+        pdf.savefig(_overview_page(Figure, views, pages.crops, frame, traces, tolerance, source, layout))
         for step in range(len(traces)):
             pdf.savefig(pages.draw(step, traces, views, frame, tolerance, layout, outlines, params.views_per_trace))
             pages.attach(traces[step][0], views, tolerance)

@@ -103,15 +103,18 @@ def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | No
     order = front[np.argsort(depth[F[front]].mean(axis=1))]
     corners = np.round(px[F[order]] * 16).astype(np.int32)  # 4 fractional bits
     face_id = np.full((size, size), -1, np.int32)
-    for k, f in enumerate(order.tolist()):
-        cv2.fillConvexPoly(face_id, corners[k], f, lineType=cv2.LINE_8, shift=4)
+    fill = cv2.fillConvexPoly  # positional arguments: the call costs more than filling a small face
+    for polygon, f in zip(corners, order.tolist()):
+        fill(face_id, polygon, f, cv2.LINE_8, 4)
     covered = face_id >= 0
     ids = face_id[covered]
     grey = (70 + 170 * facing[ids]).astype(np.uint8)
     view.shade[covered] = grey[:, None]
     # depth of each covered pixel on its face's plane, clamped to the face's depth range
     yy, xx = np.nonzero(covered)
-    drawn, pixel_face = np.unique(ids, return_inverse=True)  # per drawn face first, then per pixel
+    present = np.zeros(len(F), bool)  # per drawn face first, then per pixel (np.unique without its sort)
+    present[ids] = True
+    drawn, pixel_face = np.flatnonzero(present), (np.cumsum(present) - 1)[ids]
     n, p0 = normals[drawn], V[F[drawn, 0]]
     nu, nv, nw = (n @ right)[pixel_face], (n @ up)[pixel_face], (n @ direction)[pixel_face]
     du = (xx - size / 2) / scale + view.centre[0] - (p0 @ right)[pixel_face]
