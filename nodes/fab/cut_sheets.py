@@ -77,11 +77,12 @@ def _sheet_geometry(outlines: TraceOutlines, nested: NestedSheets):
 
 
 def _path_data(polylines: list[np.ndarray], height: float, decimals: int) -> str:
-    fmt = f"{{:.{decimals}f}}"
+    """SVG path data of closed polylines (mm, sheet frame y up -> SVG y down), one format per polyline."""
+    point = f"%.{decimals}f %.{decimals}f"
     parts = []
     for poly in polylines:
-        xy = [(fmt.format(x), fmt.format(height - y)) for x, y in poly]
-        parts.append("M" + " L".join(f"{x} {y}" for x, y in xy) + " Z")
+        xy = np.column_stack([poly[:, 0], height - poly[:, 1]])
+        parts.append("M" + " L".join([point] * len(xy)) % tuple(xy.ravel().tolist()) + " Z")
     return " ".join(parts)
 
 
