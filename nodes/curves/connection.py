@@ -195,8 +195,8 @@ def compute_field(tables: MeshTables, layer: str, regions) -> DirectionField:
         face_angle=alpha,
         face_direction=direction,
         start_vertex=start,
-        start_distance=np.asarray(distance, dtype=np.float64),
-        stop_distance=np.asarray(stop_distance, dtype=np.float64),
+        start_distance=distance,
+        stop_distance=stop_distance,
     )
 
 
