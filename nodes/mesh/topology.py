@@ -33,11 +33,12 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
     ``flat_extent_mm`` is the vertices' extent along their axis of least spread (0 for a plane figure).
     """
     faces = np.asarray(faces, dtype=np.int64)
-    used = np.unique(faces)
+    used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(vertices)))  # np.unique(faces), without the sort
     halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    undirected = np.sort(halfedges, axis=1)
-    edges, edge_count = np.unique(undirected, axis=0, return_counts=True)
-    _, directed_count = np.unique(halfedges, axis=0, return_counts=True)
+    n_keys = max(int(faces.max()) + 1, 1) if faces.size else 1  # an edge (a, b) as the one number a * n_keys + b
+    keys, edge_count = np.unique(halfedges.min(axis=1) * n_keys + halfedges.max(axis=1), return_counts=True)
+    edges = np.stack(np.divmod(keys, n_keys), axis=1)
+    _, directed_count = np.unique(halfedges[:, 0] * n_keys + halfedges[:, 1], return_counts=True)
     boundary = edges[edge_count == 1]
     if len(boundary):
         n = int(boundary.max()) + 1
