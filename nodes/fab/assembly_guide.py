@@ -21,7 +21,6 @@ lines, and a scale bar instead of graduated axes; the wiring table is aligned mo
 from __future__ import annotations
 
 import csv
-import functools
 import io
 
 import numpy as np
@@ -31,7 +30,7 @@ from ...graph.node import Files, NodeParams, node
 from ..data.types import Layout, Mesh
 from ..geometry import triangles
 from .cut_sheets import IMPORT_STEPS
-from .guide_views import ObjectFrame, View, candidate_directions, render
+from .guide_views import ObjectFrame, View, candidate_directions, cropped_image, render, show_view
 from .outline import TraceOutlines
 from .timestamps import source_date
 
@@ -149,63 +148,13 @@ def _overview_page(figure_type, views, crops, frame: ObjectFrame, traces, tolera
     overview = np.argsort([np.count_nonzero(v.visible(everything, tolerance)) for v in views], kind="stable")
     for col, v in enumerate(overview[::-1][:3]):
         ax = fig.add_subplot(grid[0, col])
-        _show(ax, crops[v], views[v].size)
+        show_view(ax, crops[v], views[v].size)
         for points, name, _ in traces:
             _draw_curve(ax, views[v], points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
         ax.set_title(frame.name(views[v].direction), fontsize=8, y=1.0)
         ax.set_axis_off()
     fig.text(0.03, 0.36, "\n".join(IMPORT_STEPS + ("",) + BENCH_STEPS), fontsize=7.5, va="top", family="DejaVu Sans")
     return fig
-
-
-def _crop(view: View) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """A view's image as RGBA cropped to the object and 2 pixels around it (fewer pixels to write
-    into the PDF), and the rows and columns ``(r0, r1, c0, c1)`` it keeps."""
-    covered = np.isfinite(view.depth)
-    rows, cols = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
-    r0, r1 = (max(rows[0] - 2, 0), min(rows[-1] + 3, view.size)) if len(rows) else (0, view.size)
-    c0, c1 = (max(cols[0] - 2, 0), min(cols[-1] + 3, view.size)) if len(cols) else (0, view.size)
-    pixels = np.full((r1 - r0, c1 - c0, 4), 255, np.uint8)
-    pixels[:, :, :3] = view.shade[r0:r1, c0:c1]
-    return pixels, (r0, r1, c0, c1)
-
-
-@functools.cache
-def _raster_type():
-    """The artist type that draws a cropped view (:func:`_crop`) unsampled in place in its axes
-    (pixel centres at integer data coordinates) and hands the renderer the same array on every
-    draw: the PDF backend writes one image object per array, however many pages show it (an
-    ``imshow`` image hands it a new array, a new image object, on every page). Made on first use:
-    matplotlib is heavy to import."""
-    from matplotlib.artist import Artist
-    from matplotlib.transforms import Affine2D
-
-    class Raster(Artist):
-        zorder = 0
-
-        def __init__(self, crop):
-            super().__init__()
-            self.crop = crop
-
-        def draw(self, renderer):
-            pixels, (r0, r1, c0, c1) = self.crop
-            gc = renderer.new_gc()
-            self._set_gc_clip(gc)
-            placed = Affine2D().scale(c1 - c0, r1 - r0).translate(c0 - 0.5, r0 - 0.5) + self.axes.transData
-            renderer.draw_image(gc, 0.0, 0.0, pixels, placed)
-            gc.restore()
-
-    return Raster
-
-
-def _show(ax, crop: tuple, size: int):
-    """Show a cropped view (:func:`_crop`) of ``size`` pixels in place in the axes' full view, as
-    ``imshow`` would; return its artist."""
-    raster = ax.add_artist(_raster_type()(crop))
-    ax.set_aspect("equal")
-    ax.set_xlim(-0.5, size - 0.5)
-    ax.set_ylim(size - 0.5, -0.5)
-    return raster
 
 
 def _label_offsets(anchors_pt: np.ndarray, sizes_pt: np.ndarray, taken: list) -> list[tuple[float, float]]:
@@ -317,8 +266,8 @@ class _TracePages:
         self.fig = figure_type(figsize=PAGE_INCHES)
         grid = self.fig.add_gridspec(2, views_per_trace, height_ratios=[3, 2], top=0.9, bottom=0.05)
         self.view_axes = [self.fig.add_subplot(grid[0, col]) for col in range(views_per_trace)]
-        self.crops = [_crop(view) for view in views]  # one array per view for all pages (and the overview)
-        self.images = [_show(ax, self.crops[0], views[0].size) for ax in self.view_axes]
+        self.crops = [cropped_image(view) for view in views]  # one array per view for all pages (and the overview)
+        self.images = [show_view(ax, self.crops[0], views[0].size) for ax in self.view_axes]
         for ax in self.view_axes:
             ax.set_axis_off()
         self.flat = self.fig.add_subplot(grid[1, :])

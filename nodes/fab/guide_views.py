@@ -1,4 +1,5 @@
-"""Shaded orthographic views of the object for the assembly guide (CPU painter's algorithm).
+"""Shaded orthographic views of the object for the assembly guide (CPU painter's algorithm), and
+their images as the guide's pages show them (cropped, one array per view).
 
 View conventions: the 14 candidate view directions are the 6 axis directions and the 8 cube
 diagonals of the mesh frame (a view direction points from the object towards the viewer). The
@@ -9,6 +10,7 @@ z-up mesh faces -y) and ``right`` = up x front, on the right of a viewer in fron
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -125,3 +127,51 @@ def render(mesh: Mesh, direction: np.ndarray, size: int, frame: ObjectFrame | No
     return view
 
 
+def cropped_image(view: View) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """A view's image as RGBA cropped to the object and 2 pixels around it (fewer pixels to write
+    into the PDF), and the rows and columns ``(r0, r1, c0, c1)`` it keeps."""
+    covered = np.isfinite(view.depth)
+    rows, cols = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
+    r0, r1 = (max(rows[0] - 2, 0), min(rows[-1] + 3, view.size)) if len(rows) else (0, view.size)
+    c0, c1 = (max(cols[0] - 2, 0), min(cols[-1] + 3, view.size)) if len(cols) else (0, view.size)
+    pixels = np.full((r1 - r0, c1 - c0, 4), 255, np.uint8)
+    pixels[:, :, :3] = view.shade[r0:r1, c0:c1]
+    return pixels, (r0, r1, c0, c1)
+
+
+@functools.cache
+def _raster_type():
+    """The artist type that draws a cropped view (:func:`cropped_image`) unsampled in place in its axes
+    (pixel centres at integer data coordinates) and hands the renderer the same array on every
+    draw: the PDF backend writes one image object per array, however many pages show it (an
+    ``imshow`` image hands it a new array, a new image object, on every page). Made on first use:
+    matplotlib is heavy to import."""
+    from matplotlib.artist import Artist
+    from matplotlib.transforms import Affine2D
+
+    class Raster(Artist):
+        zorder = 0
+
+        def __init__(self, crop):
+            super().__init__()
+            self.crop = crop
+
+        def draw(self, renderer):
+            pixels, (r0, r1, c0, c1) = self.crop
+            gc = renderer.new_gc()
+            self._set_gc_clip(gc)
+            placed = Affine2D().scale(c1 - c0, r1 - r0).translate(c0 - 0.5, r0 - 0.5) + self.axes.transData
+            renderer.draw_image(gc, 0.0, 0.0, pixels, placed)
+            gc.restore()
+
+    return Raster
+
+
+def show_view(ax, crop: tuple, size: int):
+    """Show a cropped view (:func:`cropped_image`) of ``size`` pixels in place in the axes' full view, as
+    ``imshow`` would; return its artist."""
+    raster = ax.add_artist(_raster_type()(crop))
+    ax.set_aspect("equal")
+    ax.set_xlim(-0.5, size - 0.5)
+    ax.set_ylim(size - 0.5, -0.5)
+    return raster
