@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 
@@ -24,13 +24,14 @@ class FaceGraph:
         found = keys[order][position] == wanted
         self.opposite = np.where(found, order[position], -1)
         inner = np.flatnonzero(self.opposite >= 0)
-        self.pairs = np.stack([inner // 3, self.opposite[inner] // 3], axis=1)
+        self.pairs = np.stack([inner // 3, self.opposite[inner] // 3], axis=1)  # sorted by first face
 
     def components(self, mask: np.ndarray) -> np.ndarray:
         """Edge-connected component label of each face in ``mask`` (-1 outside)."""
         m = len(self.faces)
-        pairs = self.pairs[mask[self.pairs].all(axis=1)]
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+        pairs = self.pairs[mask[self.pairs[:, 0]] & mask[self.pairs[:, 1]]]
+        row_starts = np.r_[0, np.cumsum(np.bincount(pairs[:, 0], minlength=m))]  # CSR rows: the pairs are sorted
+        graph = csr_matrix((np.ones(len(pairs), dtype=np.int8), pairs[:, 1], row_starts), shape=(m, m))
         labels = connected_components(graph, directed=False)[1]
         return np.where(mask, labels, -1)
 
