@@ -346,7 +346,8 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
     free = np.flatnonzero(~touches_blocked)
     if len(free) == 0:
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
-    reach = solver.compute_distance(int(anchors[0])) if base.kind == "thin" else from_contact
+    from_centre = solver.compute_distance(int(anchors[0]))
+    reach = from_centre if base.kind == "thin" else from_contact
     far_vertex = int(free[np.argmax(reach[free])])
     from_far = solver.compute_distance(far_vertex)
     if params.tx_pole == "centre":
@@ -376,7 +377,7 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         base_boundary_edges=graph.halfedges[graph.halfedges_between(sensing, blocked)].astype(np.int64),
         base_distance_mm=np.asarray(from_base, dtype=np.float64),
         far_distance_mm=np.asarray(from_far, dtype=np.float64),
-        centre_distance_mm=np.asarray(solver.compute_distance(int(anchors[0])), dtype=np.float64),
+        centre_distance_mm=np.asarray(from_centre, dtype=np.float64),
         dipole_distance_mm=np.asarray(solver.compute_distance_multisource(anchors.tolist()), dtype=np.float64),
         pose_kind=base.kind,
         pose_reason=reason,
