@@ -5,8 +5,8 @@ Page 1: the object with all traces, how to import the cut sheets (:data:`IMPORT_
 material and layer order (:data:`BENCH_STEPS`). Then one page per trace in attachment order (Tx
 channels first: the bottom layer; then Rx), titled with its Muca pin: the trace on the shaded object
 from the ``views_per_trace`` named views (:mod:`.guide_views`) that show most of it, the traces
-attached before it drawn thin, its solder tab (●), its crossings (○) and, for a split trace, the
-joints (✕) where a piece's tab overlaps the previous piece; below, its flat cut piece(s) side by
+attached before it drawn thin, its solder tab (•), its crossings (open circles) and, for a split trace,
+the joints (×) where a piece's tab overlaps the previous piece; below, its flat cut piece(s) side by
 side with the joint overlap drawn dashed and the crossing labels placed so they do not overlap.
 Last page: the wiring table (solder tab -> Muca pin), also written as ``wiring.csv``.
 
@@ -16,12 +16,16 @@ thin lines over it, one per view); the trace pages share one figure whose axes a
 shown images and the drawn artists change from page to page); lines and patches are added without
 data-limit updates (every axes' limits are set); the flat pieces' labels are texts at offsets in
 points (annotations cost more), with one line collection for the label glyphs and one for all leader
-lines, and a scale bar instead of graduated axes; the wiring table is aligned monospace text.
+lines, and a scale bar instead of graduated axes; the wiring table is aligned monospace text; the
+texts use the PDF's 14 standard fonts (Helvetica, Courier: nothing embedded, no per-glyph layout),
+so they hold the cp1252 characters only.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
+import logging
 
 import numpy as np
 from pydantic import Field
@@ -55,7 +59,7 @@ BENCH_STEPS = (
     "  longer follows its curve.",
     "Layer order: 1. the Tx traces (blue, bottom layer), following the projection; 2. the Rx traces (red, top",
     "  layer), aligning each small landmark bulge with the crossing trace it names.",
-    "Split traces (Tx03.1, Tx03.2, ...): piece .2's solder tab overlaps the end of piece .1 (the joint, ✕);",
+    "Split traces (Tx03.1, Tx03.2, ...): piece .2's solder tab overlaps the end of piece .1 (the joint, ×);",
     "  solder the overlap so the trace conducts end to end.",
     "Wiring: scrape the Kapton off each solder tab, solder a wire to it and connect it to the Muca pin named",
     "  on its page (table on the last page and in wiring.csv).",
@@ -153,7 +157,7 @@ def _overview_page(figure_type, views, crops, frame: ObjectFrame, traces, tolera
             _draw_curve(ax, views[v], points, tolerance, lw=1.2, color="tab:blue" if name.startswith("Tx") else "tab:red")
         ax.set_title(frame.name(views[v].direction), fontsize=8, y=1.0)
         ax.set_axis_off()
-    fig.text(0.03, 0.36, "\n".join(IMPORT_STEPS + ("",) + BENCH_STEPS), fontsize=7.5, va="top", family="DejaVu Sans")
+    fig.text(0.03, 0.36, "\n".join(IMPORT_STEPS + ("",) + BENCH_STEPS), fontsize=7.5, va="top")
     return fig
 
 
@@ -235,7 +239,7 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
         if k + 1 < len(parts):  # the next piece's tab lies over this piece's end
             joint = np.vstack([outlines.tab[parts[k + 1]], outlines.tab[parts[k + 1]][:1]]) + shift
             _line(ax, joint[:, 0], joint[:, 1], ls="--", color="black", lw=0.9)
-            label(f"✕ joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0), (0, -22),
+            label(f"× joint: {outlines.names[parts[k + 1]]}'s tab goes here", joint[:4].mean(axis=0), (0, -22),
                   (60, 4.5), (0.5, "black"), fontsize=7)
         mine = outlines.landmark_part == i
         xy = outlines.landmark_xy[mine] + shift
@@ -256,7 +260,7 @@ def _draw_pieces(fig, ax, outlines: TraceOutlines, parts: np.ndarray) -> None:
             transform=offset_copy(ax.transData, fig, 0, 3, units="points"))
     ax.set_aspect("equal", adjustable="box")
     ax.set_title("flat cut piece(s) to scale, seen from outside; small bulges = landmarks where the named trace of the "
-                 "other layer crosses (○ in the views)", fontsize=9, y=1.0)
+                 "other layer crosses (open circles in the views)", fontsize=9, y=1.0)
 
 
 class _TracePages:
@@ -286,7 +290,7 @@ class _TracePages:
         length = float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
         self.fig.suptitle(
             f"Step {step + 1}/{len(traces)}: {name} -> Muca pin {muca_pin(layer, channel)}   (layer "
-            f"{'1, Tx, bottom' if layer == 'tx' else '2, Rx, on top of the Tx layer'}; {length:.1f} mm; solder tab ● at "
+            f"{'1, Tx, bottom' if layer == 'tx' else '2, Rx, on top of the Tx layer'}; {length:.1f} mm; solder tab • at "
             f"the {'end' if base_at_end else 'start'} of the curve)", fontsize=12)
         scores = [np.count_nonzero(v.visible(points, tolerance)) for v in views]
         best = np.argsort(scores, kind="stable")[::-1][:views_per_trace]
@@ -331,8 +335,24 @@ def _wiring_pages(figure_type, rows: list[dict]):
         fig = figure_type(figsize=PAGE_INCHES)
         fig.suptitle("Wiring: solder each tab's wire to its Muca pin (also in wiring.csv)", fontsize=12)
         text = "\n".join([lines[0], "-" * len(lines[0])] + lines[start : start + TABLE_ROWS])
-        fig.text(0.04, 0.9, text, family="DejaVu Sans Mono", fontsize=9.5, va="top", linespacing=1.35)
+        fig.text(0.04, 0.9, text, family="Courier", fontsize=9.5, va="top", linespacing=1.35)
         yield fig
+
+
+@contextlib.contextmanager
+def _standard_fonts():
+    """matplotlib with the PDF's standard fonts. Their only weight is medium, which font lookup takes
+    for normal after a warning per font: that warning is silenced meanwhile."""
+    from matplotlib import rc_context
+
+    log = logging.getLogger("matplotlib.font_manager")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with rc_context({"pdf.use14corefonts": True}):
+            yield
+    finally:
+        log.setLevel(level)
 
 
 @node("fab.assembly_guide", params=Params, inputs=("mesh", "layout", "outlines"), outputs=("files",), sink=True)
@@ -350,7 +370,7 @@ def assembly_guide(params: Params, mesh: Mesh, layout: Layout, outlines: TraceOu
     buffer = io.BytesIO()
     metadata = {"Title": "retrotouch assembly guide", "Creator": "retrotouch", "CreationDate": source_date()}
     source = mesh.source.replace("\\", "/").rsplit("/", 1)[-1][:60]
-    with PdfPages(buffer, metadata=metadata) as pdf:
+    with _standard_fonts(), PdfPages(buffer, metadata=metadata) as pdf:
         pages = _TracePages(Figure, views, params.views_per_trace)
         pdf.savefig(_overview_page(Figure, views, pages.crops, frame, traces, tolerance, source, layout))
         for step in range(len(traces)):
