@@ -18,6 +18,10 @@ Schedulers (``--scheduler``):
 * ``tcp://HOST:PORT``: an existing dask.distributed scheduler. Its workers need the app installed
   and the cache: the same path on a shared filesystem, or object storage for all
   (``--cache-dir s3://bucket/prefix``, see :mod:`.remote`).
+
+On every scheduler but ``sync``, of the tasks ready at once those of a node with a higher
+``priority:`` start first (dask's own order within one priority): a long branch started last would
+leave the other workers idle at the end.
 """
 from __future__ import annotations
 
@@ -210,10 +214,11 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
                         "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
     if scheduler == "sync":
         return _run_sync(tasks, on_done, on_start)
+    priorities = {task_name(inst): inst.decl.priority for inst in plan.to_run}
     if scheduler in ("threads", "processes"):
-        return _run_dask_local(tasks, scheduler, on_done, on_start)
+        return _run_dask_local(tasks, priorities, scheduler, on_done, on_start)
     if scheduler == "local-cluster" or scheduler.startswith("tcp://"):
-        return _run_distributed(tasks, scheduler, on_done)
+        return _run_distributed(tasks, priorities, scheduler, on_done)
     raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
 
 
@@ -244,19 +249,27 @@ def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> d
     return {name: (_run_from_results, spec, *args) for name, (spec, args) in tasks.items()}
 
 
-def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], kind: str, on_done: Done,
-                    on_start: Started) -> dict[str, TaskResult]:
+def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], priorities: dict[str, int], kind: str,
+                    on_done: Done, on_start: Started) -> dict[str, TaskResult]:
     import dask
     from dask.callbacks import Callback
 
     global _nodes_ran_in_process
 
+    def by_priority(ready: list) -> None:
+        # dask.local pops its ready stack from the end: a stable sort keeps dask's order within a priority
+        ready.sort(key=priorities.__getitem__)
+
     class Progress(Callback):
+        def _start_state(self, dsk: Any, state: Any) -> None:
+            by_priority(state["ready"])
+
         def _pretask(self, key: Any, dsk: Any, state: Any) -> None:
             on_start(key)
 
         def _posttask(self, key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
             on_done(key, result)
+            by_priority(state["ready"])
 
     names = list(tasks)
     # chunksize=1: one node instance per submission, so uneven branches balance across workers and
@@ -286,16 +299,16 @@ def _fork_is_safe() -> bool:
     return sys.platform.startswith("linux") and not _nodes_ran_in_process
 
 
-def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], address: str, on_done: Done) -> dict[str, TaskResult]:
+def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], priorities: dict[str, int], address: str,
+                     on_done: Done) -> dict[str, TaskResult]:
     import logging
 
+    import dask
     from distributed import Client, LocalCluster, as_completed
 
     cluster = None
     try:
         if address == "local-cluster":
-            import dask
-
             # Forked workers start in ~0.15 s and inherit the imported node modules; spawned ones
             # take seconds to re-import everything (see _fork_is_safe).
             method = "fork" if _fork_is_safe() else "spawn"
@@ -314,7 +327,8 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
                 raise UserError(f"--scheduler {address}: cannot connect to a dask scheduler there ({exc})") from None
         with client:
             names = list(tasks)
-            futures = client.get(_dask_graph(tasks), names, sync=False)
+            with dask.annotate(priority=priorities.get):  # the scheduler calls it with each task's name
+                futures = client.get(_dask_graph(tasks), names, sync=False)
             by_future = dict(zip(futures, names))
             results: dict[str, TaskResult] = {}
             for future in as_completed(futures):

@@ -10,6 +10,7 @@ Format (see README.md for the full reference)::
       sweep:  {type: mesh.remesh, inputs: {mesh: scaled}, map: {target_edge_mm: [2, 3, 4]}}
       pick:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, cache: recompute}
       both:   {type: some.reduce, inputs: {meshes: ["sweep[*]", "other[*]"]}}   # several fan-ins, in order
+      slow:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, priority: 1}  # starts before ready priority-0 tasks
 
 Every problem is reported as one line ``file:line:col: message`` (or ``-S PATH=VALUE: message`` for
 an override) through :class:`PipelineError`, a :class:`UserError`.
@@ -30,7 +31,7 @@ from .errors import UserError
 from .node import NodeSpec
 
 Path = tuple[str | int, ...]
-NODE_KEYS = ("type", "inputs", "params", "map", "cache")
+NODE_KEYS = ("type", "inputs", "params", "map", "cache", "priority")
 TOP_KEYS = ("params", "nodes")
 CACHE_MODES = ("default", "recompute", "disable")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
@@ -193,6 +194,7 @@ class NodeDecl:
     map: dict[str, list[Any]]  # param -> values (several keys: product, in the order written)
     cache: str
     path: Path
+    priority: int = 0  # among tasks ready at once, higher starts first (a scheduling hint: no cache key)
 
 
 @dataclasses.dataclass
@@ -263,7 +265,11 @@ def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec])
     if cache not in CACHE_MODES:
         raise doc.fail(path + ("cache",), f"node {name!r}: cache must be one of {', '.join(CACHE_MODES)}"
                                           f"{did_you_mean(str(cache), CACHE_MODES)}")
-    return NodeDecl(name, spec, inputs, params, mapped, cache, path)
+    priority = body.get("priority", 0)
+    if not isinstance(priority, int) or isinstance(priority, bool):
+        raise doc.fail(path + ("priority",), f"node {name!r}: priority must be a whole number (higher starts first "
+                                             f"among tasks ready at once; default 0), got {priority!r}")
+    return NodeDecl(name, spec, inputs, params, mapped, cache, path, priority)
 
 
 def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, tuple[InputRef, ...]]:

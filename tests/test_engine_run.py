@@ -299,3 +299,47 @@ def test_a_reduce_over_two_mapped_nodes_sums_both(tmp_path, test_nodes):
                  scheduler="sync")
     more_total = sum(3 * s + 3 * delta for s in (1, 2, 3) for delta in (100, 200))  # (0 + 1 + 2) s + 3 delta
     assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL + more_total
+
+
+PRIORITY = """\
+nodes:
+  src:  {type: t.source, params: {n: 3}}
+  low:  {type: t.add, inputs: {x: src}, map: {delta: [1, 2, 3, 4]}, priority: %d}
+  high: {type: t.stats, inputs: {x: src}, priority: %d}
+"""
+
+
+def _start_order(tmp_path: Path, low: int, high: int, scheduler: str) -> list[str]:
+    from retrotouch.graph.execute import execute
+    from retrotouch.graph.runner import make_plan
+
+    path = tmp_path / f"p{low}{high}.yaml"
+    path.write_text(PRIORITY % (low, high))
+    plan = make_plan(str(path), [], str(tmp_path / f"cache{low}{high}"))
+    order: list[str] = []
+    record = (lambda name: order.append(name.split("-")[0])) if scheduler == "threads" else (lambda name: None)
+    done = (lambda name, result: None) if scheduler == "threads" else (lambda name, result: order.append(name.split("-")[0]))
+    execute(plan, scheduler, "run", done, record)
+    return [name.split("[")[0] for name in order]
+
+
+def test_priority_starts_first_among_ready_tasks(tmp_path, test_nodes):
+    # after src, the four `low` branches and `high` are ready at once: the priority decides, both ways
+    assert _start_order(tmp_path, 0, 1, "threads") == ["src", "high", "low", "low", "low", "low"]
+    assert _start_order(tmp_path, 1, 0, "threads") == ["src", "low", "low", "low", "low", "high"]
+
+
+def test_priority_reaches_a_dask_distributed_scheduler(tmp_path, test_nodes):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                      dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert _start_order(tmp_path, 0, 1, address) == ["src", "high", "low", "low", "low", "low"]
+        assert _start_order(tmp_path, 1, 0, address) == ["src", "low", "low", "low", "low", "high"]
+
+
+def test_priority_must_be_a_whole_number(tmp_path, test_nodes):
+    (tmp_path / "p.yaml").write_text(PRIORITY.replace("priority: %d}", "priority: high}", 1) % 0)
+    with pytest.raises(UserError, match=r"p.yaml:3:\d+: node 'low': priority must be a whole number"):
+        run_pipeline(str(tmp_path / "p.yaml"), [], out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"))
