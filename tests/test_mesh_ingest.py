@@ -16,6 +16,8 @@ from retrotouch.nodes.geometry.triangles import signed_volume
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, topology_report
 
+REPO = Path(__file__).resolve().parents[1]
+
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
 
@@ -176,10 +178,25 @@ def test_scale_longest_extent_about_bbox_centre(bunny: Mesh) -> None:
 
 def test_scale_by_units_and_param_validation(bunny: Mesh) -> None:
     np.testing.assert_allclose(scale_mesh(ScaleParams(units="m"), bunny).vertices, bunny.vertices * 1000.0)
-    with pytest.raises(ValueError, match="exactly one"):
+    with pytest.raises(ValueError, match="at most one of units, diagonal_mm, longest_extent_mm"):
         ScaleParams(units="m", diagonal_mm=100.0)
-    with pytest.raises(ValueError, match="exactly one"):
-        ScaleParams()
+    sized = scale_mesh(ScaleParams(diagonal_mm=170.0), bunny)
+    np.testing.assert_array_equal(scale_mesh(ScaleParams(), sized).vertices, sized.vertices)  # kept as loaded
+    with pytest.raises(UserError, match=r"is 1 mm across \(bounding-box diagonal\) as loaded: .* check the file's units"):
+        scale_mesh(ScaleParams(), bunny)  # unitless numbers kept as mm: too small for a table object
+
+
+def test_a_file_in_metres_keeps_its_real_size_through_the_default_pipeline(tmp_path) -> None:
+    """``-S units=m -S diagonal_mm=null``: a phone scan in metres arrives at its size in mm."""
+    from retrotouch.graph.runner import make_plan
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)  # 100 mm across, in metres
+    sphere.export(tmp_path / "ball.ply")
+    overrides = [f"mesh={tmp_path / 'ball.ply'}", "units=m", "diagonal_mm=null"]
+    plan = make_plan(str(REPO / "pipelines" / "retrofit.yaml"), overrides, str(tmp_path / "cache"))
+    load, scale = (next(i for i in plan.instances if i.node == name) for name in ("load", "scaled"))
+    mesh = scale_mesh(scale.params, load_mesh(load.params))
+    assert np.ptp(mesh.vertices, axis=0) == pytest.approx([100.0] * 3, rel=0.01)
 
 
 def test_sizes_no_table_object_has_are_refused_in_one_line(bunny: Mesh) -> None:

@@ -137,7 +137,8 @@ def load_mesh(params: LoadParams) -> Mesh:
 
 
 class ScaleParams(NodeParams):
-    """Exactly one of ``units``, ``diagonal_mm`` or ``longest_extent_mm`` sets the scale."""
+    """At most one of ``units``, ``diagonal_mm`` or ``longest_extent_mm`` sets the scale; none keeps
+    the numbers as mm (the size a file declared with ``mesh.load``'s ``units`` keeps its real size)."""
 
     units: Literal["mm", "cm", "m", "in"] | None = Field(
         None, description="the mesh's numbers are in this unit: multiply by mm per unit"
@@ -154,13 +155,10 @@ class ScaleParams(NodeParams):
     )
 
     @model_validator(mode="after")
-    def _exactly_one_target(self) -> "ScaleParams":
+    def _at_most_one_target(self) -> "ScaleParams":
         given = [k for k in ("units", "diagonal_mm", "longest_extent_mm") if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError(
-                "set exactly one of units, diagonal_mm, longest_extent_mm"
-                + (f" (got {', '.join(given)})" if given else "")
-            )
+        if len(given) > 1:
+            raise ValueError(f"set at most one of units, diagonal_mm, longest_extent_mm (got {', '.join(given)})")
         return self
 
 
@@ -168,6 +166,8 @@ def scale_factor(vertices: np.ndarray, params: ScaleParams) -> float:
     """The uniform factor that gives ``vertices`` the size ``params`` asks for."""
     if params.units is not None:
         return MM_PER_UNIT[params.units]
+    if params.diagonal_mm is None and params.longest_extent_mm is None:
+        return 1.0
     extents = vertices.max(axis=0) - vertices.min(axis=0)
     current = float(np.linalg.norm(extents)) if params.diagonal_mm is not None else float(extents.max())
     if current <= 0.0:
@@ -192,7 +192,7 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     low, high = OBJECT_DIAGONAL_RANGE_MM
     if not low * (1 - 1e-9) <= diagonal <= high * (1 + 1e-9):
-        read_in = f" read in {params.units}" if params.units else ""
+        read_in = f" read in {params.units}" if params.units else " as loaded" if factor == 1.0 else ""
         raise UserError(
             f"the object is {diagonal:.3g} mm across (bounding-box diagonal){read_in}: the method covers "
             f"{low:g} to {high:g} mm; check the file's units, or set diagonal_mm to its real size"
