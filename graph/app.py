@@ -9,6 +9,7 @@ tasks carry it to worker processes). Environment variables are named after the a
 from __future__ import annotations
 
 import dataclasses
+import os
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,3 +58,9 @@ def current() -> App:
     if _current is None:
         raise RuntimeError("no application configured: call graph.app.configure(App(...)) before using the engine")
     return _current
+
+
+def user_cache_dir() -> str:
+    """The app's folder in the user's cache: ``$XDG_CACHE_HOME/<name>`` (default ``~/.cache/<name>``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, current().name)

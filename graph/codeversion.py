@@ -6,10 +6,11 @@ and formatting do not count) of the module defining it and of every module of th
 changes that affect stored results bump :data:`.hashing.CACHE_FORMAT_SALT` instead. A node
 declared with ``version="..."`` uses that string and nothing else.
 
-Parsing every module costs about a second per planning run; a memo (:data:`MEMO_NAME` in the cache's
-local folder) keeps each module's normalised hash and imported names under the sha256 of its bytes,
-its name and the interpreter version, so that a run after a parameter tweak parses only the files
-that changed. Which imported names are tracked modules is decided afresh every run.
+Parsing every module costs about a second per planning run; a memo (:data:`MEMO_NAME` in the user's
+cache folder, :func:`.app.user_cache_dir`, shared by every result cache) keeps each module's
+normalised hash and imported names under the sha256 of its bytes, its name and the interpreter
+version, so that a run parses only the files that changed since any earlier run, in whatever cache
+folder. Which imported names are tracked modules is decided afresh every run.
 """
 from __future__ import annotations
 

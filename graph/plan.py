@@ -18,6 +18,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from .app import user_cache_dir
 from .codeversion import code_version, load_memo, save_memo
 from .errors import UserError
 from .hashing import canonical_json, file_sha256, instance_key
@@ -146,7 +147,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     by_branch: dict[str, dict[tuple[int, ...], Instance]] = {}
     ordered: list[Instance] = []
     versions: dict[str, str] = {}
-    memo = load_memo(store.local)
+    memo = load_memo(user_cache_dir())
     known = len(memo)
     for name, decl in pipeline.nodes.items():
         inherited: list[Axis] = []
@@ -185,7 +186,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             by_branch[name][idx] = inst
             ordered.append(inst)
     if len(memo) != known:
-        save_memo(store.local, memo)
+        save_memo(user_cache_dir(), memo)
     plan = Plan(pipeline, ordered, store)
     _decide(plan)
     return plan

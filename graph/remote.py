@@ -27,15 +27,14 @@ import uuid
 from typing import Any
 
 from . import artifacts
-from .app import current
+from .app import user_cache_dir
 from .errors import UserError
 from .hashing import file_sha256
 from .store import META, META_FORMAT, ArtifactRef, CorruptEntry, Store, check_room
 
 def local_dir_for(url: str) -> str:
     """The local folder holding the temp dirs, locks, run records and logs of a remote cache."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, current().name, "remote", hashlib.sha256(url.encode()).hexdigest()[:16])
+    return os.path.join(user_cache_dir(), "remote", hashlib.sha256(url.encode()).hexdigest()[:16])
 
 
 class RemoteStore(Store):

@@ -129,3 +129,22 @@ def test_the_code_version_memo_gives_the_same_versions_and_is_what_a_rerun_reads
     again[key] = "garbage"  # an entry of the wrong shape is recomputed
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, again) == fresh
+
+
+def test_a_fresh_cache_folder_reads_the_code_version_memo_an_earlier_run_left(tmp_path, monkeypatch):
+    """The memo lives in the user's cache folder, not in a result cache: planning into a new cache
+    folder parses no source that an earlier plan, into another folder, already parsed."""
+    import ast
+
+    from retrotouch.graph import codeversion
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user"))
+    pipeline = str(Path(__file__).resolve().parents[1] / "pipelines" / "retrofit.yaml")
+    monkeypatch.setattr(codeversion, "_module_cache", {})
+    first = make_plan(pipeline, [], str(tmp_path / "a"))
+    assert (tmp_path / "user" / "retrotouch" / codeversion.MEMO_NAME).exists()
+    parsed, parse = [], ast.parse
+    monkeypatch.setattr(codeversion.ast, "parse", lambda *a, **k: parsed.append(1) or parse(*a, **k))
+    monkeypatch.setattr(codeversion, "_module_cache", {})
+    second = make_plan(pipeline, [], str(tmp_path / "b"))
+    assert parsed == [] and [i.key for i in second.instances] == [i.key for i in first.instances]
