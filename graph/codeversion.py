@@ -7,7 +7,7 @@ changes that affect stored results bump :data:`.hashing.CACHE_FORMAT_SALT` inste
 declared with ``version="..."`` uses that string and nothing else.
 
 Parsing every module costs about a second per planning run; a memo (:data:`MEMO_NAME` in the user's
-cache folder, :func:`.app.user_cache_dir`, shared by every result cache) keeps each module's
+cache folder, :mod:`.userstate`, shared by every result cache) keeps each module's
 normalised hash and imported names under the sha256 of its bytes, its name and the interpreter
 version, so that a run parses only the files that changed since any earlier run, in whatever cache
 folder. Which imported names are tracked modules is decided afresh every run.
@@ -18,14 +18,12 @@ import ast
 import hashlib
 import importlib.util
 import inspect
-import json
-import os
 import sys
-import uuid
 
 from .app import current
 from .hashing import digest_fields
 from .node import NodeSpec
+from .userstate import read_record, write_record
 
 _module_cache: dict[str, tuple[str, tuple[str, ...]]] = {}
 
@@ -112,31 +110,15 @@ def module_hash(modname: str, memo: dict | None = None) -> tuple[str, tuple[str,
     return _module_cache[modname]
 
 
-def load_memo(folder: str) -> dict:
-    """The memo saved in ``folder`` (empty when there is none or it cannot be read)."""
-    try:
-        with open(os.path.join(folder, MEMO_NAME), encoding="utf-8") as f:
-            memo = json.load(f)
-    except (OSError, ValueError):
-        return {}
-    return memo if isinstance(memo, dict) else {}
+def load_memo(folder: str | None = None) -> dict:
+    """The memo saved in ``folder`` (default: the user's cache folder); empty when there is none."""
+    return read_record(MEMO_NAME, folder)
 
 
-def save_memo(folder: str, memo: dict) -> None:
-    """Write ``memo`` (its newest :data:`MEMO_ENTRIES`) atomically into ``folder``; a cache folder that
-    cannot take it only costs the next run its parsing."""
-    kept = dict(list(memo.items())[-MEMO_ENTRIES:])
-    tmp = os.path.join(folder, f".{MEMO_NAME}.{os.getpid()}-{uuid.uuid4().hex}")
-    try:
-        os.makedirs(folder, exist_ok=True)
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(kept, f)
-        os.replace(tmp, os.path.join(folder, MEMO_NAME))
-    except OSError:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+def save_memo(memo: dict, folder: str | None = None) -> None:
+    """Write ``memo`` (its newest :data:`MEMO_ENTRIES`) atomically into ``folder`` (default: the user's
+    cache folder); a folder that cannot take it only costs the next run its parsing."""
+    write_record(MEMO_NAME, memo, MEMO_ENTRIES, folder)
 
 
 def code_version(spec: NodeSpec, memo: dict | None = None) -> str:

@@ -20,8 +20,9 @@ Schedulers (``--scheduler``):
   (``--cache-dir s3://bucket/prefix``, see :mod:`.remote`).
 
 On every scheduler but ``sync``, of the tasks ready at once those of a node with a higher
-``priority:`` start first (dask's own order within one priority): a long branch started last would
-leave the other workers idle at the end.
+``priority:`` start first, then those with the most estimated work after them (:mod:`.ordering`): a
+long branch started last would leave the other workers idle at the end. Every run records its
+instances' seconds for the next one's estimates.
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ from . import artifacts, registry
 from .app import App, configure, current
 from .errors import NodeFailed, UserError
 from .node import REGISTRY, Files
+from .ordering import record_timings, start_order
 from .plan import Instance, Plan
 from .store import DISK_ERRNOS, ArtifactRef, CorruptEntry, Store, disk_problem, open_store
 
@@ -212,14 +214,17 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
     elif in_process and scheduler not in ("sync", "threads"):
         raise UserError(f"--cache-dir {plan.store.root} lives in this process only, which --scheduler {scheduler} "
                         "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
+    order = start_order(tasks, {task_name(inst): inst.decl.priority for inst in plan.to_run})
     if scheduler == "sync":
-        return _run_sync(tasks, on_done, on_start)
-    priorities = {task_name(inst): inst.decl.priority for inst in plan.to_run}
-    if scheduler in ("threads", "processes"):
-        return _run_dask_local(tasks, priorities, scheduler, on_done, on_start)
-    if scheduler == "local-cluster" or scheduler.startswith("tcp://"):
-        return _run_distributed(tasks, priorities, scheduler, on_done)
-    raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+        results = _run_sync(tasks, on_done, on_start)
+    elif scheduler in ("threads", "processes"):
+        results = _run_dask_local(tasks, order, scheduler, on_done, on_start)
+    elif scheduler == "local-cluster" or scheduler.startswith("tcp://"):
+        results = _run_distributed(tasks, order, scheduler, on_done)
+    else:
+        raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+    record_timings({tasks[name][0].instance_id: result.seconds for name, result in results.items() if result.ran})
+    return results
 
 
 _nodes_ran_in_process = False
@@ -249,7 +254,7 @@ def _dask_graph(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]]) -> d
     return {name: (_run_from_results, spec, *args) for name, (spec, args) in tasks.items()}
 
 
-def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], priorities: dict[str, int], kind: str,
+def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], order: dict[str, float], kind: str,
                     on_done: Done, on_start: Started) -> dict[str, TaskResult]:
     import dask
     from dask.callbacks import Callback
@@ -257,8 +262,8 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
     global _nodes_ran_in_process
 
     def by_priority(ready: list) -> None:
-        # dask.local pops its ready stack from the end: a stable sort keeps dask's order within a priority
-        ready.sort(key=priorities.__getitem__)
+        # dask.local pops its ready stack from the end; a stable sort keeps dask's order among equal keys
+        ready.sort(key=order.__getitem__)
 
     class Progress(Callback):
         def _start_state(self, dsk: Any, state: Any) -> None:
@@ -299,7 +304,7 @@ def _fork_is_safe() -> bool:
     return sys.platform.startswith("linux") and not _nodes_ran_in_process
 
 
-def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], priorities: dict[str, int], address: str,
+def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], order: dict[str, float], address: str,
                      on_done: Done) -> dict[str, TaskResult]:
     import logging
 
@@ -327,7 +332,7 @@ def _run_distributed(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]],
                 raise UserError(f"--scheduler {address}: cannot connect to a dask scheduler there ({exc})") from None
         with client:
             names = list(tasks)
-            with dask.annotate(priority=priorities.get):  # the scheduler calls it with each task's name
+            with dask.annotate(priority=order.get):  # the scheduler calls it with each task's name
                 futures = client.get(_dask_graph(tasks), names, sync=False)
             by_future = dict(zip(futures, names))
             results: dict[str, TaskResult] = {}

@@ -18,7 +18,6 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from .app import user_cache_dir
 from .codeversion import code_version, load_memo, save_memo
 from .errors import UserError
 from .hashing import canonical_json, file_sha256, instance_key
@@ -147,7 +146,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     by_branch: dict[str, dict[tuple[int, ...], Instance]] = {}
     ordered: list[Instance] = []
     versions: dict[str, str] = {}
-    memo = load_memo(user_cache_dir())
+    memo = load_memo()
     known = len(memo)
     for name, decl in pipeline.nodes.items():
         inherited: list[Axis] = []
@@ -186,7 +185,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             by_branch[name][idx] = inst
             ordered.append(inst)
     if len(memo) != known:
-        save_memo(user_cache_dir(), memo)
+        save_memo(memo)
     plan = Plan(pipeline, ordered, store)
     _decide(plan)
     return plan

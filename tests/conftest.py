@@ -23,6 +23,20 @@ ENGINE_NODES = REPO / "tests" / "engine_nodes"
 """Tiny node types for engine tests (module ``rt_testnodes``)."""
 
 
+@pytest.fixture(autouse=True, scope="session")
+def user_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The engine's per-user records (code-version memo, task durations) in a folder of this test
+    session, for every test and every process it starts: none of the user's own, none left to them."""
+    folder = tmp_path_factory.mktemp("user-cache")
+    previous = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(folder)
+    yield folder
+    if previous is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = previous
+
+
 @pytest.fixture
 def repo() -> Path:
     return REPO

@@ -115,7 +115,7 @@ def test_the_code_version_memo_gives_the_same_versions_and_is_what_a_rerun_reads
     memo: dict = {}
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, memo) == fresh and len(memo) >= 5  # screen, sweep, selection, ...
-    codeversion.save_memo(str(tmp_path), memo)
+    codeversion.save_memo(memo, str(tmp_path))
     again = codeversion.load_memo(str(tmp_path))
     assert again == memo
     monkeypatch.setattr(codeversion, "_module_cache", {})

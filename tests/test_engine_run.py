@@ -343,3 +343,37 @@ def test_priority_must_be_a_whole_number(tmp_path, test_nodes):
     (tmp_path / "p.yaml").write_text(PRIORITY.replace("priority: %d}", "priority: high}", 1) % 0)
     with pytest.raises(UserError, match=r"p.yaml:3:\d+: node 'low': priority must be a whole number"):
         run_pipeline(str(tmp_path / "p.yaml"), [], out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"))
+
+
+def test_start_order_puts_the_longest_estimated_chain_first(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from retrotouch.graph import ordering
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    ordering.record_timings({"a": 1.0, "b": 1.0, "c": 5.0, "d": 2.0})
+    tasks = {name: (SimpleNamespace(instance_id=name), ups) for name, ups in
+             (("a", []), ("d", []), ("b", ["a"]), ("c", ["b"]), ("e", []))}  # e never timed: the median, 1.5 s
+    order = ordering.start_order(tasks, dict.fromkeys(tasks, 0))
+    assert sorted(tasks, key=order.__getitem__, reverse=True) == ["a", "b", "c", "d", "e"]  # ranks 7, 6, 5, 2, 1.5
+    assert max(ordering.start_order(tasks, {**dict.fromkeys(tasks, 0), "e": 1}).items(), key=lambda kv: kv[1])[0] == "e"
+    ordering.record_timings({"a": 3.14159})
+    assert list(ordering.read_record(ordering.TIMINGS_NAME).items())[-1] == ("a", 3.142)  # the newest last
+
+
+def test_a_run_starts_first_the_branch_that_took_longest_before(tmp_path, test_nodes, monkeypatch):
+    from retrotouch.graph import ordering
+    from retrotouch.graph.execute import execute
+    from retrotouch.graph.runner import make_plan
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user"))
+    assert _start_order(tmp_path, 0, 0, "threads")[:1] == ["src"]
+    assert set(ordering.read_record(ordering.TIMINGS_NAME)) >= {"src", "high", "low[delta=1]", "low[delta=4]"}
+    for slow in ("low[delta=3]", "high"):
+        ordering.record_timings({slow: 60.0})
+        path = tmp_path / f"slow-{slow[:4]}.yaml"
+        path.write_text(PRIORITY % (0, 0))
+        plan = make_plan(str(path), [], str(tmp_path / f"cache-{slow[:4]}"))
+        started: list[str] = []
+        execute(plan, "threads", "run", lambda name, result: None, lambda name: started.append(name.split("-")[0]))
+        assert started[:2] == ["src", slow]
