@@ -5,7 +5,8 @@ HEFT's upward rank), so that no worker idles at the end while a long chain that 
 The estimates are each node instance's seconds in earlier runs (:data:`TIMINGS_NAME`, a
 :mod:`.userstate` record by instance id ``node[branch]``, shared by every cache folder and object);
 an instance never timed counts as the median of those that were. On a first run every estimate is
-equal, and dask's own order decides within a priority. The order never changes a result.
+equal, so the rank counts the tasks after each one; dask's own order decides among equal ranks. The
+order never changes a result.
 """
 from __future__ import annotations
 
