@@ -214,15 +214,15 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
     elif in_process and scheduler not in ("sync", "threads"):
         raise UserError(f"--cache-dir {plan.store.root} lives in this process only, which --scheduler {scheduler} "
                         "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
-    order = start_order(tasks, {task_name(inst): inst.decl.priority for inst in plan.to_run})
-    if scheduler == "sync":
-        results = _run_sync(tasks, on_done, on_start)
-    elif scheduler in ("threads", "processes"):
-        results = _run_dask_local(tasks, order, scheduler, on_done, on_start)
-    elif scheduler == "local-cluster" or scheduler.startswith("tcp://"):
-        results = _run_distributed(tasks, order, scheduler, on_done)
-    else:
+    distributed = scheduler == "local-cluster" or scheduler.startswith("tcp://")
+    if scheduler != "sync" and scheduler not in ("threads", "processes") and not distributed:
         raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+    if scheduler == "sync":  # one task at a time, in topological order: no start order to choose
+        results = _run_sync(tasks, on_done, on_start)
+    else:
+        order = start_order(tasks, {task_name(inst): inst.decl.priority for inst in plan.to_run})
+        results = (_run_distributed(tasks, order, scheduler, on_done) if distributed
+                   else _run_dask_local(tasks, order, scheduler, on_done, on_start))
     record_timings({tasks[name][0].instance_id: result.seconds for name, result in results.items() if result.ran})
     return results
 
@@ -261,20 +261,20 @@ def _run_dask_local(tasks: dict[str, tuple[TaskSpec, list[str | ArtifactRef]]], 
 
     global _nodes_ran_in_process
 
-    def by_priority(ready: list) -> None:
+    def in_start_order(ready: list) -> None:
         # dask.local pops its ready stack from the end; a stable sort keeps dask's order among equal keys
         ready.sort(key=order.__getitem__)
 
     class Progress(Callback):
         def _start_state(self, dsk: Any, state: Any) -> None:
-            by_priority(state["ready"])
+            in_start_order(state["ready"])
 
         def _pretask(self, key: Any, dsk: Any, state: Any) -> None:
             on_start(key)
 
         def _posttask(self, key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
             on_done(key, result)
-            by_priority(state["ready"])
+            in_start_order(state["ready"])
 
     names = list(tasks)
     # chunksize=1: one node instance per submission, so uneven branches balance across workers and

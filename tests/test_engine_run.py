@@ -309,18 +309,24 @@ nodes:
 """
 
 
-def _start_order(tmp_path: Path, low: int, high: int, scheduler: str) -> list[str]:
+def _started(tmp_path: Path, low: int, high: int, scheduler: str, run: str = "") -> list[str]:
+    """Instance ids in the order they started (threads: handed to a worker; one-worker cluster: done)."""
     from retrotouch.graph.execute import execute
     from retrotouch.graph.runner import make_plan
 
-    path = tmp_path / f"p{low}{high}.yaml"
+    path = tmp_path / f"p{low}{high}{run}.yaml"
     path.write_text(PRIORITY % (low, high))
-    plan = make_plan(str(path), [], str(tmp_path / f"cache{low}{high}"))
+    plan = make_plan(str(path), [], str(tmp_path / f"cache{low}{high}{run}"))
     order: list[str] = []
     record = (lambda name: order.append(name.split("-")[0])) if scheduler == "threads" else (lambda name: None)
     done = (lambda name, result: None) if scheduler == "threads" else (lambda name, result: order.append(name.split("-")[0]))
     execute(plan, scheduler, "run", done, record)
-    return [name.split("[")[0] for name in order]
+    return order
+
+
+def _start_order(tmp_path: Path, low: int, high: int, scheduler: str) -> list[str]:
+    """The node names of :func:`_started`."""
+    return [name.split("[")[0] for name in _started(tmp_path, low, high, scheduler)]
 
 
 def test_priority_starts_first_among_ready_tasks(tmp_path, test_nodes):
@@ -363,17 +369,10 @@ def test_start_order_puts_the_longest_estimated_chain_first(tmp_path, monkeypatc
 
 def test_a_run_starts_first_the_branch_that_took_longest_before(tmp_path, test_nodes, monkeypatch):
     from retrotouch.graph import ordering
-    from retrotouch.graph.execute import execute
-    from retrotouch.graph.runner import make_plan
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user"))
     assert _start_order(tmp_path, 0, 0, "threads")[:1] == ["src"]
     assert set(ordering.read_record(ordering.TIMINGS_NAME)) >= {"src", "high", "low[delta=1]", "low[delta=4]"}
     for slow in ("low[delta=3]", "high"):
         ordering.record_timings({slow: 60.0})
-        path = tmp_path / f"slow-{slow[:4]}.yaml"
-        path.write_text(PRIORITY % (0, 0))
-        plan = make_plan(str(path), [], str(tmp_path / f"cache-{slow[:4]}"))
-        started: list[str] = []
-        execute(plan, "threads", "run", lambda name, result: None, lambda name: started.append(name.split("-")[0]))
-        assert started[:2] == ["src", slow]
+        assert _started(tmp_path, 0, 0, "threads", run=f"-{slow[:4]}")[:2] == ["src", slow]

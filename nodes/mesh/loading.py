@@ -154,6 +154,11 @@ class ScaleParams(NodeParams):
         "origin", description="fixed point of the scaling: the coordinate origin or the bbox centre"
     )
 
+    @property
+    def keeps_size(self) -> bool:
+        """No target set: the numbers stay as ``mesh.load`` converted them (mm)."""
+        return self.units is None and self.diagonal_mm is None and self.longest_extent_mm is None
+
     @model_validator(mode="after")
     def _at_most_one_target(self) -> "ScaleParams":
         given = [k for k in ("units", "diagonal_mm", "longest_extent_mm") if getattr(self, k) is not None]
@@ -166,7 +171,7 @@ def scale_factor(vertices: np.ndarray, params: ScaleParams) -> float:
     """The uniform factor that gives ``vertices`` the size ``params`` asks for."""
     if params.units is not None:
         return MM_PER_UNIT[params.units]
-    if params.diagonal_mm is None and params.longest_extent_mm is None:
+    if params.keeps_size:
         return 1.0
     extents = vertices.max(axis=0) - vertices.min(axis=0)
     current = float(np.linalg.norm(extents)) if params.diagonal_mm is not None else float(extents.max())
@@ -192,7 +197,7 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     low, high = OBJECT_DIAGONAL_RANGE_MM
     if not low * (1 - 1e-9) <= diagonal <= high * (1 + 1e-9):
-        read_in = f" read in {params.units}" if params.units else " as loaded" if factor == 1.0 else ""
+        read_in = f" read in {params.units}" if params.units else " as loaded" if params.keeps_size else ""
         raise UserError(
             f"the object is {diagonal:.3g} mm across (bounding-box diagonal){read_in}: the method covers "
             f"{low:g} to {high:g} mm; check the file's units, or set diagonal_mm to its real size"
