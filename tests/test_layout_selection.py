@@ -178,6 +178,30 @@ def test_layer_radius_bound_never_exceeds_the_proven_optimum(problem, n_drive, n
     assert low <= bound <= high
 
 
+def test_the_layer_coverability_check_agrees_with_every_subset():
+    """The greedy shortcut and the solver together answer exactly as trying every subset of curves does."""
+    import itertools
+
+    from retrotouch.nodes.layout.bounds import _coverable
+
+    rng = np.random.default_rng(5)
+    settings = {"time_limit_s": 5.0, "seed": 0, "workers": 1}
+    answers = set()
+    for _ in range(60):
+        curves, samples = 7, 10
+        nearest = rng.integers(0, 6, (samples, curves))
+        pairs = np.array([(a, b) for a, b in itertools.combinations(range(curves), 2) if rng.random() < 0.25],
+                         dtype=np.int64).reshape(-1, 2)
+        limit, radius = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        reach = nearest <= radius
+        expected = any(
+            reach[:, list(pick)].any(axis=1).all() and not any(a in pick and b in pick for a, b in pairs.tolist())
+            for size in range(1, limit + 1) for pick in itertools.combinations(range(curves), size))
+        assert _coverable(nearest, pairs, limit, radius, settings) is expected
+        answers.add(expected)
+    assert answers == {True, False}
+
+
 def test_a_start_the_layer_bound_proves_optimal_needs_no_solver():
     result = select_curves(random_plane_problem(), 8, 5, secondary=False)
     stage = result.report["stages"][0]

@@ -5,9 +5,10 @@ Layer relaxation: a sample covered within radius ``r`` by an active crossing ``(
 ``r`` of a crossing on the selected Rx curve ``b`` (and on the selected Tx curve ``a``). So no selection
 has a radius below the smallest ``r`` at which at most ``N_sense`` pairwise non-conflicting Rx curves
 (C1) put a usable crossing within ``r`` of every sample, and likewise for Tx with ``N_drive``. Each
-``r`` is a small set-cover feasibility model for CP-SAT (deterministic time, fixed seed); ``r`` is found
-by bisection between a known lower and upper value, and an undecided ``r`` counts as coverable, so
-the bound stays valid whatever the limit.
+``r`` is a small set-cover feasibility question, found by bisection between a known lower and upper
+value. A greedy cover within the limit is a selection, which settles about half of them (coverable);
+the rest go to a CP-SAT model (deterministic time, fixed seed), where an undecided ``r`` counts as
+coverable, so the bound stays valid whatever the limit.
 """
 from __future__ import annotations
 
@@ -26,6 +27,27 @@ def _layer_levels(problem: SelectionProblem, q: np.ndarray, layer: str) -> np.nd
     return nearest
 
 
+def _greedy_cover(reach: np.ndarray, conflicting: np.ndarray, limit: int) -> bool:
+    """True when at most ``limit`` greedy picks, each the curve (column) that reaches the most samples
+    (rows) not yet reached among those conflicting with no pick (``conflicting`` (C, C) bool), reach
+    every sample."""
+    gain = reach.sum(axis=0)
+    allowed = np.ones(reach.shape[1], dtype=bool)
+    unreached = np.ones(reach.shape[0], dtype=bool)
+    for _ in range(limit):
+        pick = int(np.argmax(np.where(allowed, gain, -1)))
+        if not allowed[pick] or gain[pick] == 0:
+            return False
+        newly = unreached & reach[:, pick]
+        gain -= reach[newly].sum(axis=0)
+        unreached &= ~newly
+        if not unreached.any():
+            return True
+        allowed &= ~conflicting[pick]
+        allowed[pick] = False
+    return False
+
+
 def _coverable(nearest: np.ndarray, conflicts: np.ndarray, limit: int, radius: int, settings: dict) -> bool:
     """Whether at most ``limit`` non-conflicting curves reach every sample within ``radius``
     (True when the solver cannot decide within its limit)."""
@@ -34,6 +56,10 @@ def _coverable(nearest: np.ndarray, conflicts: np.ndarray, limit: int, radius: i
     reach = nearest <= radius
     if not reach.any(axis=1).all():
         return False
+    conflicting = np.zeros((reach.shape[1], reach.shape[1]), dtype=bool)
+    conflicting[conflicts[:, 0], conflicts[:, 1]] = conflicting[conflicts[:, 1], conflicts[:, 0]] = True
+    if _greedy_cover(reach, conflicting, limit):
+        return True
     model = cp_model.CpModel()
     pick = [model.new_bool_var(f"p{i}") for i in range(nearest.shape[1])]
     model.add(sum(pick) <= limit)

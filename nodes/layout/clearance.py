@@ -158,8 +158,9 @@ def parallel_pairs(tx: CurveSet, rx: CurveSet, face_mask: np.ndarray, within_mm:
     if len(tx_points) == 0 or len(rx_points) == 0:
         return np.empty((0, 2), dtype=np.int64)
     near = cKDTree(tx_points).sparse_distance_matrix(cKDTree(rx_points), within_mm + step_mm, output_type="ndarray")
-    point_pair = np.unique(near["i"].astype(np.int64) * rx.count + rx_curve[near["j"]])  # each Tx point once per Rx curve
-    point, rx_of = point_pair // rx.count, point_pair % rx.count
+    point_near_curve = np.zeros(len(tx_points) * rx.count, dtype=bool)  # each Tx point counted once per Rx curve
+    point_near_curve[near["i"].astype(np.int64) * rx.count + rx_curve[near["j"]]] = True
+    point, rx_of = np.divmod(np.flatnonzero(point_near_curve), rx.count)
     pair_key = tx_curve[point] * rx.count + rx_of
     run = np.bincount(pair_key, weights=tx_length[point], minlength=tx.count * rx.count)
     long = np.flatnonzero(run > run_mm)
