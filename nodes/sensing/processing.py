@@ -65,7 +65,7 @@ from .contacts import ContactAreas
 from .coupling_fit import CouplingFit
 from .tracking import Tracker
 
-SUPPORT_SIGMA = 3.0  # a reading that supports a new touch's peak is above this many noise sigmas ...
+SUPPORT_SIGMA = 4.0  # a reading that supports a new touch's peak is above this many noise sigmas ...
 SUPPORT_READINGS = 2  # ... and a new touch's peak needs this many of them (see TouchProcessor._peaks)
 SUPPORT_WIDTHS = 2.0  # crossings within this many coupling widths of a peak (its reach) support it
 
@@ -236,16 +236,18 @@ class TouchProcessor:
         ``SUPPORT_SIGMA`` noise sigmas besides its own in this frame: each other crossing within the
         finger's reach (``SUPPORT_WIDTHS`` coupling widths, the width as learned: a strong finger on
         a sparse layout lights crossings three pitches away) counts once, the candidate in the
-        previous frame once, twice above the off threshold (where a touch's cell stays on), but not
-        at all if it has since lost more than half of its delta (a spike falling back, which the
-        off threshold's hysteresis may keep on). A finger that only one crossing sees thus touches
-        down a frame later. Noise alone puts one of a peak's ~10 neighbours above 3 sigmas in ~1 %
-        of frames, two in ~0.01 %; one reading above 4 sigmas is as rare (~0.003 %).
+        previous frame once, twice above the on threshold (a finger the board already saw there),
+        but not at all if it has since lost more than half of its delta (a spike falling back,
+        which the off threshold's hysteresis may keep on). A finger that only one crossing sees
+        thus touches down a frame later. A real board's noise has heavier tails than a Gaussian
+        (row and column noise, channel drift): a cell reads above 3 sigmas several times as often
+        as the Gaussian's 0.13 % of frames, so two of a spike's ~10 neighbours above 3 sigmas, or
+        a 4-sigma reading at the spiked cell the frame before, are not rare enough to count.
         """
         before = np.where(delta >= 0.5 * self.previous_delta, self.previous_delta / sigma, 0.0)
         strong = delta > SUPPORT_SIGMA * sigma
         within_reach = self.cell_distance[strong] <= SUPPORT_WIDTHS * self.fit.coupling_sigma  # rows: strong cells
-        readings = within_reach.sum(axis=0) - strong + (before > SUPPORT_SIGMA) + (before > self.params.off_sigma)
+        readings = within_reach.sum(axis=0) - strong + (before > SUPPORT_SIGMA) + (before > self.params.on_sigma)
         supported = self.near_touch | (readings >= SUPPORT_READINGS)
         delta = delta / self.cell_gain
         on = np.where(self.active, delta, -np.inf)
