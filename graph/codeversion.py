@@ -110,15 +110,15 @@ def module_hash(modname: str, memo: dict | None = None) -> tuple[str, tuple[str,
     return _module_cache[modname]
 
 
-def load_memo(folder: str | None = None) -> dict:
-    """The memo saved in ``folder`` (default: the user's cache folder); empty when there is none."""
-    return read_record(MEMO_NAME, folder)
+def load_memo() -> dict:
+    """The memo saved in the user's cache folder; empty when there is none."""
+    return read_record(MEMO_NAME)
 
 
-def save_memo(memo: dict, folder: str | None = None) -> None:
-    """Write ``memo`` (its newest :data:`MEMO_ENTRIES`) atomically into ``folder`` (default: the user's
-    cache folder); a folder that cannot take it only costs the next run its parsing."""
-    write_record(MEMO_NAME, memo, MEMO_ENTRIES, folder)
+def save_memo(memo: dict) -> None:
+    """Write ``memo`` (its newest :data:`MEMO_ENTRIES`) atomically into the user's cache folder; a
+    folder that cannot take it only costs the next run its parsing."""
+    write_record(MEMO_NAME, memo, MEMO_ENTRIES)
 
 
 def code_version(spec: NodeSpec, memo: dict | None = None) -> str:

@@ -10,21 +10,20 @@ import uuid
 from .app import user_cache_dir
 
 
-def read_record(name: str, folder: str | None = None) -> dict:
-    """The JSON object ``name`` in ``folder`` (default: the user's cache folder); empty when there is
-    none or it cannot be read."""
+def read_record(name: str) -> dict:
+    """The JSON object ``name`` in the user's cache folder; empty when there is none or it cannot be
+    read."""
     try:
-        with open(os.path.join(folder or user_cache_dir(), name), encoding="utf-8") as f:
+        with open(os.path.join(user_cache_dir(), name), encoding="utf-8") as f:
             data = json.load(f)
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
 
 
-def write_record(name: str, data: dict, keep: int, folder: str | None = None) -> None:
-    """Write the newest ``keep`` entries of ``data`` as ``name`` into ``folder`` (default: the user's
-    cache folder), atomically."""
-    folder = folder or user_cache_dir()
+def write_record(name: str, data: dict, keep: int) -> None:
+    """Write the newest ``keep`` entries of ``data`` as ``name`` into the user's cache folder, atomically."""
+    folder = user_cache_dir()
     kept = dict(list(data.items())[-keep:])
     tmp = os.path.join(folder, f".{name}.{os.getpid()}-{uuid.uuid4().hex}")
     try:

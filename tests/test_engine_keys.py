@@ -107,16 +107,18 @@ def test_code_version_ignores_comments_and_docstrings_but_not_code():
 
 def test_the_code_version_memo_gives_the_same_versions_and_is_what_a_rerun_reads(tmp_path, monkeypatch):
     from retrotouch.graph import codeversion
+    from retrotouch.graph.app import user_cache_dir
     from retrotouch.graph.registry import load
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     spec = load(["layout.screen"])["layout.screen"]
     monkeypatch.setattr(codeversion, "_module_cache", {})
     fresh = codeversion.code_version(spec)
     memo: dict = {}
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, memo) == fresh and len(memo) >= 5  # screen, sweep, selection, ...
-    codeversion.save_memo(memo, str(tmp_path))
-    again = codeversion.load_memo(str(tmp_path))
+    codeversion.save_memo(memo)
+    again = codeversion.load_memo()
     assert again == memo
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, again) == fresh and len(again) == len(memo)  # all hits, nothing added
@@ -124,8 +126,8 @@ def test_the_code_version_memo_gives_the_same_versions_and_is_what_a_rerun_reads
     again[key] = ["0" * 64, again[key][1]]  # a memo entry is what is read: a wrong one changes the version
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, again) != fresh
-    (tmp_path / codeversion.MEMO_NAME).write_text("not json")
-    assert codeversion.load_memo(str(tmp_path)) == {}
+    (Path(user_cache_dir()) / codeversion.MEMO_NAME).write_text("not json")
+    assert codeversion.load_memo() == {}
     again[key] = "garbage"  # an entry of the wrong shape is recomputed
     monkeypatch.setattr(codeversion, "_module_cache", {})
     assert codeversion.code_version(spec, again) == fresh
