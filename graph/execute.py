@@ -215,7 +215,7 @@ def execute(plan: Plan, scheduler: str, run_id: str, on_done: Done, on_start: St
         raise UserError(f"--cache-dir {plan.store.root} lives in this process only, which --scheduler {scheduler} "
                         "cannot share; use --scheduler sync or threads, or a cache on disk or object storage (s3://...)")
     distributed = scheduler == "local-cluster" or scheduler.startswith("tcp://")
-    if scheduler != "sync" and scheduler not in ("threads", "processes") and not distributed:
+    if scheduler not in ("sync", "threads", "processes") and not distributed:
         raise UserError(f"--scheduler {scheduler!r}: expected one of {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
     if scheduler == "sync":  # one task at a time, in topological order: no start order to choose
         results = _run_sync(tasks, on_done, on_start)
