@@ -18,7 +18,7 @@ from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, 
 
 REPO = Path(__file__).resolve().parents[1]
 
-SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+SHARED_MESHES = REPO.parent / "shared" / "meshes"
 
 
 def as_mesh(tm: trimesh.Trimesh, name: str = "test") -> Mesh:
