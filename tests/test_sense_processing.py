@@ -80,6 +80,20 @@ def test_projector_finds_the_closest_surface_point(bunny_map):
         assert np.linalg.norm(point - query) <= 0.5 + 1e-6
 
 
+def test_projector_one_point_at_a_time_agrees_with_the_batch_bit_for_bit(bunny_map):
+    """The compiled single-point path and the vectorised one pick the same face (ties included) and
+    the same point, with and without a facing direction."""
+    projector = SurfaceProjector(bunny_map.vertices, bunny_map.faces)
+    rng = np.random.default_rng(3)
+    vertices = bunny_map.vertices[rng.choice(len(bunny_map.vertices), 150, replace=False)]
+    queries = np.concatenate([vertices, vertices + rng.normal(0.0, 1.5, vertices.shape)])  # on vertices: ties
+    for facing in (None, np.array([0.0, 0.0, 1.0])):
+        points, faces, barys = projector.project(queries, facing)
+        for query, point, face, bary in zip(queries, points, faces, barys):
+            one = projector.project(query, facing)
+            assert int(one[1][0]) == int(face) and np.array_equal(one[0][0], point) and np.array_equal(one[2][0], bary)
+
+
 def test_localization_through_the_pty_at_snr_60(bunny_map_path, tmp_path):
     """The paper's protocol (15 locations x 10 presses) through the pseudo-terminal in fast mode."""
     recording = tmp_path / "eval.jsonl"

@@ -6,6 +6,7 @@ Shapes follow :mod:`.triangles`: ``triangles`` are ``(n, 3, 3)`` corner arrays, 
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -74,18 +75,18 @@ class SurfaceProjector:
         t1 = np.cross(self.face_normals, helper)
         t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
         self.face_frames = np.stack([t1, np.cross(self.face_normals, t1), self.face_normals], axis=1)  # rows t1, t2, n
-        # Per-face rows as plain floats for the single-point path (numpy's per-call overhead dominates
+        # Per-face rows for the compiled single-point path (numpy's per-call overhead would dominate
         # on the k candidates of one point): origin, ab, ac, ab.ab, ab.ac, ac.ac, normal, and the
         # radius (largest vertex distance from the centroid: no point of the face is nearer a query
         # than its centroid distance minus the radius).
         radius = np.linalg.norm(self.triangles - centroids[:, None], axis=2).max(axis=1)
         self._face_rows = np.column_stack([self._origin, self._ab, self._ac, self._ab_ab, self._ab_ac, self._ac_ac,
-                                           self.face_normals, radius]).tolist()
+                                           self.face_normals, radius])
 
     def barycentrics_in_face(self, point: np.ndarray, face: int) -> np.ndarray | None:
         """Barycentrics (3,) of ``point`` (mm, in the plane of ``face``) when it lies inside the face,
         so that it is its own closest surface point; else None."""
-        ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = self._face_rows[face][:12]
+        ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = self._face_rows[face, :12].tolist()
         px, py, pz = point.tolist()
         apx, apy, apz = px - ox, py - oy, pz - oz
         d1, d2 = abx * apx + aby * apy + abz * apz, acx * apx + acy * apy + acz * apz
@@ -123,74 +124,90 @@ class SurfaceProjector:
         return closest[rows, best], candidates[rows, best], bary.reshape(len(points), self.k, 3)[rows, best]
 
     def _project_one(self, point: np.ndarray, facing: np.ndarray | None):
-        """:meth:`project` of one point in plain floats: the same region tests (Ericson's order),
+        """:meth:`project` of one point, compiled: the same region tests (Ericson's order),
         products and sums as the vectorised path. None on a degenerate candidate (division by
         zero), which the vectorised path handles with its nan/inf semantics."""
-        px, py, pz = point.tolist()
         centroid_distances, candidates = self.tree.query(point, k=self.k)
-        centroid_distances, candidates = np.atleast_1d(centroid_distances).tolist(), np.atleast_1d(candidates).tolist()
-        rows = self._face_rows
-        if facing is not None:
-            fx, fy, fz = np.asarray(facing, dtype=float).tolist()
-            away = []
-            for f in candidates:
-                r = rows[f]
-                away.append(r[12] * fx + r[13] * fy + r[14] * fz <= 0.0)
-            if all(away):
-                away = None
+        found, face, closest, bary = _closest_among(
+            np.asarray(point, dtype=np.float64), np.zeros(3) if facing is None else np.asarray(facing, dtype=np.float64),
+            facing is not None, np.atleast_1d(candidates), np.atleast_1d(centroid_distances), self._face_rows)
+        if not found:
+            return None
+        return closest[None], np.array([face], dtype=np.intp), bary[None]
+
+
+@numba.njit(cache=True)
+def _closest_among(point, facing, use_facing, candidates, centroid_distances, rows):
+    """The closest point to ``point`` on the faces ``candidates`` (their centroids at
+    ``centroid_distances``), skipping faces whose normal points away from ``facing`` unless all do;
+    ``rows`` per face: origin, ab, ac, ab.ab, ab.ac, ac.ac, normal, radius. Returns (found, face,
+    point (3,), barycentrics (3,)); not found on a degenerate candidate or when none is finite."""
+    px, py, pz = point[0], point[1], point[2]
+    away = np.zeros(len(candidates), dtype=np.bool_)
+    if use_facing:
+        for i in range(len(candidates)):
+            r = rows[candidates[i]]
+            away[i] = r[12] * facing[0] + r[13] * facing[1] + r[14] * facing[2] <= 0.0
+        if away.all():
+            away[:] = False
+    best_face = -1
+    best_d2 = np.inf
+    best = np.zeros(6)
+    for i in range(len(candidates)):
+        row = rows[candidates[i]]
+        reach = centroid_distances[i] - row[15]
+        if reach > 0.0 and reach * reach > best_d2:  # this face cannot be nearer than the best
+            continue
+        ox, oy, oz, abx, aby, abz, acx, acy, acz = row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8]
+        ab_ab, ab_ac, ac_ac = row[9], row[10], row[11]
+        apx, apy, apz = px - ox, py - oy, pz - oz
+        # Summed in the order numpy's einsum uses for rows of 3, so the two paths agree bit for bit
+        # (ties between faces sharing an edge then break the same way).
+        d1 = (abx * apx + abz * apz) + aby * apy
+        d2 = (acx * apx + acz * apz) + acy * apy
+        d3, d4 = d1 - ab_ab, d2 - ab_ac
+        d5, d6 = d1 - ab_ac, d2 - ac_ac
+        if d1 <= 0 and d2 <= 0:
+            v = w = 0.0
+        elif d3 >= 0 and d4 <= d3:
+            v, w = 1.0, 0.0
         else:
-            away = None
-        best = None
-        best_d2 = np.inf
-        try:
-            for i, f in enumerate(candidates):
-                row = rows[f]
-                reach = centroid_distances[i] - row[15]
-                if reach > 0.0 and reach * reach > best_d2:  # this face cannot be nearer than the best
-                    continue
-                ox, oy, oz, abx, aby, abz, acx, acy, acz, ab_ab, ab_ac, ac_ac = row[:12]
-                apx, apy, apz = px - ox, py - oy, pz - oz
-                # Summed in the order numpy's einsum uses for rows of 3, so the two paths agree bit for
-                # bit (ties between faces sharing an edge then break the same way).
-                d1 = (abx * apx + abz * apz) + aby * apy
-                d2 = (acx * apx + acz * apz) + acy * apy
-                d3, d4 = d1 - ab_ab, d2 - ab_ac
-                d5, d6 = d1 - ab_ac, d2 - ac_ac
-                if d1 <= 0 and d2 <= 0:
-                    v = w = 0.0
-                elif d3 >= 0 and d4 <= d3:
-                    v, w = 1.0, 0.0
+            vc = d1 * d4 - d3 * d2
+            if vc <= 0 and d1 >= 0 and d3 <= 0:
+                if d1 - d3 == 0.0:
+                    return False, -1, best[:3], best[3:]
+                v, w = d1 / (d1 - d3), 0.0
+            elif d6 >= 0 and d5 <= d6:
+                v, w = 0.0, 1.0
+            else:
+                vb = d5 * d2 - d1 * d6
+                if vb <= 0 and d2 >= 0 and d6 <= 0:
+                    if d2 - d6 == 0.0:
+                        return False, -1, best[:3], best[3:]
+                    v, w = 0.0, d2 / (d2 - d6)
                 else:
-                    vc = d1 * d4 - d3 * d2
-                    if vc <= 0 and d1 >= 0 and d3 <= 0:
-                        v, w = d1 / (d1 - d3), 0.0
-                    elif d6 >= 0 and d5 <= d6:
-                        v, w = 0.0, 1.0
+                    va = d3 * d6 - d5 * d4
+                    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+                        if (d4 - d3) + (d5 - d6) == 0.0:
+                            return False, -1, best[:3], best[3:]
+                        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+                        v = 1 - w
                     else:
-                        vb = d5 * d2 - d1 * d6
-                        if vb <= 0 and d2 >= 0 and d6 <= 0:
-                            v, w = 0.0, d2 / (d2 - d6)
-                        else:
-                            va = d3 * d6 - d5 * d4
-                            if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
-                                w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-                                v = 1 - w
-                            else:
-                                total = va + vb + vc
-                                v, w = vb / total, vc / total
-                cx, cy, cz = ox + v * abx + w * acx, oy + v * aby + w * acy, oz + v * abz + w * acz
-                ex, ey, ez = cx - px, cy - py, cz - pz
-                d2_point = ex * ex + ey * ey + ez * ez
-                if away is not None and away[i]:
-                    d2_point = np.inf
-                if best is None or d2_point < best_d2:
-                    best, best_d2 = (f, cx, cy, cz, 1 - v - w, v, w), d2_point
-        except ZeroDivisionError:
-            return None
-        if best is None or not np.isfinite(best_d2):
-            return None
-        f, cx, cy, cz, b0, b1, b2 = best
-        return np.array([[cx, cy, cz]]), np.array([f], dtype=np.intp), np.array([[b0, b1, b2]])
+                        total = va + vb + vc
+                        if total == 0.0:
+                            return False, -1, best[:3], best[3:]
+                        v, w = vb / total, vc / total
+        cx, cy, cz = ox + v * abx + w * acx, oy + v * aby + w * acy, oz + v * abz + w * acz
+        ex, ey, ez = cx - px, cy - py, cz - pz
+        d2_point = ex * ex + ey * ey + ez * ez
+        if away[i]:
+            d2_point = np.inf
+        if best_face < 0 or d2_point < best_d2:
+            best_face, best_d2 = candidates[i], d2_point
+            best[0], best[1], best[2], best[3], best[4], best[5] = cx, cy, cz, 1 - v - w, v, w
+    if best_face < 0 or not np.isfinite(best_d2):
+        return False, -1, best[:3], best[3:]
+    return True, best_face, best[:3], best[3:]
 
 
 def farthest_point_sampling(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:

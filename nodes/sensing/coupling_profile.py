@@ -49,7 +49,7 @@ class CouplingProfile:
         # Per segment: log K = intercept + slope q.
         self.log_slopes = np.diff(log_values) / np.diff(self.squared)  # 1/mm^2
         self.log_intercepts = log_values[:-1] - self.log_slopes * self.squared[:-1]
-        self._inner_squared = self.squared[1:-1].copy()  # segment boundaries at_squared searches
+        self.inner_squared = self.squared[1:-1].copy()  # segment boundaries (segment s: q in [inner_squared[s-1], inner_squared[s]))
 
     @classmethod
     def gaussian(cls, width: float) -> CouplingProfile:
@@ -68,7 +68,7 @@ class CouplingProfile:
 
     def at_squared(self, squared: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``K`` and ``dK/dq`` at squared distances ``squared`` (mm^2)."""
-        segment = self._inner_squared.searchsorted(squared, side="right")
+        segment = self.inner_squared.searchsorted(squared, side="right")
         slope = self.log_slopes[segment]
         value = np.exp(self.log_intercepts[segment] + slope * squared)
         return value, slope * value
