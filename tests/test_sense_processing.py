@@ -94,6 +94,32 @@ def test_projector_one_point_at_a_time_agrees_with_the_batch_bit_for_bit(bunny_m
             assert int(one[1][0]) == int(face) and np.array_equal(one[0][0], point) and np.array_equal(one[2][0], bary)
 
 
+def test_contact_components_are_the_mesh_components_of_the_vertices_inside(bunny_map):
+    """Each contact vertex inside gets the smallest region index of its connected component (over
+    mesh edges between vertices inside), as scipy's connected components give them."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from retrotouch.nodes.sensing.contacts import ContactAreas, _component_labels
+
+    contacts = ContactAreas(bunny_map, 2000, 10.0, 6.0)
+    n = len(contacts.contact_vertices)
+    rng = np.random.default_rng(5)
+    edges = contacts.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    for share in (0.2, 0.35, 0.45):  # below the site-percolation threshold of a triangulation (0.5): many components
+        inside = rng.random(n) < share
+        region = np.flatnonzero(inside)
+        labels = _component_labels(contacts.neighbour_rows, inside, region)
+        keep = inside[edges].all(axis=1)
+        local = np.cumsum(inside) - 1
+        graph = sp.coo_matrix((np.ones(keep.sum()), (local[edges[keep, 0]], local[edges[keep, 1]])),
+                              shape=(len(region), len(region)))
+        count, components = connected_components(graph, directed=False)
+        smallest = np.full(count, len(region))
+        np.minimum.at(smallest, components, np.arange(len(region)))
+        assert count > 1 and np.array_equal(labels, smallest[components])
+
+
 def test_localization_through_the_pty_at_snr_60(bunny_map_path, tmp_path):
     """The paper's protocol (15 locations x 10 presses) through the pseudo-terminal in fast mode."""
     recording = tmp_path / "eval.jsonl"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
@@ -43,11 +44,11 @@ class ContactAreas:
         edges = self.contact_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
         source, target = np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0).T  # sorted by source
         degree = np.bincount(source, minlength=len(self.contact_vertices))
-        # (max degree, n): row j holds each contact vertex's j-th mesh neighbour, padded with the vertex
-        # itself (rows, so that the per-frame gathers and minima run along whole rows).
+        # (max degree, n): row j holds each contact vertex's j-th mesh neighbour, padded with the vertex itself.
         self.neighbour_rows = np.repeat(np.arange(len(degree))[None], max(int(degree.max()), 1), axis=0)
         self.neighbour_rows[np.arange(len(source)) - (np.cumsum(degree) - degree)[source], source] = target
         self.vertex_to_cell = self._interpolation(interpolation_radius, pitch / 2)
+        _component_labels(self.neighbour_rows, np.zeros(len(degree), dtype=bool), np.zeros(0, dtype=np.intp))  # compiled now, not at the first touch
 
     def _interpolation(self, radius: float, bandwidth: float) -> sp.csr_matrix:
         """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell
@@ -72,7 +73,7 @@ class ContactAreas:
         if len(region) == 0:
             return []
         field = field[region]
-        labels = self._component_labels(inside, region)
+        labels = _component_labels(self.neighbour_rows, inside, region)
         vertices = self.contact_vertices[region]
         peak_points = self.map.cell_points[peaks]
         d2 = np.sum((vertices[:, None] - peak_points[None]) ** 2, axis=2)
@@ -93,20 +94,31 @@ class ContactAreas:
             found.append([cell, None, None, None, area, centroid])
         return found
 
-    def _component_labels(self, inside: np.ndarray, region: np.ndarray) -> np.ndarray:
-        """Connected-component labels of the contact vertices ``region`` (= ``flatnonzero(inside)``)
-        over the mesh edges between them: each label is the smallest region index of its component,
-        found by taking the smallest label among a vertex's neighbours inside and jumping pointers
-        until nothing changes (a few rounds on a touch's contact patch; no graph is built)."""
-        own = np.arange(len(region))
-        local = np.empty(len(inside), dtype=np.intp)  # index in region (of the vertices inside)
-        local[region] = own
-        neighbours = self.neighbour_rows[:, region]
-        neighbours = np.where(inside[neighbours], local[neighbours], own)  # outside: the vertex itself
-        labels = own
-        while True:
-            smallest = np.minimum(labels[neighbours].min(axis=0), labels)
-            smallest = smallest[smallest]  # labels only decrease and stay in the component: jump
-            if np.array_equal(smallest, labels):
-                return labels
-            labels = smallest
+
+@numba.njit(cache=True)
+def _component_labels(neighbour_rows: np.ndarray, inside: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """Connected-component labels of the contact vertices ``region`` (= ``flatnonzero(inside)``)
+    over the mesh edges between them (``neighbour_rows``: row j holds each vertex's j-th neighbour,
+    padded with the vertex itself): each label is the smallest region index of its component (a
+    depth-first walk from each vertex not yet reached, in region order)."""
+    local = np.full(len(inside), -1, dtype=np.int64)  # index in region (of the vertices inside)
+    for i in range(len(region)):
+        local[region[i]] = i
+    labels = np.full(len(region), -1, dtype=np.int64)
+    stack = np.empty(len(region), dtype=np.int64)
+    for start in range(len(region)):
+        if labels[start] >= 0:
+            continue
+        labels[start] = start
+        stack[0] = start
+        top = 1
+        while top > 0:
+            top -= 1
+            vertex = region[stack[top]]
+            for j in range(neighbour_rows.shape[0]):
+                k = local[neighbour_rows[j, vertex]]
+                if k >= 0 and labels[k] < 0:
+                    labels[k] = start
+                    stack[top] = k
+                    top += 1
+    return labels
