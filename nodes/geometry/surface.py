@@ -136,7 +136,7 @@ class SurfaceProjector:
         return closest[None], np.array([face], dtype=np.intp), bary[None]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")  # division by zero gives inf / nan, not an exception
 def _closest_among(point, facing, use_facing, candidates, centroid_distances, rows):
     """The closest point to ``point`` on the faces ``candidates`` (their centroids at
     ``centroid_distances``), skipping faces whose normal points away from ``facing`` unless all do;
@@ -174,29 +174,23 @@ def _closest_among(point, facing, use_facing, candidates, centroid_distances, ro
         else:
             vc = d1 * d4 - d3 * d2
             if vc <= 0 and d1 >= 0 and d3 <= 0:
-                if d1 - d3 == 0.0:
-                    return False, -1, best[:3], best[3:]
                 v, w = d1 / (d1 - d3), 0.0
             elif d6 >= 0 and d5 <= d6:
                 v, w = 0.0, 1.0
             else:
                 vb = d5 * d2 - d1 * d6
                 if vb <= 0 and d2 >= 0 and d6 <= 0:
-                    if d2 - d6 == 0.0:
-                        return False, -1, best[:3], best[3:]
                     v, w = 0.0, d2 / (d2 - d6)
                 else:
                     va = d3 * d6 - d5 * d4
                     if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
-                        if (d4 - d3) + (d5 - d6) == 0.0:
-                            return False, -1, best[:3], best[3:]
                         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
                         v = 1 - w
                     else:
                         total = va + vb + vc
-                        if total == 0.0:
-                            return False, -1, best[:3], best[3:]
                         v, w = vb / total, vc / total
+        if not (np.isfinite(v) and np.isfinite(w)):  # a degenerate face divided by zero
+            return False, -1, best[:3], best[3:]
         cx, cy, cz = ox + v * abx + w * acx, oy + v * aby + w * acy, oz + v * abz + w * acz
         ex, ey, ez = cx - px, cy - py, cz - pz
         d2_point = ex * ex + ey * ey + ez * ez
