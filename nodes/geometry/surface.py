@@ -82,6 +82,7 @@ class SurfaceProjector:
         radius = np.linalg.norm(self.triangles - centroids[:, None], axis=2).max(axis=1)
         self._face_rows = np.column_stack([self._origin, self._ab, self._ac, self._ab_ab, self._ab_ac, self._ac_ac,
                                            self.face_normals, radius])
+        self._project_one(centroids[0], None)  # compiles the kernel now, not at the first query
 
     def barycentrics_in_face(self, point: np.ndarray, face: int) -> np.ndarray | None:
         """Barycentrics (3,) of ``point`` (mm, in the plane of ``face``) when it lies inside the face,

@@ -48,7 +48,7 @@ class ContactAreas:
         self.neighbour_rows = np.repeat(np.arange(len(degree))[None], max(int(degree.max()), 1), axis=0)
         self.neighbour_rows[np.arange(len(source)) - (np.cumsum(degree) - degree)[source], source] = target
         self.vertex_to_cell = self._interpolation(interpolation_radius, pitch / 2)
-        _component_labels(self.neighbour_rows, np.zeros(len(degree), dtype=bool), np.zeros(0, dtype=np.intp))  # compiled now, not at the first touch
+        _component_labels(self.neighbour_rows, np.zeros(len(degree), dtype=bool), np.zeros(0, dtype=np.intp))  # compiles now, not at the first touch
 
     def _interpolation(self, radius: float, bandwidth: float) -> sp.csr_matrix:
         """Sparse Nadaraya-Watson weights from cells to the vertices within ``radius`` of a cell

@@ -19,7 +19,7 @@ from ..geometry.surface import SurfaceProjector
 from .baseline import median
 from .coupling_profile import CouplingProfile, ProfileLearner
 from .gain_learning import MIN_SNR, NEAR_PROFILE, GainLearner
-from .plane_fit import TangentPlaneFit
+from .plane_fit import TangentPlaneFit, compile_kernels
 
 if TYPE_CHECKING:
     from .processing import ProcessingParams
@@ -67,6 +67,7 @@ class CouplingFit:
         self.gains = (GainLearner(cell_gain, sensing_map.cell_pad, measured=measured_gains)
                       if params.learn_gains else None)
         self._use_profile()
+        compile_kernels()  # now, not at the first touch
 
     def _use_profile(self) -> None:
         """Fit with the learned shape stretched to the learned width from now on; the peak test's

@@ -63,7 +63,6 @@ from ..data.board import NUM_RX, NUM_TX
 from .baseline import Baseline, median
 from .contacts import ContactAreas
 from .coupling_fit import CouplingFit
-from .plane_fit import compile_kernels
 from .tracking import Tracker
 
 SUPPORT_SIGMA = 4.0  # a reading that supports a new touch's peak is above this many noise sigmas ...
@@ -169,9 +168,6 @@ class TouchProcessor:
         self.tracker = Tracker(params.track_gate_mm, params.confirm_frames)
         self.channels = Baseline((NUM_TX, NUM_RX), params)
         self.reset()
-        # The compiled fit and projection now, not at the first touch.
-        compile_kernels()
-        self.projector.project(sensing_map.vertices[0])
 
     def reset(self) -> None:
         """Forget baseline, noise and tracks (the next frames recalibrate)."""
