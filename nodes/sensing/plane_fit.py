@@ -45,16 +45,15 @@ class TangentPlaneFit:
             mean_a, sigma_a = amplitude_prior
             self.priors[1:3] = 1.0 / sigma_a**2, mean_a
         self.columns = np.empty((len(z), 3))  # per plane: r2, -2 y0, -2 y1
-        self.start = None
 
     def run(self, point: np.ndarray, face: int, log_amplitude: float, anchor: np.ndarray | None = None):
         """Fit from the surface point ``point`` on ``face`` and ``log_amplitude``, the offset prior
         centred at ``anchor`` (default ``point``); returns (cost, point, face, bary, log amplitude, data
         information as its upper triangle ``(i00, i01, i02, i11, i12, i22)`` in ``(u0, u1, a)``)."""
-        self.start = point if anchor is None else anchor
+        start = point if anchor is None else anchor
         for _ in range(SURFACE_ROUNDS):
             frame = self.projector.face_frames[face]
-            offsets = _set_plane(self.columns, self.x, point, self.start, frame)
+            offsets = _set_plane(self.columns, self.x, point, start, frame)
             u0, u1, log_amplitude, cost, information = _levenberg_marquardt(
                 self.columns, self.z, self.h, *self.profile, self.priors, offsets, log_amplitude, FIT_ITERATIONS)
             point = point + u0 * frame[0] + u1 * frame[1]
@@ -66,7 +65,7 @@ class TangentPlaneFit:
             point, face, bary = moved[0], int(faces[0]), barys[0]
             if shift < 0.05:
                 break
-        offsets = _set_plane(self.columns, self.x, point, self.start, self.projector.face_frames[face])
+        offsets = _set_plane(self.columns, self.x, point, start, self.projector.face_frames[face])
         _, _, _, cost, information = _levenberg_marquardt(self.columns, self.z, self.h, *self.profile, self.priors,
                                                           offsets, log_amplitude, 0)
         return cost, point, face, bary, log_amplitude, information
