@@ -30,12 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from retrotouch.graph.errors import UserError
 from retrotouch.nodes.sensing.gestures import GestureRecognizer
 from retrotouch.nodes.data.sensing_map import load_sensing_map, resolve_sensing_map_path
 from retrotouch.nodes.sensing.processing import TouchProcessor
@@ -268,4 +270,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except UserError as error:  # a layout the benchmark's gestures or protocol cannot run on, a missing file
+        sys.exit(f"bench/sensing.py: {error}")
