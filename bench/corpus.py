@@ -3,15 +3,16 @@
 Runs ``retrotouch run pipelines/retrofit.yaml -S mesh=PATH -S diagonal_mm=D -S vertices=N`` (one
 fresh process per mesh, a shared cache folder) on every mesh in ``--meshes`` (default
 ``../shared/meshes``) and on one generated shape per class of ``tests/shapes.py`` (a plate, a bowl
-with a foot ring, a four-legged figurine, a lying spoon-like object, a bust with a cut base, a box,
-a point-cloud scan with holes and fragments; written at their natural size). ``--sizes FILE.json``
-maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the generated shapes
-keep their own size). The pose, base and sensing region are read from the run's ``metrics.json``.
+with a foot ring, a four-legged figurine, a lying spoon-like object, a bust with a cut base, a box, a
+narrow-necked vase, a point-cloud scan with holes and fragments; written at their natural size).
+``--sizes FILE.json`` maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the
+generated shapes keep their own size). The pose, base and sensing region are read from the run's ``metrics.json``.
 
-Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and sensing area %, cells,
-pads, Voronoi CV over the pads and over all crossings, coverage radius mm, the % of the sensing area
-farther than 10 mm from every cell (``uncovered_share`` of metrics.json), phase 1's gap, the chosen
-Rx family, sheets, joints, seconds) and, as the LAST line, one JSON object with ``meshes``,
+Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and sensing area % of the
+surface, the % of the sensing area a finger can touch, cells, pads, Voronoi CV over the pads and over
+all crossings, coverage radius mm, the % of the touchable sensing area farther than 10 mm from every
+cell (``uncovered_share`` of metrics.json), phase 1's gap, the chosen Rx family, sheets, joints,
+seconds) and, as the LAST line, one JSON object with ``meshes``,
 ``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
 ``median_cells``, the worst cases and per-row details. Usage::
 
@@ -83,6 +84,7 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "tipping_deg": round(pose["tipping_angle_deg"], 1),
         "base_percent": round(100 * pose["base_area_fraction"], 2),
         "sensing_percent": round(100 * pose["sensing_area_fraction"], 2),
+        "touchable_percent": round(100 * metrics["touchable_share"], 2),
         "rx_family": metrics.get("rx_family"),
         "cells": metrics.get("cells"),
         "pads": metrics.get("pads"),
@@ -136,7 +138,7 @@ def main() -> None:
         os.environ.setdefault("PYTHONHASHSEED", "0")
         rows, failures = [], []
         print(
-            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'cells':>6s} {'pads':>5s} "
+            f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'touch%':>6s} {'cells':>6s} {'pads':>5s} "
             f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
             flush=True,
         )
@@ -156,6 +158,7 @@ def main() -> None:
                 f"{stem:32s} {'yes' if row['ok'] else 'NO':3s} {row.get('pose', '-'):10s} "
                 f"{fmt(row.get('tipping_deg'), '5.0f')} "
                 f"{fmt(row.get('base_percent'), '6.1f')} {fmt(row.get('sensing_percent'), '6.1f')} "
+                f"{fmt(row.get('touchable_percent'), '6.1f')} "
                 f"{fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
                 f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('voronoi_cv_all_crossings'), '6.3f')} "
                 f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {fmt(row.get('uncovered_percent'), '5.1f')} "

@@ -18,6 +18,7 @@ import pymeshlab
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from touch_fixture import touch_of
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.connection import compute_field
 from retrotouch.nodes.data.types import Mesh
@@ -80,11 +81,11 @@ def regions_for(mesh: Mesh):
     """``regions.detect`` with default params; when it finds no flat base, retry with ``up_axis`` set to
     the axis direction (+-x, +-y, +-z) with the most downward faces near the bottom."""
     try:
-        return detect_regions(RegionParams(), mesh)
+        return detect_regions(RegionParams(), mesh, touch_of(mesh))
     except UserError:
         axes = np.vstack([np.eye(3), -np.eye(3)])
         up = axes[int(np.argmax([base_candidates(mesh, a).sum() for a in axes]))]
-        return detect_regions(RegionParams(up_axis=tuple(float(x) for x in up)), mesh)
+        return detect_regions(RegionParams(up_axis=tuple(float(x) for x in up)), mesh, touch_of(mesh))
 
 
 @functools.lru_cache(maxsize=None)

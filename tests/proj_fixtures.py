@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from curves_fixture import load_scaled, sample_mesh_path
 from fab_layouts import section_layout
+from touch_fixture import touch_of
 from retrotouch.nodes.data.types import Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.projection.calibration import BoardCapture, ProCamCalibration, calibrate_procam
 from retrotouch.nodes.projection.camera import DeviceIntrinsics, distort_normalised, invert_pose
@@ -39,7 +40,7 @@ def bunny_mm(target_vertices: int = 5000) -> Mesh:
 
 
 def bunny_regions(mesh: Mesh) -> SurfaceRegions:
-    return detect_regions(RegionParams(), mesh)
+    return detect_regions(RegionParams(), mesh, touch_of(mesh))
 
 
 def bunny_layout(mesh: Mesh, n_tx: int = 12, n_rx: int = 8) -> Layout:

@@ -46,6 +46,15 @@ def bust_with_cut_base() -> trimesh.Trimesh:
     return mesh
 
 
+def vase() -> trimesh.Trimesh:
+    """A thin-walled vase (100 mm across, 180 mm high, 3 mm wall) with a neck 26 mm across and a flared
+    lip: a finger reaches only the top of its inside."""
+    return revolved([
+        (0, 0), (40, 0), (50, 40), (48, 100), (16, 150), (13, 165), (18, 180), (15, 180), (10, 165), (13, 150),
+        (45, 100), (47, 40), (37, 3), (0, 3),
+    ])
+
+
 def box() -> trimesh.Trimesh:
     """A closed box, 120 x 80 x 50 mm, its faces subdivided to about 5 mm edges."""
     mesh = trimesh.creation.box(extents=(120.0, 80.0, 50.0))
@@ -120,6 +129,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "lying_spoon": lying_spoon,
     "bust_cut_base": bust_with_cut_base,
     "box": box,
+    "vase": vase,
     "point_cloud_scan": point_cloud_scan,
 }
 """Class name -> builder (a mesh, or the points of a scan)."""

@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 from curves_fixture import SHARED_MESHES, bunny, prepared, sample_mesh_path
+from touch_fixture import touch_of
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.connection import ConnectionParams, compute_field, connection, genus_check
 from retrotouch.nodes.data.types import Mesh
@@ -66,7 +67,7 @@ def test_tx_field_points_away_from_far_vertex():
 
 def test_icosphere_indices():
     mesh = icosphere_mesh()
-    assert_prescribed(mesh, detect_regions(RegionParams(up_axis="+z"), mesh))
+    assert_prescribed(mesh, detect_regions(RegionParams(up_axis="+z"), mesh, touch_of(mesh)))
 
 
 def test_bone_indices():

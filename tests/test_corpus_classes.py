@@ -16,6 +16,7 @@ import trimesh
 import yaml
 
 import shapes
+from touch_fixture import touch_of
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
@@ -87,7 +88,7 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     assert metrics["coverage_radius_mm"] < 0.5 * shapes.diagonal_mm(name)
     checked = trimesh.load(str(out / "mesh.ply"), process=False)
     mesh = Mesh(np.asarray(checked.vertices, dtype=np.float64), np.asarray(checked.faces, dtype=np.int64), name)
-    regions = detect_regions(RegionParams(), mesh)
+    regions = detect_regions(RegionParams(), mesh, touch_of(mesh))
     assert regions.pose_kind == EXPECTED_POSE[name], regions.pose_reason
     assert regions.tipping_angle_deg >= RegionParams().min_tipping_deg
     if name == "point_cloud_scan":
@@ -112,7 +113,12 @@ def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions
     assert metrics["pose"]["tx_pole"] in {r["tx_pole"] for r in finished}
     checked = trimesh.load(str(out / "mesh.ply"), process=False)
     mesh = Mesh(np.asarray(checked.vertices, dtype=np.float64), np.asarray(checked.faces, dtype=np.int64), "figurine")
-    regions = detect_regions(RegionParams(tx_pole=metrics["pose"]["tx_pole"]), mesh)
+    regions = detect_regions(RegionParams(tx_pole=metrics["pose"]["tx_pole"]), mesh, touch_of(mesh))
     assert abs(regions.sensing_area_fraction - metrics["pose"]["sensing_area_fraction"]) < 1e-9
-    sensing = json.loads((out / "sensing_map.json").read_text())["sensing_faces"]
-    assert sum(stop - start for start, stop in sensing) == int(regions.sensing_faces.sum())  # half-open ranges
+    ranges = json.loads((out / "sensing_map.json").read_text())["sensing_faces"]  # half-open, the touchable ones
+    written = np.zeros(len(mesh.faces), dtype=bool)
+    for start, stop in ranges:
+        written[start:stop] = True
+    assert not (written & ~regions.sensing_faces).any()
+    # the run read the touch field of the mesh before remeshing, this check that of the remeshed one
+    assert np.count_nonzero(written != regions.touch_faces) <= 0.01 * regions.sensing_faces.sum()

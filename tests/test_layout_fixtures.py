@@ -36,8 +36,8 @@ def sensing_mask(mesh: Mesh) -> np.ndarray:
 
 
 class Regions:
-    """Stand-in for the regions node output: the layout nodes read ``sensing_faces``, the sensing
-    map sink ``up`` and the pose (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
+    """Stand-in for the regions node output: the layout nodes read ``sensing_faces`` and ``touch_faces``,
+    the sensing map sink ``up``, the pose and the finger model (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
 
     def __init__(self, mesh: Mesh):
         self.sensing_faces = sensing_mask(mesh)
@@ -49,6 +49,8 @@ class Regions:
         self.base_area_fraction = float(area[~self.sensing_faces].sum() / area.sum())
         self.sensing_area_fraction = 1.0 - self.base_area_fraction
         self.tx_pole = "far"
+        self.touch_faces = self.sensing_faces  # a sphere is touchable everywhere
+        self.touch = {"finger_radius_mm": 5.0, "hand_radius_mm": 25.0, "finger_reach_mm": 70.0, "pitch_mm": 1.25, "share": 1.0}
 
 
 def _to_xyz(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:

@@ -64,10 +64,10 @@ def test_the_run_note_names_the_chosen_branch_its_coverage_and_its_largest_uncov
                                            {"area_mm2": 151.0, "max_distance_mm": 13.9, "point": [42.9, -28.2, 2.4]}])
     out = pick_best(PickParams(print_table=False), [dataclasses.replace(chosen, regions=SimpleNamespace(tx_pole="far"))])
     assert best_note(out) == ("chosen helices_per_line at +20 deg around the far Tx pole: 197 of 252 channel pairs as cells, "
-                              "coverage radius 15.9 mm (18.5 over every sensing vertex); 5.4% of the sensing area is farther "
+                              "coverage radius 15.9 mm (18.5 over every touchable vertex); 5.4% of the touchable sensing area is farther "
                               "than 10 mm from every cell, the largest spot 812 mm2 up to 18.5 mm at (-31, 33, -24) mm")
     out["metrics"].update(uncovered_share=0.0, uncovered_spots=[])
-    assert best_note(out).endswith("0.0% of the sensing area is farther than 10 mm from every cell")
+    assert best_note(out).endswith("0.0% of the touchable sensing area is farther than 10 mm from every cell")
 
 
 def started(radius, lower_bound):

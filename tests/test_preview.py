@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from touch_fixture import touch_of
 from retrotouch.nodes.data.types import Crossings, CurveSet, CurveEnd, Layout, Mesh, SurfaceRegions
 from retrotouch.nodes.preview.render import PreviewParams, render_layout_preview, render_preview
 from retrotouch.nodes.preview.views import (
@@ -29,7 +30,7 @@ def sphere() -> Mesh:
 
 @pytest.fixture(scope="module")
 def regions(sphere: Mesh) -> SurfaceRegions:
-    return detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere)
+    return detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere, touch_of(sphere))
 
 
 def curve_set(mesh: Mesh, polylines: list[np.ndarray], layer: str) -> CurveSet:

@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 import shapes
+from touch_fixture import touch_of
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh, SurfaceRegions
 from retrotouch.nodes.geometry.triangles import corners, normals
@@ -28,7 +29,7 @@ def bunny() -> Mesh:
 
 @pytest.fixture(scope="module")
 def bunny_regions(bunny: Mesh) -> SurfaceRegions:
-    return detect_regions(RegionParams(), bunny)
+    return detect_regions(RegionParams(), bunny, touch_of(bunny))
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +113,7 @@ def test_base_boundary_edges_separate_sensing_from_base(bunny: Mesh, bunny_regio
 
 
 def test_up_axis_override(bunny: Mesh) -> None:
-    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0, wiring_room_mm=0.0), bunny)
+    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=0.0, wiring_room_mm=0.0), bunny, touch_of(bunny))
     np.testing.assert_allclose(r.up, [0.0, 0.0, 1.0])
     z = bunny.vertices[:, 2]
     assert r.base_faces[vertex_faces(bunny, int(np.argmin(z)))].any()  # holds the lowest point
@@ -125,16 +126,16 @@ def test_up_axis_override(bunny: Mesh) -> None:
 def test_seed_point_and_angle_overrides(bunny: Mesh, bunny_regions: SurfaceRegions) -> None:
     seed_face = int(np.flatnonzero(bunny_regions.base_faces)[0])
     seed_point = tuple(bunny.vertices[bunny.faces[seed_face]].mean(axis=0))
-    by_point = detect_regions(RegionParams(seed_point=seed_point, up_axis=tuple(bunny_regions.up)), bunny)
+    by_point = detect_regions(RegionParams(seed_point=seed_point, up_axis=tuple(bunny_regions.up)), bunny, touch_of(bunny))
     assert by_point.base_faces[seed_face]
-    by_face = detect_regions(RegionParams(seed_face=seed_face, up_axis=tuple(bunny_regions.up)), bunny)
+    by_face = detect_regions(RegionParams(seed_face=seed_face, up_axis=tuple(bunny_regions.up)), bunny, touch_of(bunny))
     assert np.array_equal(by_face.base_faces, by_point.base_faces)
-    narrow = detect_regions(RegionParams(angle_threshold_deg=8.0), bunny)
+    narrow = detect_regions(RegionParams(angle_threshold_deg=8.0), bunny, touch_of(bunny))
     assert narrow.base_faces.sum() < bunny_regions.base_faces.sum()
 
 
 def test_sphere_rests_on_a_contact_cap(sphere: Mesh) -> None:
-    r = detect_regions(RegionParams(), sphere)
+    r = detect_regions(RegionParams(), sphere, touch_of(sphere))
     assert r.pose_kind == "round"
     cap = sphere.vertices[np.unique(sphere.faces[r.base_faces])]
     centre = sphere.vertices[r.base_centre]
@@ -146,7 +147,7 @@ def test_sphere_rests_on_a_contact_cap(sphere: Mesh) -> None:
 
 
 def test_sphere_with_up_axis_gets_a_polar_cap(sphere: Mesh) -> None:
-    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere)
+    r = detect_regions(RegionParams(up_axis="+z", exclusion_base_mm=5.0, exclusion_far_mm=8.0), sphere, touch_of(sphere))
     cap = sphere.vertices[np.unique(sphere.faces[r.base_faces])]
     # a polar cap grown until its rim (about 99 mm, 16 mm from the pole) has room for the wiring
     assert cap[:, 2].max() <= -50.0 + 4.0 and boundary_mm(sphere, r.base_faces) > 0.8 * RegionParams().wiring_room_mm
@@ -166,7 +167,7 @@ def test_bad_overrides() -> None:
 
 def test_seed_face_out_of_range(sphere: Mesh) -> None:
     with pytest.raises(UserError, match="seed_face 99999 does not exist"):
-        detect_regions(RegionParams(seed_face=99999), sphere)
+        detect_regions(RegionParams(seed_face=99999), sphere, touch_of(sphere))
 
 SHARED = sorted(SHARED_MESHES.glob("*.ply")) if SHARED_MESHES.is_dir() else []
 POSE_KINDS = {"flat", "foot_ring", "patches", "round", "thin"}
@@ -199,7 +200,7 @@ def assert_valid_regions(mesh: Mesh, r: SurfaceRegions) -> None:
 def test_shared_meshes_rest_without_overrides(path: Path) -> None:
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
     params = RegionParams()
-    r = detect_regions(params, mesh)
+    r = detect_regions(params, mesh, touch_of(mesh))
     assert_valid_regions(mesh, r)
     assert r.tipping_angle_deg >= params.min_tipping_deg  # a stable pose
     assert r.sensing_faces.mean() > 0.45
@@ -221,17 +222,17 @@ def remeshed(tm: trimesh.Trimesh, vertices: int = 2000) -> Mesh:
 
 def test_bottle_stands_on_an_end_and_box_lies_on_its_largest_face() -> None:
     bottle = remeshed(trimesh.creation.cylinder(radius=30.0, height=200.0, sections=96))
-    r = detect_regions(RegionParams(), bottle)
+    r = detect_regions(RegionParams(), bottle, touch_of(bottle))
     assert abs(r.up[2]) > 0.99 and r.pose_kind == "flat"
     box = remeshed(shapes.box())
-    r = detect_regions(RegionParams(), box)
+    r = detect_regions(RegionParams(), box, touch_of(box))
     assert abs(r.up[2]) > 0.99 and r.pose_kind == "flat"  # the 120 x 80 face, not a side
     assert abs(r.base_area_fraction - 120 * 80 / (2 * (120 * 80 + 120 * 50 + 80 * 50))) < 0.03
 
 
 def test_bowl_rests_on_its_foot_ring_not_upside_down() -> None:
     bowl = remeshed(shapes.bowl_with_foot_ring())
-    r = detect_regions(RegionParams(), bowl)
+    r = detect_regions(RegionParams(), bowl, touch_of(bowl))
     assert r.up[2] > 0.99 and r.pose_kind == "foot_ring"
     assert "1 upside-down pose(s) passed over" in r.pose_reason
     centre = bowl.vertices[r.base_centre]
@@ -243,7 +244,7 @@ def test_figurine_base_is_one_leg_and_the_rest_one_piece() -> None:
     """The base starts on one sole and grows up its leg (a neck 35-40 mm round) to the body, where
     the traces have room; the other three feet stay sensing."""
     figurine = remeshed(shapes.four_legged_figurine(), 3000)
-    r = detect_regions(RegionParams(), figurine)
+    r = detect_regions(RegionParams(), figurine, touch_of(figurine))
     assert r.up[2] > 0.99 and r.pose_kind == "patches" and "of 4 contact patches" in r.pose_reason
     assert "room for the wiring" in r.pose_reason
     assert_valid_regions(figurine, r)
@@ -267,14 +268,14 @@ def test_base_grows_over_a_stem_to_the_bowl() -> None:
     """Every trace would squeeze through a stem 25 mm round: the base takes foot and stem, and its
     boundary, at the bowl, is long enough for the wiring; the bowl senses."""
     glass = wine_glass()
-    r = detect_regions(RegionParams(), glass)
+    r = detect_regions(RegionParams(), glass, touch_of(glass))
     assert_valid_regions(glass, r)
     height = glass.vertices[:, 2]
     assert height[np.unique(glass.faces[r.base_faces])].max() > 58.0
     assert r.base_area_fraction <= RegionParams().max_base_share
     bowl = (height[glass.faces] > 70.0).all(axis=1)
     assert r.sensing_faces[bowl].mean() > 0.9
-    kept = detect_regions(RegionParams(wiring_room_mm=0.0), glass)  # growth off: the foot alone
+    kept = detect_regions(RegionParams(wiring_room_mm=0.0), glass, touch_of(glass))  # growth off: the foot alone
     assert height[np.unique(glass.faces[kept.base_faces])].max() < 6.0 and "wiring" not in kept.pose_reason
 
 
@@ -291,7 +292,7 @@ def test_narrow_lying_blade_keeps_its_top_sensing() -> None:
     radius, yet the base stays on the bottom (it does not wrap the top), and the Tx pole is at the
     other end from the base centre, so the Tx lines run along the blade."""
     blade = remeshed(trimesh.creation.box(extents=(150.0, 9.0, 2.0)), 3000)
-    r = detect_regions(RegionParams(), blade)
+    r = detect_regions(RegionParams(), blade, touch_of(blade))
     assert abs(r.up[2]) > 0.99 and r.pose_kind == "thin"
     face_normals, areas = normals(corners(blade.vertices, blade.faces))
     top = face_normals @ r.up > 0.9
@@ -306,7 +307,7 @@ def test_spoon_base_moves_to_the_bowl_where_the_wiring_has_room() -> None:
     from the handle's end every trace would squeeze along the handle (under 30 mm round), so the base
     starts under the bowl, and the Tx pole is at the handle's end."""
     spoon = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(SHARED_MESHES / "spoon_pfc.ply"))))
-    r = detect_regions(RegionParams(), spoon)
+    r = detect_regions(RegionParams(), spoon, touch_of(spoon))
     assert "contact patch 2 by size" in r.pose_reason
     centre = spoon.vertices.mean(axis=0)
     axis = np.linalg.svd(spoon.vertices - centre)[2][0]
@@ -326,7 +327,7 @@ def test_legs_cut_off_from_the_pole_are_not_sensing_and_the_note_says_so() -> No
     gives their share of the surface."""
     path = SHARED_MESHES / "scorpion_lowres_oded.ply"
     scorpion = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(path))))
-    r = detect_regions(RegionParams(), scorpion)
+    r = detect_regions(RegionParams(), scorpion, touch_of(scorpion))
     assert_valid_regions(scorpion, r)
     _, areas = normals(corners(scorpion.vertices, scorpion.faces))
     within = r.base_distance_mm[scorpion.faces].mean(axis=1) < RegionParams().exclusion_base_mm

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import potpourri3d as pp3d
 from curves_fixture import bunny
+from touch_fixture import touch_of
 
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 
 def test_the_centre_pole_is_nearer_to_the_farthest_point_of_the_region_than_the_far_pole():
     mesh, far_regions, *_ = bunny()
-    centre_regions = detect_regions(RegionParams(tx_pole="centre"), mesh)
+    centre_regions = detect_regions(RegionParams(tx_pole="centre"), mesh, touch_of(mesh))
     assert centre_regions.far_vertex != far_regions.far_vertex
     assert np.array_equal(centre_regions.base_faces, far_regions.base_faces)
     solver = pp3d.MeshHeatMethodDistanceSolver(mesh.vertices, mesh.faces)

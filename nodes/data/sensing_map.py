@@ -7,7 +7,7 @@ Written next to ``mesh.ply`` (the object's mesh, :func:`..data.ply.ply_bytes`) i
      "up": [ux, uy, uz],                            # unit, opposite to the side the object rests on
      "mesh": {"file": "mesh.ply", "sha256": "<hex of the file bytes>", "vertices": n, "faces": m},
      "design": {"pad_radius_mm": 2.0, "d_min_mm": 8.0, "trace_width_mm": 1.0, "clearance_mm": 1.0},  # as laid out
-     "sensing_faces": [[start, stop], ...],         # face index ranges of the sensing region
+     "sensing_faces": [[start, stop], ...],         # face index ranges of the sensing region a finger can touch
      "tx_channels": 21, "rx_channels": 12,          # channels wired (= selected curves per layer)
      "channels": {"tx": [{"channel": 0, "name": "Tx00", "curve": 17, "length_mm": 123.4}, ...],
                   "rx": [{"channel": 0, "name": "Rx00", "curve": 4, "length_mm": 98.7}, ...]},
@@ -18,9 +18,10 @@ Cells list only channel pairs whose curves cross (at most one cell per pair); th
 of a cell is ``tx * NUM_RX + rx`` (:mod:`.board`). A cell's normal is the barycentric interpolation
 of the unit area-weighted vertex normals (:func:`..geometry.triangles.surface_normals`), normalised:
 smooth across faces, outward because faces are CCW seen from outside. The sensing region
-(``regions.detect``: where traces may run, base and exclusions left out) is what an evaluation
-spreads its touch locations over. Version 2 added ``up`` and ``sensing_faces``; the reader refuses
-version 1 files (their up axis is unknown) with a one-line error saying to re-run the pipeline.
+(``regions.detect``: where traces may run, base and exclusions left out), cut to the faces a finger
+can touch (``regions.touchable``), is what an evaluation spreads its touch locations over. Version 2
+added ``up`` and ``sensing_faces``; the reader refuses version 1 files (their up axis is unknown)
+with a one-line error saying to re-run the pipeline.
 """
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ class SensingMap:
     vertices: np.ndarray  # (n, 3) float64, mm
     faces: np.ndarray  # (m, 3) int64
     up: np.ndarray  # (3,) float64, unit
-    sensing_faces: np.ndarray  # (m,) bool, the sensing region
+    sensing_faces: np.ndarray  # (m,) bool, the sensing region a finger can touch
     num_tx: int  # Tx channels wired (<= NUM_TX)
     num_rx: int  # Rx channels wired (<= NUM_RX)
     cell_tx: np.ndarray  # (K,) int64

@@ -137,8 +137,9 @@ class SurfaceRegions:
 
     base_faces: np.ndarray  # (m,) bool, the region the object rests on
     exclusion_base: np.ndarray  # (m,) bool, first exclusion ring grown from the base
-    exclusion_far: np.ndarray  # (m,) bool, geodesic disc around far_vertex
+    exclusion_far: np.ndarray  # (m,) bool, geodesic disc around far_vertex and the untouchable pocket around it
     sensing_faces: np.ndarray  # (m,) bool, where curves may run
+    touch_faces: np.ndarray  # (m,) bool, the sensing faces a finger can touch: where coverage counts
     base_centre: int  # interior base vertex farthest from the base boundary (Tx singularity)
     base_dipole: np.ndarray  # (2,) int64, base_centre and an adjacent interior base vertex (Rx)
     far_vertex: int  # vertex farthest from the base outside base/exclusion_base (Tx singularity)
@@ -154,3 +155,19 @@ class SurfaceRegions:
     base_area_fraction: float  # base area / surface area
     sensing_area_fraction: float  # sensing area / surface area
     tx_pole: str  # how far_vertex was chosen: "far" or "centre" (regions.detect's tx_pole)
+    touch: dict  # the finger model and the touchable share of the surface (metrics.json's "touch")
+
+
+@dataclasses.dataclass(frozen=True)
+class TouchField:
+    """Where a finger can touch (``regions.touchable``): the distance (mm) from the grid point
+    ``origin + pitch_mm * (i, j, k)`` to the nearest position the fingertip ball's centre can reach,
+    and the finger model that decided it. A surface point is touchable where the distance is about
+    ``finger_radius_mm``."""
+
+    origin: np.ndarray  # (3,) float64, mm
+    pitch_mm: float
+    distance_mm: np.ndarray  # (nx, ny, nz) float32
+    finger_radius_mm: float
+    hand_radius_mm: float
+    finger_reach_mm: float

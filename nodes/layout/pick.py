@@ -150,8 +150,8 @@ def best_note(outputs: dict[str, object]) -> str:
     m, regions = outputs["metrics"], outputs["regions"]  # type: ignore[assignment]
     line = (f"chosen {m['rx_family']} at {m['chosen_angle_deg']:+.0f} deg around the {regions.tx_pole} Tx pole: "
             f"{m['cells']} of {m['channel_pairs']} channel pairs as cells, coverage radius {m['coverage_radius_mm']:.1f} mm "
-            f"({m['coverage_radius_vertices_mm']:.1f} over every sensing vertex); {100 * m['uncovered_share']:.1f}% of the "
-            f"sensing area is farther than {m['uncovered_threshold_mm']:g} mm from every cell")
+            f"({m['coverage_radius_vertices_mm']:.1f} over every touchable vertex); {100 * m['uncovered_share']:.1f}% of the "
+            f"touchable sensing area is farther than {m['uncovered_threshold_mm']:g} mm from every cell")
     if m["uncovered_spots"]:
         spot = m["uncovered_spots"][0]
         line += (f", the largest spot {spot['area_mm2']:.0f} mm2 up to {spot['max_distance_mm']:.1f} mm at "

@@ -1,8 +1,8 @@
 """Uniform surface samples on the sensing surface and batched heat-method geodesic distances.
 
 The layout optimisation (paper section 6) measures coverage against ``K`` reference samples ``S``
-spread uniformly over the sensing surface, and needs geodesic distances sample -> candidate
-crossing, crossing -> crossing and pad -> surface.
+spread uniformly over the sensing surface that a finger can touch (``regions.touchable``), and needs
+geodesic distances sample -> candidate crossing, crossing -> crossing and pad -> surface.
 
 Geodesics: the heat method (Crane, Weischedel, Wardetzky 2013), the algorithm of potpourri3d's
 ``MeshHeatMethodDistanceSolver``, re-implemented here over scipy so that (a) sources may be arbitrary
@@ -26,7 +26,7 @@ from pydantic import Field
 from ...graph.errors import UserError
 from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
-from ..data.types import Mesh
+from ..data.types import Mesh, SurfaceRegions
 from ..geometry.sparse_spd import cholesky, solve
 from ..geometry.triangles import areas, corners, cross_products
 
@@ -163,25 +163,29 @@ def sample_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
     face_mask: np.ndarray,
+    keep_mask: np.ndarray,
     count: int,
     seed: int,
     spacing_factor: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """``count`` uniform samples on the masked faces with distance-threshold (dart-throwing) rejection.
+    """``count`` uniform samples on the faces of ``face_mask & keep_mask`` with distance-threshold
+    (dart-throwing) rejection.
 
-    Candidates are drawn uniformly by area; a candidate is kept when its Euclidean distance to every
-    kept sample is at least ``r = spacing_factor * sqrt(area / count)`` (Euclidean distance is a lower
-    bound of the geodesic one). When 50 consecutive batches add nothing, ``r`` shrinks by 10 %.
-    Returns (faces (K,), bary (K, 3), points (K, 3), final r in mm). Deterministic for a seed.
+    Candidates are drawn uniformly by area over ``face_mask`` and those off ``keep_mask`` dropped, so
+    that a small change of ``keep_mask`` leaves the other samples as they were; a candidate is kept
+    when its Euclidean distance to every kept sample is at least ``r = spacing_factor * sqrt(area /
+    count)``, ``area`` the kept faces' (Euclidean distance is a lower bound of the geodesic one). When
+    50 consecutive batches add nothing, ``r`` shrinks by 10 %. Returns (faces (K,), bary (K, 3),
+    points (K, 3), final r in mm). Deterministic for a seed.
     """
     idx = np.flatnonzero(face_mask)
-    if len(idx) == 0:
+    if not (face_mask & keep_mask).any():
         raise UserError("the sensing region has no faces: check the regions.detect parameters")
     face_area = areas(corners(vertices, faces[idx]))
     total = float(face_area.sum())
     cdf = np.cumsum(face_area) / total
     rng = np.random.default_rng(seed)
-    radius = spacing_factor * np.sqrt(total / count)
+    radius = spacing_factor * np.sqrt(float(face_area[keep_mask[idx]].sum()) / count)
     kept_f: list[int] = []
     kept_b: list[np.ndarray] = []
     kept_p = np.empty((0, 3))
@@ -193,6 +197,8 @@ def sample_surface(
         p = np.einsum("kc,kcd->kd", b, vertices[faces[f]])
         added = 0
         for j in range(256):
+            if not keep_mask[f[j]]:
+                continue
             if len(kept_p) and np.min(np.sum((kept_p - p[j]) ** 2, axis=1)) < radius * radius:
                 continue
             kept_f.append(int(f[j]))
@@ -210,7 +216,7 @@ def sample_surface(
 
 @dataclasses.dataclass(frozen=True)
 class SurfaceSamples:
-    """K reference samples on the sensing surface with their geodesic distance fields.
+    """K reference samples on the touchable part of the sensing surface with their geodesic distance fields.
 
     ``distances[:, k]`` is the geodesic distance (mm) from sample ``k`` to every mesh vertex; the
     distance to any surface point is its barycentric interpolation (:meth:`HeatGeodesics.evaluate`).
@@ -221,8 +227,10 @@ class SurfaceSamples:
     bary: np.ndarray  # (K, 3) float64
     distances: np.ndarray  # (n_vertices, K) float32, mm
     spacing_mm: float  # the rejection threshold actually used
-    sensing_faces: np.ndarray  # (m,) bool, faces the samples were drawn from
+    sensing_faces: np.ndarray  # (m,) bool, the sensing region: where curves run and their clearance counts
+    touch_faces: np.ndarray  # (m,) bool, its faces a finger can touch: where samples are drawn and coverage counts
     sensing_area_mm2: float
+    touch_area_mm2: float
 
 
 class SamplesParams(NodeParams):
@@ -246,17 +254,23 @@ def sensing_face_mask(regions: object, face_count: int) -> np.ndarray:
 
 
 @node("layout.samples", params=SamplesParams, inputs=("mesh", "regions"), outputs=("samples",))
-def surface_samples(params: SamplesParams, mesh: Mesh, regions: object) -> SurfaceSamples:
-    """K uniform reference samples on the sensing surface and their geodesic distance fields (mm)."""
-    mask = sensing_face_mask(regions, len(mesh.faces))
-    f, b, p, r = sample_surface(mesh.vertices, mesh.faces, mask, params.count, params.seed, params.spacing_factor)
-    geo = geodesics_for(mesh)
+def surface_samples(params: SamplesParams, mesh: Mesh, regions: SurfaceRegions) -> SurfaceSamples:
+    """K uniform reference samples on the sensing surface a finger can touch and their geodesic distance fields (mm)."""
+    sensing = sensing_face_mask(regions, len(mesh.faces))
+    touch = sensing & np.asarray(regions.touch_faces, dtype=bool)
+    if not touch.any():
+        raise UserError("a finger can touch none of the sensing region: lower regions.touchable's finger_radius_mm "
+                        "or raise its finger_reach_mm")
+    f, b, p, r = sample_surface(mesh.vertices, mesh.faces, sensing, touch, params.count, params.seed, params.spacing_factor)
+    face_area = areas(corners(mesh.vertices, mesh.faces))
     return SurfaceSamples(
         points=p,
         faces=f,
         bary=b,
-        distances=geo.fields(f, b),
+        distances=geodesics_for(mesh).fields(f, b),
         spacing_mm=r,
-        sensing_faces=mask,
-        sensing_area_mm2=float(areas(corners(mesh.vertices, mesh.faces))[mask].sum()),
+        sensing_faces=sensing,
+        touch_faces=touch,
+        sensing_area_mm2=float(face_area[sensing].sum()),
+        touch_area_mm2=float(face_area[touch].sum()),
     )

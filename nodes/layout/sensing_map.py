@@ -2,7 +2,7 @@
 
 ``sensing_map.json`` and ``mesh.ply`` come from the one writer,
 :func:`retrotouch.nodes.data.sensing_map.sensing_map_files` (format and cell normals described
-there); the up axis and the sensing region are what ``regions.detect`` found.
+there); the up axis and the sensing region a finger can touch are what ``regions.detect`` found.
 """
 from __future__ import annotations
 
@@ -26,9 +26,9 @@ def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegi
     channels = {"tx": list(zip(layout.tx_source.tolist(), layout.tx.lengths_mm.tolist())),
                 "rx": list(zip(layout.rx_source.tolist(), layout.rx.lengths_mm.tolist()))}
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
-                              cells.faces, cells.bary, layout.pad, channels, regions.sensing_faces,
+                              cells.faces, cells.bary, layout.pad, channels, regions.touch_faces,
                               design=layout.design_values())
-    return Files({**files, "metrics.json": metrics_json(metrics, pose_summary(regions), mesh.repairs)})
+    return Files({**files, "metrics.json": metrics_json(metrics, pose_summary(regions), regions.touch, mesh.repairs)})
 
 
 def pose_summary(regions: SurfaceRegions) -> dict:

@@ -30,9 +30,10 @@ def curve_lines(curves: CurveSet, mesh: Mesh, lift_mm: float) -> np.ndarray:
 def viewer_data(mesh: Mesh, regions: SurfaceRegions | None, tx: CurveSet, rx: CurveSet, crossings: np.ndarray | None) -> dict:
     """The JSON embedded in the HTML viewer (arrays little-endian base64)."""
     diagonal = float(np.linalg.norm(mesh.vertices.max(0) - mesh.vertices.min(0)))
-    region = np.zeros(len(mesh.vertices), dtype=np.uint8)  # 0 sensing, 1 exclusion, 2 base
+    region = np.zeros(len(mesh.vertices), dtype=np.uint8)  # 0 sensing, 1 exclusion or untouchable, 2 base
     if regions is not None:
-        excluded = np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far)
+        untouchable = np.asarray(regions.sensing_faces) & ~np.asarray(regions.touch_faces)
+        excluded = np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far) | untouchable
         region[mesh.faces[excluded].ravel()] = 1
         region[mesh.faces[np.asarray(regions.base_faces)].ravel()] = 2
     up = np.asarray(regions.up, dtype=float) if regions is not None else np.array([0.0, 0.0, 1.0])

@@ -6,7 +6,7 @@ are drawn only where they pass a depth test against the mesh's z-buffer, and so 
 pose's guides (:func:`pose_guides`): the table plane under the object in ``TABLE_RGB`` and an up
 arrow beside it in ``UP_RGB``; the layout's uncovered spots are ringed in ``UNCOVERED_RGB`` at their
 points farthest from every crossing. A caption under the views names the pose kind and its reason, and
-the share of the sensing area the spots hold.
+the share of the touchable sensing area the spots hold.
 
 Camera convention: views orbit the bounding-box centre; elevation is measured from the plane
 normal to ``regions.up`` (positive = looking down on the object), azimuth about ``up``; lengths mm.
@@ -82,10 +82,12 @@ def project(points: np.ndarray, world_to_camera: np.ndarray, size: int) -> tuple
 
 
 def face_colours(face_count: int, regions: SurfaceRegions | None) -> np.ndarray:
-    """Base RGB in [0, 1] per face from the region masks."""
+    """Base RGB in [0, 1] per face from the region masks: the exclusions and the sensing faces no finger
+    can touch in ``EXCLUSION_RGB``."""
     colours = np.tile(np.asarray(SENSING_RGB, dtype=np.float32), (face_count, 1))
     if regions is not None:
-        colours[np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far)] = EXCLUSION_RGB
+        untouchable = np.asarray(regions.sensing_faces) & ~np.asarray(regions.touch_faces)
+        colours[np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far) | untouchable] = EXCLUSION_RGB
         colours[np.asarray(regions.base_faces)] = BASE_RGB
     return colours
 
@@ -265,14 +267,14 @@ def render_png(
         cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
         tiles.append(tile)
     grid = np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
-    legend = f"Tx: {tx.count} curves   Rx: {rx.count} curves   base: dark   exclusions: grey"
+    legend = f"Tx: {tx.count} curves   Rx: {rx.count} curves   base: dark   exclusions, untouchable: grey"
     cv2.putText(grid, legend, (8, 2 * view_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     caption = ""
     if regions is not None:
         caption = f"resting pose: {regions.pose_kind} (table brown, up arrow green): {regions.pose_reason}"
     if uncovered:
         caption += (f"{'; ' if caption else ''}uncovered (red rings, the farthest point of each of the largest spots): "
-                    f"{100 * uncovered['uncovered_share']:.1f}% of the sensing area is farther than "
+                    f"{100 * uncovered['uncovered_share']:.1f}% of the touchable sensing area is farther than "
                     f"{uncovered['uncovered_threshold_mm']:g} mm from every crossing")
     if caption:
         grid = with_caption(grid, caption)

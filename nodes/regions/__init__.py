@@ -1,1 +1,1 @@
-"""Surface regions: the resting base (non-sensing) and the sensing region."""
+"""Surface regions: the resting base (non-sensing), the sensing region and what a finger can touch."""

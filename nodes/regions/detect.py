@@ -32,7 +32,9 @@ Then, with heat-method geodesic distances (potpourri3d):
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
-  faces around it.
+  faces around it, plus the untouchable faces joined to those (:mod:`.touch`: the inside of a
+  vessel beyond a finger's reach, when the pole lies at its bottom).
+* ``touch_faces``: the sensing faces a finger can touch (``regions.touchable``).
 """
 from __future__ import annotations
 
@@ -46,11 +48,12 @@ from pydantic import Field, field_validator, model_validator
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
-from ..data.types import Mesh, SurfaceRegions
+from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
 from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
+from .touch import pocket_of, touch_summary, touchable_faces_of
 
 CANDIDATE_POSES = 6
 """Automatic pose: how many of the best floors (at least angle_threshold_deg apart) are tried."""
@@ -311,9 +314,10 @@ def pose_note(regions: SurfaceRegions) -> str:
     return f"resting pose {regions.pose_kind}: {regions.pose_reason}"
 
 
-@node("regions.detect", params=RegionParams, inputs=("mesh",), outputs=("regions",), note=pose_note)
-def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
-    """Find the resting pose and base, the two exclusion regions and the singularity anchors."""
+@node("regions.detect", params=RegionParams, inputs=("mesh", "touchable"), outputs=("regions",), note=pose_note)
+def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> SurfaceRegions:
+    """Find the resting pose and base, the two exclusion regions, the singularity anchors and the
+    touchable sensing faces."""
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     graph = FaceGraph(faces, len(vertices))
@@ -355,6 +359,8 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
+    touch = touchable_faces_of(touchable, vertices, faces)
+    exclusion_far |= pocket_of(graph, exclusion_far, ~touch & ~blocked)
     cut_off = unreachable_faces(graph, ~(blocked | exclusion_far), blocked, exclusion_far)
     exclusion_base |= cut_off
     blocked |= cut_off
@@ -370,6 +376,7 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         exclusion_base=exclusion_base,
         exclusion_far=exclusion_far,
         sensing_faces=sensing,
+        touch_faces=sensing & touch,
         base_centre=int(anchors[0]),
         base_dipole=anchors,
         far_vertex=far_vertex,
@@ -385,4 +392,5 @@ def detect_regions(params: RegionParams, mesh: Mesh) -> SurfaceRegions:
         base_area_fraction=share,
         sensing_area_fraction=float(areas[sensing].sum() / areas.sum()),
         tx_pole=params.tx_pole,
+        touch=touch_summary(touchable, float(areas[touch].sum() / areas.sum())),
     )
