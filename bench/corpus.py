@@ -11,7 +11,8 @@ generated shapes keep their own size). The pose, base and sensing region are rea
 Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and sensing area % of the
 surface, the % of the sensing area a finger can touch, cells, pads, Voronoi CV over the pads and over
 all crossings, coverage radius mm, the % of the touchable sensing area farther than 10 mm from every
-cell (``uncovered_share`` of metrics.json), phase 1's gap, the chosen Rx family, sheets, joints,
+cell (``uncovered_share`` of metrics.json) and the same over the whole sensing region, touchable or
+not (``sensing_region``), phase 1's gap, the chosen Rx family, sheets, joints,
 seconds) and, as the LAST line, one JSON object with ``meshes``,
 ``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
 ``median_cells``, the worst cases and per-row details. Usage::
@@ -92,6 +93,9 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "voronoi_cv_all_crossings": metrics.get("voronoi_cv_all_crossings"),
         "coverage_radius_mm": metrics.get("coverage_radius_mm"),
         "uncovered_percent": round(100 * metrics["uncovered_share"], 2),
+        "uncovered_percent_sensing": round(100 * metrics["sensing_region"]["uncovered_share"], 2),
+        "coverage_radius_vertices_mm": metrics["coverage_radius_vertices_mm"],
+        "coverage_radius_vertices_sensing_mm": metrics["sensing_region"]["coverage_radius_vertices_mm"],
         "phase1_gap": metrics.get("phase1_gap"),
         "sheets": sheet_count,
         "joints": report.get("joints"),
@@ -139,7 +143,7 @@ def main() -> None:
         rows, failures = [], []
         print(
             f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'touch%':>6s} {'cells':>6s} {'pads':>5s} "
-            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
+            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'all%':>5s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -162,6 +166,7 @@ def main() -> None:
                 f"{fmt(row.get('cells'), '6d')} {fmt(row.get('pads'), '5d')} "
                 f"{fmt(row.get('voronoi_cv'), '6.3f')} {fmt(row.get('voronoi_cv_all_crossings'), '6.3f')} "
                 f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {fmt(row.get('uncovered_percent'), '5.1f')} "
+                f"{fmt(row.get('uncovered_percent_sensing'), '5.1f')} "
                 f"{fmt(row.get('phase1_gap'), '6.3f')} "
                 f"{row.get('rx_family') or '-':16s} "
                 f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {seconds:7.1f}",

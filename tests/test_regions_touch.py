@@ -1,7 +1,7 @@
 """regions.touchable: what a finger (a 5 mm ball, 70 mm beyond where a 25 mm hand ball fits) can touch,
 on revolved shapes whose answer is known: grooves narrower and wider than the fingertip, deep tubes
-narrower and wider than the hand; the vase's inside joining the far exclusion, and the samples the
-layout draws on the result."""
+narrower and wider than the hand, a ball resting on the table; the vase's inside joining the far
+exclusion (and a pocket reaching the base not joining it), and the samples the layout draws."""
 from __future__ import annotations
 
 import types
@@ -18,7 +18,9 @@ from retrotouch.nodes.layout.samples import SamplesParams, sample_surface, surfa
 from retrotouch.nodes.mesh.repair import RemeshParams, remesh
 from retrotouch.nodes.regions import touch
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
-from retrotouch.nodes.regions.touch import TouchParams, touch_field, touchable_faces_of, touchable_surface
+from retrotouch.nodes.regions.faces import FaceGraph
+from retrotouch.nodes.regions.touch import (TouchParams, clear_of_table, pocket_of, touch_field, touchable_faces_of,
+                                            touchable_surface)
 
 FINGER, HAND, REACH = 5.0, 25.0, 70.0
 
@@ -159,3 +161,35 @@ def test_a_few_untouchable_faces_leave_the_other_samples_where_they_were():
 def test_a_hand_smaller_than_the_finger_is_refused():
     with pytest.raises(ValueError, match="hand_radius_mm"):
         TouchParams(finger_radius_mm=10.0, hand_radius_mm=8.0)
+
+
+def test_a_fingertip_on_the_table_meets_a_resting_ball_where_the_geometry_says():
+    radius = 40.0
+    ball = sphere(radius)
+    clear = clear_of_table(ball.vertices, ball.faces, np.array([0.0, 0.0, -1.0]), FINGER)
+    c = corners(ball.vertices, ball.faces).mean(axis=1)
+    from_bottom = np.degrees(np.arccos(np.clip(-c[:, 2] / np.linalg.norm(c, axis=1), -1, 1)))
+    contact = np.degrees(np.arccos((radius - FINGER) / (radius + FINGER)))  # 38.9 deg
+    assert not clear[from_bottom < contact - 2].any() and clear[from_bottom > contact + 2].all()
+
+
+def test_the_default_regions_leave_the_wedge_at_the_table_out_of_the_touchable_faces():
+    radius = 40.0
+    mesh = remesh(RemeshParams(target_vertices=3000), sphere(radius))
+    regions = detect_regions(RegionParams(), mesh, touchable_surface(TouchParams(), mesh))
+    height = corners(mesh.vertices, mesh.faces).mean(axis=1) @ regions.up - (mesh.vertices @ regions.up).min()
+    meets = radius * (1 - (radius - FINGER) / (radius + FINGER))  # 8.9 mm: where a fingertip on the table meets it
+    wedge = regions.sensing_faces & (height < meets - 1.0)
+    assert wedge.any() and not regions.touch_faces[wedge].any()
+    assert regions.touch_faces[regions.sensing_faces & (height > meets + 1.5)].all()
+
+
+def test_an_untouchable_pocket_joins_the_far_exclusion_only_if_it_leaves_the_way_to_the_base_open():
+    ball = sphere(40.0)
+    c = corners(ball.vertices, ball.faces).mean(axis=1)
+    graph = FaceGraph(ball.faces, len(ball.vertices))
+    pole, base = c[:, 2] > 36.0, c[:, 2] < -36.0
+    strip = (np.abs(c[:, 0]) < 6.0) & ~pole & ~base  # a meridian from the pole's exclusion down to the base
+    assert not pocket_of(graph, pole, strip, base).any()
+    upper = strip & (c[:, 2] > 0.0)
+    assert np.array_equal(pocket_of(graph, pole, upper, base), upper)

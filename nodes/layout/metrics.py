@@ -1,6 +1,7 @@
 """Layout quality metrics (paper Table 1): Voronoi uniformity of the pads and friends, and a branch's figures.
 
-Coverage, uncovered spots and Voronoi cells are over the touchable sensing faces (``samples.touch_faces``);
+Coverage, uncovered spots and Voronoi cells are over the touchable sensing faces (``samples.touch_faces``),
+and the vertices' coverage and uncovered share over the whole sensing region too (``sensing_region``);
 same-layer clearance is over the whole sensing region, where traces run.
 
 Voronoi CV: every touchable sensing face is assigned to the pad geodesically nearest to its centroid (the
@@ -121,9 +122,10 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
     ``power`` the secondary objective's."""
     tx_sel, rx_sel, pad = layout.tx_source, layout.rx_source, layout.pad
     nearest = problem.distance[:, cells].min(axis=1)
+    sensing_vertices = np.unique(mesh.faces[samples.sensing_faces])
     touch_vertices = np.unique(mesh.faces[samples.touch_faces])
     vertex_nearest = np.full(len(mesh.vertices), np.inf)
-    vertex_nearest[touch_vertices] = row_minima(cell_fields, touch_vertices)
+    vertex_nearest[sensing_vertices] = row_minima(cell_fields, sensing_vertices)
     cell_area = voronoi_cell_areas(cell_fields[:, pad], mesh.vertices, mesh.faces, samples.touch_faces)
     all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.touch_faces)
     tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
@@ -135,6 +137,9 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
         "coverage_radius_vertices_mm": float(vertex_nearest[touch_vertices].max()),
         **uncovered_spots(vertex_nearest, mesh.vertices, mesh.faces, samples.touch_faces),
         "touchable_share": samples.touch_area_mm2 / samples.sensing_area_mm2,
+        "sensing_region": {"coverage_radius_vertices_mm": float(vertex_nearest[sensing_vertices].max()),
+                           "uncovered_share": uncovered_spots(vertex_nearest, mesh.vertices, mesh.faces,
+                                                              samples.sensing_faces)["uncovered_share"]},
         "mean_distance_mm": float(nearest.mean()),
         "power_mean_distance_mm": float(np.mean(nearest**power) ** (1.0 / power)),
         "voronoi_cv": coefficient_of_variation(cell_area) if pad.sum() else None,

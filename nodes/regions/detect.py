@@ -32,9 +32,9 @@ Then, with heat-method geodesic distances (potpourri3d):
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
-  faces around it, plus the untouchable faces joined to those (:mod:`.touch`: the inside of a
-  vessel beyond a finger's reach, when the pole lies at its bottom).
-* ``touch_faces``: the sensing faces a finger can touch (``regions.touchable``).
+  faces around it, plus the faces beyond a finger's reach joined to those but not to the base
+  (:mod:`.touch`: the inside of a vessel, when the pole lies at its bottom).
+* ``touch_faces``: the sensing faces a finger can touch (``regions.touchable``) with the table below.
 """
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
 from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
-from .touch import pocket_of, touch_summary, touchable_faces_of
+from .touch import clear_of_table, pocket_of, touch_summary, touchable_faces_of
 
 CANDIDATE_POSES = 6
 """Automatic pose: how many of the best floors (at least angle_threshold_deg apart) are tried."""
@@ -359,8 +359,9 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
         from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
-    touch = touchable_faces_of(touchable, vertices, faces)
-    exclusion_far |= pocket_of(graph, exclusion_far, ~touch & ~blocked)
+    reach = touchable_faces_of(touchable, vertices, faces)
+    exclusion_far |= pocket_of(graph, exclusion_far, ~reach & ~blocked, blocked)
+    touch = reach & clear_of_table(vertices, faces, down, touchable.finger_radius_mm)
     cut_off = unreachable_faces(graph, ~(blocked | exclusion_far), blocked, exclusion_far)
     exclusion_base |= cut_off
     blocked |= cut_off

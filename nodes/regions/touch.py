@@ -5,8 +5,8 @@ fits and is at most ``finger_reach_mm`` long; a hand fits where a ball of radius
 can be brought in from far away. A surface point is touchable when the finger ball can touch it.
 So a crease narrower than the fingertip, a slot, or the inside of a narrow-necked vase deeper than
 a finger reaches is not touchable, while the inside of a bowl or a mug, where the hand goes in, is.
-The table the object stands on is not modelled: the base and its first exclusion are not sensing
-anyway.
+The table the object stands on comes in once the pose is known (:func:`clear_of_table`): the
+fingertip stays above it, so the wedge between a round bottom and the table is not touchable.
 
 The node works on the mesh before remeshing (so that it runs beside the remesh) and returns a
 distance field; :func:`touchable_faces_of` reads any mesh of the same surface against it. On a
@@ -35,10 +35,9 @@ import numba
 import numpy as np
 from pydantic import Field, model_validator
 
-from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, TouchField
-from ..geometry.triangles import corners
+from ..geometry.triangles import corners, normals
 from .faces import FaceGraph
 
 MAX_VOXELS = 4_000_000
@@ -144,9 +143,7 @@ def touch_field(vertices: np.ndarray, faces: np.ndarray, params: TouchParams) ->
     seed = free & open_space
     frontier = seed & ndimage.binary_dilation(free & ~seed, structure=np.ones((3, 3, 3), dtype=bool))
     lengths = _path_lengths(free.ravel(), seed.ravel(), frontier.ravel(), *shape, pitch, params.finger_reach_mm)
-    reached = free & np.isfinite(lengths.reshape(shape))
-    if not reached.any():
-        raise UserError(f"no finger ball of radius {finger:g} mm fits outside the object: lower regions.touchable's finger_radius_mm")
+    reached = free & np.isfinite(lengths.reshape(shape))  # the grid's border at least: it is open space
     margin = int(np.ceil(finger / pitch)) + 3  # the grid around the surface, where centroids are read
     crop = tuple(slice(int(np.floor((lo - origin_k) / pitch)) - margin, int(np.ceil((hi - origin_k) / pitch)) + margin + 1)
                  for lo, hi, origin_k in zip(low, high, origin))
@@ -164,11 +161,26 @@ def touchable_faces_of(field: TouchField, vertices: np.ndarray, faces: np.ndarra
     return at <= field.finger_radius_mm + field.pitch_mm * np.sqrt(3.0)
 
 
-def pocket_of(graph: FaceGraph, around: np.ndarray, untouchable: np.ndarray) -> np.ndarray:
-    """The ``untouchable`` faces edge-connected to the faces ``around`` (through untouchable faces):
-    a vessel's inside beyond a finger's reach around a Tx pole at its bottom."""
+def clear_of_table(vertices: np.ndarray, faces: np.ndarray, down: np.ndarray, finger_radius_mm: float) -> np.ndarray:
+    """(m,) bool: the faces a fingertip ball above the support plane can touch along their normal
+    ``n``: the ball's centre ``c + r n`` (``c`` the centroid) at least ``r`` above the plane, i.e. the
+    centroid's height ``h >= r (1 + n . down)`` (``down`` as in :mod:`.detect`; the plane touches the
+    lowest vertex). On a ball of radius ``R`` resting on the table this leaves out the cap within
+    ``arccos((R - r) / (R + r))`` of the contact, where a fingertip on the table meets it."""
+    triangles = corners(vertices, faces)
+    normal = normals(triangles)[0]
+    height = float((vertices @ down).max()) - triangles.mean(axis=1) @ down
+    return height >= finger_radius_mm * (1.0 + normal @ down)
+
+
+def pocket_of(graph: FaceGraph, around: np.ndarray, untouchable: np.ndarray, blocked: np.ndarray) -> np.ndarray:
+    """The ``untouchable`` faces edge-connected to the faces ``around`` through untouchable faces (a
+    vessel's inside beyond a finger's reach around a Tx pole at its bottom), unless they reach a
+    ``blocked`` face (the base and its exclusion: the traces' way out)."""
     labels = graph.components(untouchable | around)
-    return untouchable & np.isin(labels, np.unique(labels[around]))
+    near_blocked, _ = graph.vertex_masks(blocked)
+    reaching = labels[near_blocked[graph.faces].any(axis=1) & (labels >= 0)]
+    return untouchable & np.isin(labels, np.setdiff1d(labels[around], reaching))
 
 
 def touch_summary(field: TouchField, share: float) -> dict:
