@@ -26,7 +26,7 @@ from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
-from retrotouch.nodes.regions.touch import TouchParams, touch_field
+from retrotouch.nodes.regions.touch import TouchParams, touchable_surface
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
 
 ANGLES = tuple(range(-50, 51, 10))
@@ -56,8 +56,9 @@ def main() -> None:
     mesh = load_mesh(LoadParams(path=args.mesh))
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
+    touchable = touchable_surface(TouchParams(), mesh)  # as the pipeline: from the mesh before remeshing
     mesh, remesh_s = timed(remesh, RemeshParams(target_vertices=args.vertices), mesh)
-    regions = detect_regions(RegionParams(up_axis=args.up_axis), mesh, touch_field(mesh.vertices, mesh.faces, TouchParams()))
+    regions = detect_regions(RegionParams(up_axis=args.up_axis), mesh, touchable)
 
     rows: list[tuple[str, float, str]] = []
     tx_field, t_ctx = timed(connection, ConnectionParams(layer="tx"), mesh, regions)

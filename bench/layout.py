@@ -61,7 +61,7 @@ from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, sc
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
-from retrotouch.nodes.regions.touch import TouchParams, touch_field
+from retrotouch.nodes.regions.touch import TouchParams, touchable_surface
 from retrotouch.nodes.curves.helices import TraceHelicesParams, trace_helices, winding_angle_node
 from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.curves.rings import TraceRingsParams, trace_rings
@@ -81,8 +81,9 @@ def prepare(mesh_path: str, vertices: int, up_axis: str | None, family: str = "a
     mesh = load_mesh(LoadParams(path=mesh_path))
     mesh = repair_mesh(RepairParams(keep_largest=True), mesh)
     mesh = scale_mesh(ScaleParams(diagonal_mm=170.0, about="bbox_center"), mesh)
+    touchable = touchable_surface(TouchParams(), mesh)  # as the pipeline: from the mesh before remeshing
     mesh = remesh(RemeshParams(target_vertices=vertices), mesh)
-    regions = detect_regions(RegionParams(up_axis=up_axis), mesh, touch_field(mesh.vertices, mesh.faces, TouchParams()))
+    regions = detect_regions(RegionParams(up_axis=up_axis), mesh, touchable)
     tx_field = connection(ConnectionParams(layer="tx"), mesh, regions)
     rx_field = connection(ConnectionParams(layer="rx"), mesh, regions)
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
