@@ -130,9 +130,10 @@ class SurfaceRegions:
     """Base (non-sensing), exclusion and sensing regions of a mesh, and the singularity anchors.
 
     The face masks ``base_faces``, ``exclusion_base``, ``exclusion_far`` and ``sensing_faces`` are
-    disjoint and cover every face. ``base_boundary_edges`` are the halfedges ``(a, b)`` of sensing
-    faces whose neighbour across the edge is base or first exclusion: CCW in the sensing face, so
-    the sensing region lies to the left of ``a -> b``. Distances are geodesic (heat method), mm.
+    disjoint and cover every face; ``touch_faces`` is the part of ``sensing_faces`` a finger can touch.
+    ``base_boundary_edges`` are the halfedges ``(a, b)`` of sensing faces whose neighbour across the
+    edge is base or first exclusion: CCW in the sensing face, so the sensing region lies to the left
+    of ``a -> b``. Distances are geodesic (heat method), mm.
     """
 
     base_faces: np.ndarray  # (m,) bool, the region the object rests on
