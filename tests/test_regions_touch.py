@@ -13,7 +13,7 @@ from shapes import vase
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh
-from retrotouch.nodes.geometry.triangles import areas, corners
+from retrotouch.nodes.geometry.triangles import areas, corners, normals
 from retrotouch.nodes.layout.samples import SamplesParams, sample_surface, surface_samples
 from retrotouch.nodes.mesh.repair import RemeshParams, remesh
 from retrotouch.nodes.regions import touch
@@ -166,7 +166,8 @@ def test_a_hand_smaller_than_the_finger_is_refused():
 def test_a_fingertip_on_the_table_meets_a_resting_ball_where_the_geometry_says():
     radius = 40.0
     ball = sphere(radius)
-    clear = clear_of_table(ball.vertices, ball.faces, np.array([0.0, 0.0, -1.0]), FINGER)
+    face_normals = normals(corners(ball.vertices, ball.faces))[0]
+    clear = clear_of_table(ball.vertices, ball.faces, face_normals, np.array([0.0, 0.0, -1.0]), FINGER)
     c = corners(ball.vertices, ball.faces).mean(axis=1)
     from_bottom = np.degrees(np.arccos(np.clip(-c[:, 2] / np.linalg.norm(c, axis=1), -1, 1)))
     contact = np.degrees(np.arccos((radius - FINGER) / (radius + FINGER)))  # 38.9 deg

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..data.types import CurveSet, Mesh, SurfaceRegions
 from ..geometry.triangles import normals
-from .views import BASE_RGB, EXCLUSION_RGB, RX_RGB, SENSING_RGB, TX_RGB, segments
+from .views import BASE_RGB, EXCLUSION_RGB, RX_RGB, SENSING_RGB, TX_RGB, greyed_faces, segments
 
 
 def _b64(array: np.ndarray, dtype: str) -> str:
@@ -32,9 +32,7 @@ def viewer_data(mesh: Mesh, regions: SurfaceRegions | None, tx: CurveSet, rx: Cu
     diagonal = float(np.linalg.norm(mesh.vertices.max(0) - mesh.vertices.min(0)))
     region = np.zeros(len(mesh.vertices), dtype=np.uint8)  # 0 sensing, 1 exclusion or untouchable, 2 base
     if regions is not None:
-        untouchable = np.asarray(regions.sensing_faces) & ~np.asarray(regions.touch_faces)
-        excluded = np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far) | untouchable
-        region[mesh.faces[excluded].ravel()] = 1
+        region[mesh.faces[greyed_faces(regions)].ravel()] = 1
         region[mesh.faces[np.asarray(regions.base_faces)].ravel()] = 2
     up = np.asarray(regions.up, dtype=float) if regions is not None else np.array([0.0, 0.0, 1.0])
     lift = 0.002 * diagonal

@@ -81,13 +81,17 @@ def project(points: np.ndarray, world_to_camera: np.ndarray, size: int) -> tuple
     return column, row, depth
 
 
+def greyed_faces(regions: SurfaceRegions) -> np.ndarray:
+    """(m,) bool: the faces drawn in ``EXCLUSION_RGB``, the exclusions and the sensing faces no finger can touch."""
+    untouchable = np.asarray(regions.sensing_faces) & ~np.asarray(regions.touch_faces)
+    return np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far) | untouchable
+
+
 def face_colours(face_count: int, regions: SurfaceRegions | None) -> np.ndarray:
-    """Base RGB in [0, 1] per face from the region masks: the exclusions and the sensing faces no finger
-    can touch in ``EXCLUSION_RGB``."""
+    """Base RGB in [0, 1] per face from the region masks (:func:`greyed_faces`, the base)."""
     colours = np.tile(np.asarray(SENSING_RGB, dtype=np.float32), (face_count, 1))
     if regions is not None:
-        untouchable = np.asarray(regions.sensing_faces) & ~np.asarray(regions.touch_faces)
-        colours[np.asarray(regions.exclusion_base) | np.asarray(regions.exclusion_far) | untouchable] = EXCLUSION_RGB
+        colours[greyed_faces(regions)] = EXCLUSION_RGB
         colours[np.asarray(regions.base_faces)] = BASE_RGB
     return colours
 

@@ -359,9 +359,9 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
         from_far = solver.compute_distance(far_vertex)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
-    reach = touchable_faces_of(touchable, vertices, faces)
-    exclusion_far |= pocket_of(graph, exclusion_far, ~reach & ~blocked, blocked)
-    touch = reach & clear_of_table(vertices, faces, down, touchable.finger_radius_mm)
+    within_reach = touchable_faces_of(touchable, vertices, faces)
+    exclusion_far |= pocket_of(graph, exclusion_far, ~within_reach & ~blocked, blocked)
+    touch = within_reach & clear_of_table(vertices, faces, face_normals, down, touchable.finger_radius_mm)
     cut_off = unreachable_faces(graph, ~(blocked | exclusion_far), blocked, exclusion_far)
     exclusion_base |= cut_off
     blocked |= cut_off

@@ -37,7 +37,7 @@ from pydantic import Field, model_validator
 
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, TouchField
-from ..geometry.triangles import corners, normals
+from ..geometry.triangles import corners
 from .faces import FaceGraph
 
 MAX_VOXELS = 4_000_000
@@ -161,16 +161,15 @@ def touchable_faces_of(field: TouchField, vertices: np.ndarray, faces: np.ndarra
     return at <= field.finger_radius_mm + field.pitch_mm * np.sqrt(3.0)
 
 
-def clear_of_table(vertices: np.ndarray, faces: np.ndarray, down: np.ndarray, finger_radius_mm: float) -> np.ndarray:
-    """(m,) bool: the faces a fingertip ball above the support plane can touch along their normal
-    ``n``: the ball's centre ``c + r n`` (``c`` the centroid) at least ``r`` above the plane, i.e. the
-    centroid's height ``h >= r (1 + n . down)`` (``down`` as in :mod:`.detect`; the plane touches the
-    lowest vertex). On a ball of radius ``R`` resting on the table this leaves out the cap within
+def clear_of_table(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, down: np.ndarray,
+                   finger_radius_mm: float) -> np.ndarray:
+    """(m,) bool: the faces a fingertip ball above the support plane can touch along their unit normal
+    ``n`` (``face_normals``): the ball's centre ``c + r n`` (``c`` the centroid) at least ``r`` above
+    the plane, i.e. the centroid's height ``h >= r (1 + n . down)`` (``down`` as in :mod:`.detect`;
+    the plane touches the lowest vertex). On a ball of radius ``R`` resting on the table this leaves out the cap within
     ``arccos((R - r) / (R + r))`` of the contact, where a fingertip on the table meets it."""
-    triangles = corners(vertices, faces)
-    normal = normals(triangles)[0]
-    height = float((vertices @ down).max()) - triangles.mean(axis=1) @ down
-    return height >= finger_radius_mm * (1.0 + normal @ down)
+    height = float((vertices @ down).max()) - corners(vertices, faces).mean(axis=1) @ down
+    return height >= finger_radius_mm * (1.0 + face_normals @ down)
 
 
 def pocket_of(graph: FaceGraph, around: np.ndarray, untouchable: np.ndarray, blocked: np.ndarray) -> np.ndarray:
