@@ -56,7 +56,7 @@ from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_ce
 from retrotouch.nodes.layout.pick import PickParams, pick_best
 from retrotouch.nodes.layout.selection import select_curves
 from retrotouch.nodes.layout.screen import ScreenParams, screen
-from retrotouch.nodes.layout.sweep import OptimizeParams, coverage, finish, selection_problem
+from retrotouch.nodes.layout.sweep import OptimizeParams, branch_problem, coverage, finish
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -129,9 +129,7 @@ def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screen
 
 def phase1_branch(params: OptimizeParams, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, solvers) -> dict:
     """Phase 1 of one branch through each solver in turn: per solver, per stage seconds and report."""
-    bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
-    problem = selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end,
-                                bound, params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
+    problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
     out = {}
     for solver in solvers:
         start = time.perf_counter()

@@ -27,7 +27,7 @@ EVERYWHERE = np.array([True])
 
 
 def test_resampled_points_cover_the_length_in_short_pieces():
-    points, curve, length, arc = resample(lines([0.0, 5.0]), EVERYWHERE, 0.25)
+    points, curve, length, arc, _ = resample(lines([0.0, 5.0]), EVERYWHERE, 0.25)
     assert length.sum() == pytest.approx(100.0)
     np.testing.assert_allclose(arc, points[:, 0], atol=1e-9)  # straight lines from x = 0
     assert length.max() <= 0.25 + 1e-12 and np.array_equal(np.unique(curve), [0, 1])
@@ -171,7 +171,7 @@ def test_close_pairs_match_every_point_pair_on_wandering_curves():
     region = np.array([True, False])
     for free_mm, free_end in ((0.0, "start"), (15.0, "start"), (15.0, "end")):
         got = close_pairs(curves, region, 2.0, free_mm, free_end)
-        sampled, curve, _, arc = resample(curves, region, 0.25)
+        sampled, curve, _, arc, _ = resample(curves, region, 0.25)
         from_end = arc if free_end == "start" else curves.lengths_mm[curve] - arc
         free = from_end < np.minimum(free_mm, 0.5 * curves.lengths_mm[curve])
         d2 = ((sampled[:, None, :] - sampled[None, :, :]) ** 2).sum(axis=2)

@@ -34,11 +34,12 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
                       SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
-from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends
+from .clearance import CONFLICT_STEP_MM, PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends, walls_for
 from .screen import BranchStart, Screen
 from .selection import finish_selection, radius_proven_above, solve_radius_stage
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
+from ..geometry.thin_walls import ThinWalls
 from ..data.types import (CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh,
                           SurfaceRegions)
 from .metrics import layout_metrics
@@ -154,20 +155,21 @@ def selection_problem(
     tx_free_start_mm: float = 0.0,
     rx_free_end_mm: float = 0.0,
     trace_width_mm: float = TRACE_WIDTH_MM,
+    walls: ThinWalls | None = None,
 ) -> SelectionProblem:
     """Phase-1 input from the curve families: single crossings, C1/C2 conflicts (a Tx/Rx pair laid
     along each other, closer than a trace width over more than ``PARALLEL_RUN_MM``, conflicts like a
     pair crossing twice), sample distances;
     with ``clearance_bound_mm``, same-layer pairs closer than it in the sensing region conflict too
     (not counting the first ``tx_free_start_mm`` of each Tx curve and the last ``rx_free_end_mm`` of
-    each Rx curve, which the selected ones may lose)."""
+    each Rx curve, which the selected ones may lose, and pairs close only across one of the ``walls``)."""
     rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
     multi = np.unique(np.concatenate([multi, parallel_pairs(tx, rx, samples.sensing_faces, trace_width_mm, PARALLEL_RUN_MM)]), axis=0)
     tx_conflicts, rx_conflicts = same_layer_conflicts(tx_tx), same_layer_conflicts(rx_rx)
     clearance_pairs = (0, 0)
     if clearance_bound_mm is not None:
-        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm, "start")
-        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm, rx_free_end_mm, "end")
+        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm, "start", walls=walls)
+        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm, rx_free_end_mm, "end", walls=walls)
         merged_tx, merged_rx = merge_pairs(tx_conflicts, tx_close), merge_pairs(rx_conflicts, rx_close)
         clearance_pairs = (len(merged_tx) - len(tx_conflicts), len(merged_rx) - len(rx_conflicts))
         tx_conflicts, rx_conflicts = merged_tx, merged_rx
@@ -261,23 +263,25 @@ def _layout_of(tx: CurveSet, rx: CurveSet, tx_rx: Crossings, cells_rows: np.ndar
 
 
 def _free_end_trims(params: OptimizeParams, samples: SurfaceSamples, curves: CurveSet, selected: np.ndarray,
-                    bound_mm: float) -> np.ndarray:
+                    bound_mm: float, walls: ThinWalls) -> np.ndarray:
     """Rows to drop from the free end of each candidate of ``curves`` (Tx: the start, the first
     ``tx_free_start_mm``; Rx: the end, the last ``rx_free_end_mm``): the ``selected`` ones where there
     they come closer than ``bound_mm`` to another selected one; 0 elsewhere."""
     free_mm, free_end = (params.tx_free_start_mm, "start") if curves.layer == "tx" else (params.rx_free_end_mm, "end")
     drop = np.zeros(curves.count, dtype=np.int64)
     if free_mm > 0:
-        drop[selected] = free_end_trims(subset_curves(curves, selected), samples.sensing_faces, bound_mm, free_mm, free_end)
+        drop[selected] = free_end_trims(subset_curves(curves, selected), samples.sensing_faces, bound_mm, free_mm, free_end,
+                                        walls=walls)
     return drop
 
 
-def _problem(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+def branch_problem(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
              tx_tx: Crossings, rx_rx: Crossings) -> SelectionProblem:
     """The branch's phase-1 problem under ``params`` (see :func:`selection_problem`)."""
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
+    walls = None if bound is None else walls_for(mesh, bound + CONFLICT_STEP_MM)
     return selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
-                             params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm)
+                             params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm, walls)
 
 
 def _failed(family: str, angle_deg: float, base: dict, message: str, **report) -> AngleLayout:
@@ -304,7 +308,7 @@ def coverage(
     """Phase 1's problem and radius stage for one branch (see the module docstring); ``layout.finish``
     completes it with the same parameters."""
     angle_deg = float(np.rad2deg(rx.angle))
-    problem = _problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+    problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
         stage = solve_radius_stage(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
@@ -337,7 +341,7 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
                    f"{screen.threshold_mm:.1f} mm")
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
-    problem = _problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.coverage's, rebuilt: not cached twice
+    problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.coverage's, rebuilt: not cached twice
     if screen is not None and screen.needs_proof(branch) and radius_proven_above(problem, branch.stage, screen.threshold_mm):
         message = f"screened out: no selection of it covers the surface within {screen.threshold_mm:.1f} mm (proven)"
         return _failed(branch.family, angle_deg, base, message, screened=True,
@@ -349,8 +353,9 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
     rx_last = np.zeros(rx.count, dtype=np.int64)  # rows trimmed from each Rx candidate's end
     if bound is not None:
-        tx_first = _free_end_trims(params, samples, tx, selection.tx, bound)
-        rx_last = _free_end_trims(params, samples, rx, selection.rx, bound)
+        walls = walls_for(mesh, bound + CONFLICT_STEP_MM)
+        tx_first = _free_end_trims(params, samples, tx, selection.tx, bound, walls)
+        rx_last = _free_end_trims(params, samples, rx, selection.rx, bound, walls)
         rows = problem.cross_rows[active]
         rx_segments = np.diff(rx.offsets)[problem.cross_rx[active]] - 1  # segments per Rx candidate
         active = active[(tx_rx.seg_a[rows] >= tx_first[problem.cross_tx[active]])
