@@ -122,7 +122,7 @@ def test_a_branch_whose_crossings_all_go_with_the_trimming_fails_alone(bunny_run
     import retrotouch.nodes.layout.sweep as sweep
 
     mesh, tx, rx, cross, params, candidate, regions = bunny_run
-    monkeypatch.setattr(sweep, "_free_end_trims", lambda params, samples, curves, selected, bound: np.diff(curves.offsets))
+    monkeypatch.setattr(sweep, "_free_end_trims", lambda params, samples, curves, selected, bound, walls: np.diff(curves.offsets))
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
     failed = optimize(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
     assert not failed.feasible and failed.layout is None and "no Tx/Rx crossing is left" in failed.message

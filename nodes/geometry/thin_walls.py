@@ -9,8 +9,10 @@ the reverse:
   min(circumradius, longest edge)), so a point pair within ``radius`` along the surface maps to a vertex
   pair within ``radius + 2 reach`` along it, and in space.
 * Only vertex pairs that lie behind each other's tangent plane with normals facing apart are examined
-  (the two sides of a wall); every other pair within that distance in space is close. Surfaces facing
-  each other across air stay close: strips on them can touch.
+  (the two sides of a wall), among the vertices with another vertex inside the ball of that diameter
+  touching the surface from inside at them (a wall's other side beneath); every other pair
+  within that distance in space is close. Surfaces facing each other across air stay close: strips on
+  them can touch.
 * Along the surface is the shortest path over the mesh's edges, which is at most :data:`GRAPH_STRETCH`
   times the geodesic on an isotropic remesh (``tests/test_thin_walls.py`` measures it): a pair is apart
   when that path is longer than ``GRAPH_STRETCH * (radius + 2 reach)``.
@@ -73,16 +75,17 @@ def thin_walls(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> Thi
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
     near_mm = radius_mm + 2.0 * corner_reach(V, F)
-    pairs = cKDTree(V).query_pairs(near_mm, output_type="ndarray").astype(np.int64)
     normal = vertex_normals(V, F)
-    a, b = pairs[:, 0], pairs[:, 1]
+    ball = 0.5 * near_mm  # the ball of diameter near_mm touching the surface from inside at each vertex
+    thin = np.flatnonzero(cKDTree(V).query_ball_point(V - ball * normal, ball * (1.0 - 1e-9), return_length=True) > 0)
+    pairs = cKDTree(V[thin]).query_pairs(near_mm, output_type="ndarray").astype(np.int64)
+    a, b = thin[pairs[:, 0]], thin[pairs[:, 1]]
     gap = V[b] - V[a]
     wall = ((normal[a] * normal[b]).sum(1) < 0) & ((gap * normal[a]).sum(1) < 0) & ((gap * normal[b]).sum(1) > 0)
     a, b = a[wall], b[wall]
     if len(a) == 0:
         return ThinWalls(V, F, float(radius_mm), np.empty(0, dtype=np.int64))
-    edges = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
-    start, neighbour, length = _adjacency(V, edges)
+    start, neighbour, length = _adjacency(V, F)
     order = np.argsort(a, kind="stable")
     a, b = a[order], b[order]
     sources, first = np.unique(a, return_index=True)
@@ -92,10 +95,11 @@ def thin_walls(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> Thi
     return ThinWalls(V, F, float(radius_mm), keys)
 
 
-def _adjacency(vertices: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """CSR vertex adjacency: (start (n + 1,), neighbour (2E,), edge length (2E,) mm)."""
-    tail = np.concatenate([edges[:, 0], edges[:, 1]])
-    head = np.concatenate([edges[:, 1], edges[:, 0]])
+def _adjacency(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR vertex adjacency of a closed mesh from its halfedges (each edge once per direction):
+    (start (n + 1,), neighbour (2E,), edge length (2E,) mm)."""
+    tail = faces.reshape(-1)
+    head = faces[:, [1, 2, 0]].reshape(-1)
     order = np.argsort(tail, kind="stable")
     tail, head = tail[order], head[order]
     start = np.searchsorted(tail, np.arange(len(vertices) + 1))
