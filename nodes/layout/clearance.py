@@ -33,8 +33,10 @@ _memo_lock = threading.Lock()
 _walls_memo: collections.OrderedDict[str, ThinWalls] = collections.OrderedDict()
 
 
-def walls_for(mesh: Mesh, radius_mm: float) -> ThinWalls:
-    """The mesh's :class:`ThinWalls` for ``radius_mm``, kept per process by content (the last two)."""
+def walls_for(mesh: Mesh, bound_mm: float) -> ThinWalls:
+    """The mesh's :class:`ThinWalls` for the clearance ``bound_mm``: made for pairs up to one conflict
+    step further apart (:func:`close_pairs`' radius), kept per process by content (the last two)."""
+    radius_mm = bound_mm + CONFLICT_STEP_MM
     key = repr(float(radius_mm)) + array_digest(mesh.vertices, mesh.faces)
     with _memo_lock:
         if key in _walls_memo:
@@ -308,24 +310,25 @@ def clearance_profile(curves: CurveSet, face_mask: np.ndarray, bound_mm: float, 
     from scipy.spatial import cKDTree
 
     points, curve, length, _, face = resample(curves, face_mask, step_mm)
+    corner = None if walls is None else _checked(walls, bound_mm).corners_of(face, points)
     in_space = np.full(len(points), np.inf)
+    nearest = np.full(len(points), np.inf)
     for c in np.unique(curve):
         own = curve == c
         if own.all():
             break
-        in_space[own] = cKDTree(points[~own]).query(points[own])[0]
-    nearest = in_space.copy()
-    if walls is not None:
-        corner = walls.corners_of(face, points)
-        for c in np.unique(curve[in_space < walls.radius_mm]):
-            own, others = curve == c, np.flatnonzero(curve != c)
-            rows = np.flatnonzero(own & (in_space < walls.radius_mm))
-            pairs = cKDTree(points[rows]).sparse_distance_matrix(cKDTree(points[others]), walls.radius_mm, output_type="ndarray")
-            i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-            keep = ~walls.apart(corner[rows][i], corner[others][j])
-            closest = np.full(len(rows), walls.radius_mm)
-            np.minimum.at(closest, i[keep], pairs["v"][keep])
-            nearest[rows] = closest
+        others = np.flatnonzero(~own)
+        tree = cKDTree(points[others])
+        in_space[own] = nearest[own] = tree.query(points[own])[0]
+        if walls is None:
+            continue
+        rows = np.flatnonzero(own & (in_space < walls.radius_mm))  # their nearest point not across a wall,
+        pairs = cKDTree(points[rows]).sparse_distance_matrix(tree, walls.radius_mm, output_type="ndarray")
+        i, j = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        keep = ~walls.apart(corner[rows[i]], corner[others[j]])
+        closest = np.full(len(rows), walls.radius_mm)  # or at least the walls' radius away
+        np.minimum.at(closest, i[keep], pairs["v"][keep])
+        nearest[rows] = closest
     close = nearest < bound_mm
     total = float(length.sum())
     finite = np.isfinite(nearest)

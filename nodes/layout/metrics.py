@@ -17,7 +17,7 @@ import numpy as np
 
 from ..data.types import Layout, Mesh
 from ..geometry.triangles import areas, corners, vertex_areas
-from .clearance import CONFLICT_STEP_MM, clearance_profile, walls_for
+from .clearance import clearance_profile, walls_for
 from .problem import SelectionProblem
 from .samples import SurfaceSamples
 from .selection import SelectionResult
@@ -130,7 +130,7 @@ def layout_metrics(mesh: Mesh, samples: SurfaceSamples, problem: SelectionProble
     all_area = voronoi_cell_areas(cell_fields, mesh.vertices, mesh.faces, samples.touch_faces)
     tx_lengths, rx_lengths = layout.tx.lengths_mm, layout.rx.lengths_mm
     bound = layout.trace_width_mm + layout.clearance_mm
-    walls = walls_for(mesh, bound + CONFLICT_STEP_MM)
+    walls = walls_for(mesh, bound)
     clearance = {layer: clearance_profile(curves, samples.sensing_faces, bound, walls=walls)
                  for layer, curves in (("tx", layout.tx), ("rx", layout.rx))}
     closest = [c["min_centre_distance_mm"] for c in clearance.values() if c["min_centre_distance_mm"] is not None]

@@ -34,7 +34,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
                       SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
-from .clearance import CONFLICT_STEP_MM, PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends, walls_for
+from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends, walls_for
 from .screen import BranchStart, Screen
 from .selection import finish_selection, radius_proven_above, solve_radius_stage
 from .solvers import HIGHS_MAX_NODES
@@ -279,7 +279,7 @@ def branch_problem(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, 
              tx_tx: Crossings, rx_rx: Crossings) -> SelectionProblem:
     """The branch's phase-1 problem under ``params`` (see :func:`selection_problem`)."""
     bound = params.trace_width_mm + params.clearance_mm if params.enforce_clearance else None
-    walls = None if bound is None else walls_for(mesh, bound + CONFLICT_STEP_MM)
+    walls = None if bound is None else walls_for(mesh, bound)
     return selection_problem(geodesics_for(mesh), samples, tx, rx, tx_rx, tx_tx, rx_rx, params.require_base_end, bound,
                              params.tx_free_start_mm, params.rx_free_end_mm, params.trace_width_mm, walls)
 
@@ -353,7 +353,7 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
     tx_first = np.zeros(tx.count, dtype=np.int64)  # rows trimmed from each Tx candidate's start
     rx_last = np.zeros(rx.count, dtype=np.int64)  # rows trimmed from each Rx candidate's end
     if bound is not None:
-        walls = walls_for(mesh, bound + CONFLICT_STEP_MM)
+        walls = walls_for(mesh, bound)
         tx_first = _free_end_trims(params, samples, tx, selection.tx, bound, walls)
         rx_last = _free_end_trims(params, samples, rx, selection.rx, bound, walls)
         rows = problem.cross_rows[active]
