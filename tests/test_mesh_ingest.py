@@ -13,7 +13,7 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
 from retrotouch.nodes.geometry.triangles import signed_volume
-from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
+from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, decimate_dense, keeps_closed_topology, remesh, repair_mesh
 from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, topology_report
 
 REPO = Path(__file__).resolve().parents[1]
@@ -281,6 +281,38 @@ def test_dense_input_is_decimated_before_remeshing() -> None:
     assert out.repairs[0].startswith("decimated a dense input from 81,920 to 4,000 faces")
     assert abs(len(out.vertices) - 1000) / 1000 < 0.15
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
+
+
+def test_decimation_keeps_a_genus_one_scan_genus_one() -> None:
+    torus = trimesh.creation.torus(major_radius=40.0, minor_radius=12.0, major_sections=256, minor_sections=160)  # 81,920 faces
+    vertices, faces, note = decimate_dense(np.asarray(torus.vertices), np.asarray(torus.faces, dtype=np.int64), 2000)
+    assert note == "decimated a dense input from 81,920 to 4,000 faces before remeshing"
+    report = topology_report(vertices, faces)
+    assert (report["genus"], report["components"], report["boundary_edges"], report["non_manifold_vertices"]) == (1, 1, 0, 0)
+
+
+def test_a_fast_collapse_that_changes_the_topology_is_replaced(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fast collapse's result with a face missing (a hole) is not kept: the topology-keeping one runs."""
+    import fast_simplification
+
+    collapse = fast_simplification.simplify
+    monkeypatch.setattr(fast_simplification, "simplify", lambda v, f, **kw: (lambda r: (r[0], r[1][1:]))(collapse(v, f, **kw)))
+    dense = trimesh.creation.icosphere(subdivisions=6, radius=40.0)
+    vertices, faces, note = decimate_dense(np.asarray(dense.vertices), np.asarray(dense.faces, dtype=np.int64), 2000)
+    assert note.endswith("(the topology-keeping collapse: the fast one changed the surface's topology)")
+    report = topology_report(vertices, faces)
+    assert (report["genus"], report["boundary_edges"], len(faces)) == (0, 0, 4000)
+
+
+def test_closed_topology_check_names_what_changed() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    torus = trimesh.creation.torus(major_radius=20.0, minor_radius=6.0)
+    assert keeps_closed_topology(v, f, v, f)
+    assert not keeps_closed_topology(v, f, v, f[1:])  # a hole
+    assert not keeps_closed_topology(v, f, v, f[:, ::-1])  # turned inside out
+    assert not keeps_closed_topology(v, f, np.r_[v, v + 100.0], np.r_[f, f + len(v)])  # two components
+    assert not keeps_closed_topology(v, f, np.asarray(torus.vertices), np.asarray(torus.faces, dtype=np.int64))  # a handle
 
 
 def test_missed_vertex_target_is_logged_and_listed(caplog: pytest.LogCaptureFixture) -> None:
