@@ -146,17 +146,20 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     if after != before:
         done.append(f"merged or removed {before[0] - after[0]:,} duplicate/unused vertices and "
                     f"{before[1] - after[1]:,} duplicate/degenerate faces")
-    method = "Remove Faces" if params.non_manifold_edges == "remove_faces" else "Split Vertices"
-    meshset.meshing_repair_non_manifold_edges(method=method)
-    meshset.meshing_repair_non_manifold_vertices()
-    meshset.meshing_remove_unreferenced_vertices()
-    repaired = counted(meshset)
-    if repaired != after:
-        done.append(f"repaired non-manifold edges/vertices (vertices {after[0]:,} -> {repaired[0]:,}, "
-                    f"faces {after[1]:,} -> {repaired[1]:,})")
+    measures, repaired = meshset.get_topological_measures(), after  # each filter costs seconds on a dense scan: run the needed ones
+    if measures["non_two_manifold_edges"] or measures["non_two_manifold_vertices"]:
+        method = "Remove Faces" if params.non_manifold_edges == "remove_faces" else "Split Vertices"
+        meshset.meshing_repair_non_manifold_edges(method=method)
+        meshset.meshing_repair_non_manifold_vertices()
+        meshset.meshing_remove_unreferenced_vertices()
+        repaired = counted(meshset)
+        if repaired != after:
+            done.append(f"repaired non-manifold edges/vertices (vertices {after[0]:,} -> {repaired[0]:,}, "
+                        f"faces {after[1]:,} -> {repaired[1]:,})")
+        measures = meshset.get_topological_measures()
     meshset.meshing_re_orient_faces_coherently()
-    if params.close_holes:
-        holes = meshset.get_topological_measures()["number_holes"]
+    if params.close_holes and measures["boundary_edges"]:
+        holes = measures["number_holes"]
         largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
         try:
             meshset.meshing_close_holes(maxholesize=largest)
