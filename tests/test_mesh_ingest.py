@@ -283,6 +283,20 @@ def test_dense_input_is_decimated_before_remeshing() -> None:
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
 
 
+def test_a_cloud_denser_than_the_poisson_grid_is_thinned_first() -> None:
+    from retrotouch.nodes.mesh.reconstruct import POINTS_PER_DEPTH_CELL, reconstruct_from_points
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    points = np.asarray(trimesh.sample.sample_surface_even(sphere, 60000, seed=0)[0])
+    assert len(points) > POINTS_PER_DEPTH_CELL * 4**5
+    vertices, faces, stride = reconstruct_from_points(points, 5, "cloud")
+    assert stride == -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**5)) > 1
+    report = topology_report(vertices, faces)
+    assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
+    radius = np.linalg.norm(vertices, axis=1)
+    assert np.abs(radius - 40.0).max() < 1.0  # a 2.5 mm grid cell: the surface stays on the sphere
+
+
 def test_decimation_keeps_a_genus_one_scan_genus_one() -> None:
     torus = trimesh.creation.torus(major_radius=40.0, minor_radius=12.0, major_sections=256, minor_sections=160)  # 81,920 faces
     vertices, faces, note = decimate_dense(np.asarray(torus.vertices), np.asarray(torus.faces, dtype=np.int64), 2000)

@@ -12,23 +12,29 @@ MIN_POINTS = 100
 """Fewer points than this cannot describe a surface."""
 NORMAL_NEIGHBOURS = 12
 """Neighbours per point for the normal estimate."""
+POINTS_PER_DEPTH_CELL = 24
+"""A cloud keeps at most ``POINTS_PER_DEPTH_CELL * 4**depth`` points: about four per cell of the
+octree's finest level that a closed surface meets (some ``6 * 4**depth``). More points add nothing
+the grid can resolve, and the normal estimate's time grows with them."""
 
 
-def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(vertices, faces)`` of the screened Poisson surface through ``points`` (n, 3) read from
-    the file ``name`` (for messages).
+def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(vertices, faces, stride)`` of the screened Poisson surface through ``points`` (n, 3) read
+    from the file ``name`` (for messages).
 
-    Normals are estimated from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the octree depth
-    (grid of ``2**depth`` cells along the longest side). One thread: deterministic, and faster on
-    a loaded machine than many.
+    A cloud denser than ``POINTS_PER_DEPTH_CELL * 4**depth`` is thinned to every ``stride``-th point
+    (1: all of them). Normals are estimated from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the
+    octree depth (grid of ``2**depth`` cells along the longest side). One thread: deterministic, and
+    faster on a loaded machine than many.
     """
     if len(points) < MIN_POINTS:
         raise UserError(
             f"{name} holds {len(points)} point{'' if len(points) == 1 else 's'} and no faces: a scan needs at "
             f"least {MIN_POINTS} points to be reconstructed, export the scan with more points or as a mesh"
         )
+    stride = -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**depth))
     meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64)))
+    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points[::stride], dtype=np.float64)))
     meshset.compute_normal_for_point_clouds(k=NORMAL_NEIGHBOURS, smoothiter=2)
     meshset.generate_surface_reconstruction_screened_poisson(depth=depth, threads=1)
     current = meshset.current_mesh()
@@ -39,4 +45,4 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
             f"screened Poisson found no surface in the {len(points)} points of {name}: the points do not sample a "
             "closed object; export the scan as a mesh"
         )
-    return vertices, faces
+    return vertices, faces, stride
