@@ -146,7 +146,8 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     if after != before:
         done.append(f"merged or removed {before[0] - after[0]:,} duplicate/unused vertices and "
                     f"{before[1] - after[1]:,} duplicate/degenerate faces")
-    measures, repaired = meshset.get_topological_measures(), after  # each filter costs seconds on a dense scan: run the needed ones
+    repaired = after
+    measures = meshset.get_topological_measures()  # a filter costs seconds on a dense scan: only the needed ones run
     if measures["non_two_manifold_edges"] or measures["non_two_manifold_vertices"]:
         method = "Remove Faces" if params.non_manifold_edges == "remove_faces" else "Split Vertices"
         meshset.meshing_repair_non_manifold_edges(method=method)
