@@ -24,3 +24,39 @@ def test_the_centre_pole_is_nearer_to_the_farthest_point_of_the_region_than_the_
     assert centre_regions.exclusion_far[np.any(mesh.faces == centre_regions.far_vertex, axis=1)].all()
     area = lambda r: r.sensing_faces.sum()  # noqa: E731
     assert abs(area(centre_regions) - area(far_regions)) < 0.05 * area(far_regions)
+
+
+def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
+    """Two peaks of the distance from the base on a sphere: a low one (a second foot) and a high one
+    (a head). Within FAR_TIE_SHARE of each other the high one is the pole; beyond it the farthest."""
+    import trimesh
+
+    from retrotouch.nodes.regions.detect import FAR_TIE_SHARE, farthest_pole
+    from retrotouch.nodes.regions.faces import FaceGraph
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    foot, head = int(np.argmin(vertices[:, 2] - vertices[:, 0])), int(np.argmax(vertices[:, 2]))
+    graph, free, height = FaceGraph(faces, len(vertices)), np.arange(len(vertices)), vertices[:, 2]
+
+    def reach(head_share: float) -> np.ndarray:
+        peak = lambda v, top: top - 0.5 * np.linalg.norm(vertices - vertices[v], axis=1)  # noqa: E731
+        return np.maximum(peak(foot, 100.0), peak(head, 100.0 * head_share))
+
+    assert farthest_pole(graph, reach(1.0 - 0.5 * FAR_TIE_SHARE), free, height) == head
+    assert farthest_pole(graph, reach(1.0 - 2.0 * FAR_TIE_SHARE), free, height) == foot
+
+
+def test_the_penguin_at_150_mm_gets_its_pole_on_its_head_not_on_its_other_foot():
+    """At 150 mm the penguin's free foot lies about 1 % farther from its base (the other foot) than the
+    top of its head (the farthest point without the tie rule); the pole goes to the head."""
+    import pytest
+    from curves_fixture import SHARED_MESHES, load_scaled
+
+    path = SHARED_MESHES / "penguin_oded.ply"
+    if not path.is_file():
+        pytest.skip(f"{path} absent (shared test meshes are not checked out next to the repo)")
+    mesh = load_scaled(path, 150.0, 20000)
+    regions = detect_regions(RegionParams(), mesh, touch_of(mesh))
+    height = mesh.vertices @ regions.up
+    assert height[regions.far_vertex] > height.max() - 0.1 * (height.max() - height.min())

@@ -27,7 +27,8 @@ Then, with heat-method geodesic distances (potpourri3d):
 * ``far_vertex`` (the Tx pole): with ``tx_pole="far"`` (the paper's) the vertex outside base and
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
-  base's rim, farthest from the base centre, so the Tx lines run the object's length; with
+  base's rim, farthest from the base centre, so the Tx lines run the object's length; of near ties
+  the highest (:func:`farthest_pole`); with
   ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
@@ -298,6 +299,22 @@ CUT_OFF_NOTE_SHARE = 0.005
 CENTRE_SAMPLES = 16
 """Farthest-point samples of the free region whose largest distance the centre Tx pole minimises."""
 
+FAR_TIE_SHARE = 0.05
+"""Peaks of the distance from the base within this share of the farthest tie for the far Tx pole."""
+
+
+def farthest_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray) -> int:
+    """The far Tx pole: of the free vertices farthest from the base (``reach``, mm) and the peaks of
+    ``reach`` (no neighbour farther) within ``FAR_TIE_SHARE`` of them, the highest (``height``, mm
+    above the table). A standing figure's second foot can lie as far from the base as its head, and
+    a pole on it would send every Tx line up from the floor."""
+    neighbour = np.full(len(reach), -np.inf)
+    np.maximum.at(neighbour, graph.halfedges[:, 0], reach[graph.halfedges[:, 1]])
+    farthest = int(free[np.argmax(reach[free])])
+    near = free[(reach[free] >= neighbour[free]) & (reach[free] >= (1.0 - FAR_TIE_SHARE) * reach[farthest])]
+    ties = np.union1d(near, [farthest])
+    return int(ties[np.argmax(height[ties])])
+
 
 def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
     """The vertex of ``free`` minimising the largest geodesic distance (mm) to ``CENTRE_SAMPLES``
@@ -352,7 +369,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
     from_centre = solver.compute_distance(int(anchors[0]))
     reach = from_centre if base.kind == "thin" else from_contact
-    far_vertex = int(free[np.argmax(reach[free])])
+    far_vertex = farthest_pole(graph, reach, free, vertices @ -down)
     from_far = solver.compute_distance(far_vertex)
     if params.tx_pole == "centre":
         far_vertex = geodesic_centre(solver, free, far_vertex, from_far)
