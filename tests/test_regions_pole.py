@@ -28,7 +28,8 @@ def test_the_centre_pole_is_nearer_to_the_farthest_point_of_the_region_than_the_
 
 def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
     """Two peaks of the distance from the base on a sphere: a low one (a second foot) and a high one
-    (a head). Within FAR_TIE_SHARE of each other the high one is the pole; beyond it the farthest."""
+    (a head). Within FAR_TIE_SHARE of each other the high one is the pole; beyond it, or when the
+    peaks stand at about one height, the farthest."""
     import trimesh
 
     from retrotouch.nodes.regions.detect import FAR_TIE_SHARE, farthest_pole
@@ -45,6 +46,12 @@ def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
 
     assert farthest_pole(graph, reach(1.0 - 0.5 * FAR_TIE_SHARE), free, height) == head
     assert farthest_pole(graph, reach(1.0 - 2.0 * FAR_TIE_SHARE), free, height) == foot
+    # a lying object's two ends, at about one height: the farthest, whatever the small difference
+    low_end = int(np.argmin(vertices[:, 0] - 0.01 * vertices[:, 2]))
+    high_end = int(np.argmax(vertices[:, 0] + 0.01 * vertices[:, 2]))
+    ends = np.maximum(100.0 - 0.5 * np.linalg.norm(vertices - vertices[low_end], axis=1),
+                      99.0 - 0.5 * np.linalg.norm(vertices - vertices[high_end], axis=1))
+    assert abs(height[high_end] - height[low_end]) < 10.0 and farthest_pole(graph, ends, free, height) == low_end
 
 
 def test_the_penguin_at_150_mm_gets_its_pole_on_its_head_not_on_its_other_foot():

@@ -28,7 +28,7 @@ Then, with heat-method geodesic distances (potpourri3d):
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
   base's rim, farthest from the base centre, so the Tx lines run the object's length; of near ties
-  the highest (:func:`farthest_pole`); with
+  a much higher one (:func:`farthest_pole`); with
   ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
@@ -300,20 +300,25 @@ CENTRE_SAMPLES = 16
 """Farthest-point samples of the free region whose largest distance the centre Tx pole minimises."""
 
 FAR_TIE_SHARE = 0.05
-"""Peaks of the distance from the base within this share of the farthest tie for the far Tx pole."""
+"""Peaks of the distance from the base within this share of the farthest tie for the far Tx pole ..."""
+FAR_TIE_RISE = 0.25
+"""... and the highest of them is the pole when it stands higher than the farthest by this share of
+the object's height."""
 
 
 def farthest_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray) -> int:
-    """The far Tx pole: of the free vertices farthest from the base (``reach``, mm) and the peaks of
-    ``reach`` (no neighbour farther) within ``FAR_TIE_SHARE`` of them, the highest (``height``, mm
-    above the table). A standing figure's second foot can lie as far from the base as its head, and
-    a pole on it would send every Tx line up from the floor."""
+    """The far Tx pole: the free vertex farthest from the base (``reach``, mm), or, of the peaks of
+    ``reach`` (no neighbour farther) within ``FAR_TIE_SHARE`` of it, the highest (``height``, mm above
+    the table) when it stands ``FAR_TIE_RISE`` of the object's height above it. A standing figure's
+    second foot can lie as far from the base as its head, and a pole on it would send every Tx line
+    up from the floor; peaks of about one height (a lying object's ends) keep the farthest."""
     neighbour = np.full(len(reach), -np.inf)
     np.maximum.at(neighbour, graph.halfedges[:, 0], reach[graph.halfedges[:, 1]])
     farthest = int(free[np.argmax(reach[free])])
     near = free[(reach[free] >= neighbour[free]) & (reach[free] >= (1.0 - FAR_TIE_SHARE) * reach[farthest])]
-    ties = np.union1d(near, [farthest])
-    return int(ties[np.argmax(height[ties])])
+    highest = int(near[np.argmax(height[near])]) if len(near) else farthest
+    rises = height[highest] - height[farthest] > FAR_TIE_RISE * (height.max() - height.min())
+    return highest if rises else farthest
 
 
 def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
