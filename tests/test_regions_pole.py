@@ -32,7 +32,7 @@ def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
     peaks stand at about one height, the farthest."""
     import trimesh
 
-    from retrotouch.nodes.regions.detect import FAR_TIE_SHARE, farthest_pole
+    from retrotouch.nodes.regions.poles import FAR_TIE_SHARE, farthest_pole
     from retrotouch.nodes.regions.faces import FaceGraph
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)

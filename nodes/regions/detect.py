@@ -28,7 +28,7 @@ Then, with heat-method geodesic distances (potpourri3d):
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
   base's rim, farthest from the base centre, so the Tx lines run the object's length; of near ties
-  a much higher one (:func:`farthest_pole`); with
+  a much higher one (:func:`.poles.farthest_pole`); with
   ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
@@ -53,6 +53,7 @@ from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
+from .poles import farthest_pole, geodesic_centre
 from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 from .touch import clear_of_table, pocket_of, touch_summary, touchable_faces_of
 
@@ -295,40 +296,6 @@ def dipole(graph: FaceGraph, base: np.ndarray, from_boundary: np.ndarray) -> np.
 
 CUT_OFF_NOTE_SHARE = 0.005
 """The run note names the faces no trace reaches once they are this share of the surface or more."""
-
-CENTRE_SAMPLES = 16
-"""Farthest-point samples of the free region whose largest distance the centre Tx pole minimises."""
-
-FAR_TIE_SHARE = 0.05
-"""Peaks of the distance from the base within this share of the farthest tie for the far Tx pole ..."""
-FAR_TIE_RISE = 0.25
-"""... and the highest of them is the pole when it stands higher than the farthest by this share of
-the object's height."""
-
-
-def farthest_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray) -> int:
-    """The far Tx pole: the free vertex farthest from the base (``reach``, mm), or, of the peaks of
-    ``reach`` (no neighbour farther) within ``FAR_TIE_SHARE`` of it, the highest (``height``, mm above
-    the table) when it stands ``FAR_TIE_RISE`` of the object's height above it. A standing figure's
-    second foot can lie as far from the base as its head, and a pole on it would send every Tx line
-    up from the floor; peaks of about one height (a lying object's ends) keep the farthest."""
-    neighbour = np.full(len(reach), -np.inf)
-    np.maximum.at(neighbour, graph.halfedges[:, 0], reach[graph.halfedges[:, 1]])
-    farthest = int(free[np.argmax(reach[free])])
-    near = free[(reach[free] >= neighbour[free]) & (reach[free] >= (1.0 - FAR_TIE_SHARE) * reach[farthest])]
-    highest = int(near[np.argmax(height[near])]) if len(near) else farthest
-    rises = height[highest] - height[farthest] > FAR_TIE_RISE * (height.max() - height.min())
-    return highest if rises else farthest
-
-
-def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
-    """The vertex of ``free`` minimising the largest geodesic distance (mm) to ``CENTRE_SAMPLES``
-    farthest-point samples of ``free``, the first being ``first`` (with distances ``from_first``)."""
-    nearest, largest = from_first[free], from_first[free]
-    for _ in range(CENTRE_SAMPLES - 1):
-        distance = solver.compute_distance(int(free[np.argmax(nearest)]))[free]
-        nearest, largest = np.minimum(nearest, distance), np.maximum(largest, distance)
-    return int(free[np.argmin(largest)])
 
 
 def pose_note(regions: SurfaceRegions) -> str:
