@@ -13,8 +13,8 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
 from retrotouch.nodes.geometry.triangles import signed_volume
-from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, decimate_dense, keeps_closed_topology, remesh, repair_mesh
-from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, topology_report
+from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, decimate_dense, remesh, repair_mesh
+from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, keeps_closed_topology, topology_report
 
 REPO = Path(__file__).resolve().parents[1]
 

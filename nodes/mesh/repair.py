@@ -22,13 +22,13 @@ from typing import Literal
 import numpy as np
 import pymeshlab
 from pydantic import Field, model_validator
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, signed_volume
+from .meshset import face_components, from_meshset, to_meshset
+from .topology import keeps_closed_topology
 
 log = logging.getLogger(__name__)
 
@@ -43,38 +43,6 @@ MAX_REMESH_VERTICES = 1_000_000
 SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
-
-
-def to_meshset(vertices: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
-    """A pymeshlab MeshSet holding one mesh."""
-    meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(
-        pymeshlab.Mesh(
-            vertex_matrix=np.ascontiguousarray(vertices, dtype=np.float64),
-            face_matrix=np.ascontiguousarray(faces, dtype=np.int32),
-        )
-    )
-    return meshset
-
-
-def from_meshset(meshset: pymeshlab.MeshSet) -> tuple[np.ndarray, np.ndarray]:
-    """``(vertices float64 contiguous, faces int64 contiguous)`` of the current mesh.
-
-    pymeshlab returns a non-contiguous float64 vertex matrix and an int32 face matrix.
-    """
-    current = meshset.current_mesh()
-    vertices = np.ascontiguousarray(current.vertex_matrix(), dtype=np.float64)
-    faces = np.ascontiguousarray(current.face_matrix(), dtype=np.int64)
-    return vertices, faces
-
-
-def face_components(faces: np.ndarray, vertex_count: int) -> tuple[int, np.ndarray]:
-    """Connected components of faces sharing a vertex: ``(count, label per face)``."""
-    m = len(faces)
-    rows = np.repeat(np.arange(m), 3)
-    incidence = coo_matrix((np.ones(3 * m), (rows, faces.ravel())), shape=(m, vertex_count)).tocsr()
-    count, vertex_labels = connected_components(incidence.T @ incidence, directed=False)
-    return count, vertex_labels[faces[:, 0]]
 
 
 def keep_largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str | None]:
@@ -273,20 +241,6 @@ def decimate_dense(
     note = (f"decimated a dense input from {len(faces):,} to {len(decimated_faces):,} faces before remeshing "
             "(the topology-keeping collapse: the fast one changed the surface's topology)")
     return decimated_vertices, decimated_faces, note
-
-
-def keeps_closed_topology(vertices: np.ndarray, faces: np.ndarray, new_vertices: np.ndarray, new_faces: np.ndarray) -> bool:
-    """True when ``new_faces`` is one closed, two-manifold, coherently oriented component (every
-    directed edge once) with the Euler characteristic ``V - F / 2`` of the closed input ``faces`` and
-    the input's orientation (sign of the volume)."""
-    measures = to_meshset(new_vertices, new_faces).get_topological_measures()
-    halfedges = np.stack([new_faces, np.roll(new_faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    coherent = len(np.unique(halfedges[:, 0] * len(new_vertices) + halfedges[:, 1])) == len(halfedges)
-    chi = measures["vertices_number"] - measures["edges_number"] + measures["faces_number"]
-    input_chi = np.count_nonzero(np.bincount(faces.ravel(), minlength=len(vertices))) - len(faces) / 2
-    return (measures["connected_components_number"] == 1 and measures["boundary_edges"] == 0
-            and measures["is_mesh_two_manifold"] and measures["unreferenced_vertices"] == 0 and coherent
-            and chi == input_chi and (signed_volume(new_vertices, new_faces) > 0) == (signed_volume(vertices, faces) > 0))
 
 
 def remesh_to_count(

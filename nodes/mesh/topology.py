@@ -17,7 +17,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, signed_volume
-from .repair import face_components, to_meshset
+from .meshset import face_components, to_meshset
 
 MIN_MEAN_THICKNESS_MM = 0.01
 """A closed surface thinner than this on average (2 x volume / area), or an open one whose points all lie
@@ -68,6 +68,18 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "mean_thickness_mm": 2.0 * abs(volume) / max(float(areas(corners(vertices, faces)).sum()), 1e-300),
         "flat_extent_mm": flat_extent(vertices[used]),
     }
+
+
+def keeps_closed_topology(vertices: np.ndarray, faces: np.ndarray, new_vertices: np.ndarray, new_faces: np.ndarray) -> bool:
+    """True when ``new_faces`` is one closed, manifold, coherently oriented component without unused
+    vertices (:func:`topology_report`) with the Euler characteristic ``V - F / 2`` of the closed input
+    ``faces`` and the input's orientation (sign of the volume)."""
+    report = topology_report(new_vertices, new_faces)
+    input_chi = np.count_nonzero(np.bincount(faces.ravel(), minlength=len(vertices))) - len(faces) / 2
+    return (report["components"] == 1 and report["boundary_edges"] == 0 and report["non_manifold_edges"] == 0
+            and report["non_manifold_vertices"] == 0 and report["inconsistent_edges"] == 0
+            and report["unreferenced_vertices"] == 0 and report["euler_characteristic"] == input_chi
+            and (report["signed_volume_mm3"] > 0) == (signed_volume(vertices, faces) > 0))
 
 
 def flat_extent(points: np.ndarray) -> float:
