@@ -57,6 +57,9 @@ class CurveSet:
     # "field" (Tx lines), "dipole" (Rx dipole loops), "rings" / "rings_tx" (Rx rings, legs side by side / on Tx lines),
     # "helices", "grid"; rings and helices on the per-line climb add "_per_line"
     family: str = "field"
+    # Tx: (C,) int64, the field line each lane copies up to where it turns beside another line
+    # (``curves.tx_lanes``), -1 for the field lines themselves; None when the family has no lanes
+    lane_parent: np.ndarray | None = None
 
     @property
     def count(self) -> int:

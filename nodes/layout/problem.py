@@ -62,6 +62,7 @@ class SelectionProblem:
     tx_conflicts: np.ndarray  # (Q, 2) int64, crossing Tx pairs (C1)
     rx_conflicts: np.ndarray  # (R, 2) int64, crossing Rx pairs (C1)
     clearance_pairs: tuple[int, int] = (0, 0)  # (Tx, Rx) pairs in the conflicts for clearance alone
+    tx_lanes: np.ndarray | None = None  # (Ntx,) bool, Tx candidates that are lanes (curves.tx_lanes), or None
 
 
 def merge_pairs(*pairs: np.ndarray) -> np.ndarray:

@@ -254,8 +254,23 @@ def solve_radius_stage(
     highs_max_nodes: int = HIGHS_MAX_NODES,
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
-    ``secondary`` says whether a power-mean stage follows (the start's local search scores it too)."""
+    ``secondary`` says whether a power-mean stage follows (the start's local search scores it too).
+    With Tx lanes among the candidates, the stage is first solved over the field lines alone, and that
+    selection starts the whole problem when it is the better start: lanes never leave a branch worse off
+    than its field lines, whatever the trust region."""
+    args = (n_drive, n_sense, secondary, resolution_mm, time_limit_s, seed, workers, max_memberships, power, solver,
+            highs_max_nodes)
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
+    lanes_seconds = 0.0
+    if problem.tx_lanes is not None and problem.tx_lanes.any():
+        field_lines = solve_radius_stage(
+            dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None), *args)
+        lanes_seconds = field_lines.seconds
+        heuristic["field_lines"] = {"radius_mm": field_lines.radius_mm}
+        if _start_key(problem, *field_lines.selection, resolution_mm, power) < _start_key(problem, start_tx, start_rx,
+                                                                                        resolution_mm, power):
+            start_tx, start_rx = field_lines.selection
+            heuristic["start"] = "field_lines"
     q = _quantised_distances(problem, resolution_mm)
     q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
@@ -286,7 +301,13 @@ def solve_radius_stage(
     stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
     return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
-                       seconds)
+                       seconds + lanes_seconds)
+
+
+def _start_key(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float, power: int) -> tuple:
+    """A start's (radius level, sum of level ** power): smaller is better."""
+    levels = _nearest_levels(problem, tx, rx, resolution_mm)
+    return int(levels.max()), float(np.sum(levels.astype(np.float64) ** power))
 
 
 def stage_model(problem: SelectionProblem, stage: RadiusStage) -> LinearModel:

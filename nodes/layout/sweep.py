@@ -133,6 +133,7 @@ def subset_curves(curves: CurveSet, ids: np.ndarray) -> CurveSet:
         end_reason=curves.end_reason[ids],
         angle=curves.angle,
         family=curves.family,
+        lane_parent=None if curves.lane_parent is None else curves.lane_parent[ids],
     )
 
 
@@ -184,6 +185,7 @@ def selection_problem(
         tx_conflicts=tx_conflicts,
         rx_conflicts=rx_conflicts,
         clearance_pairs=clearance_pairs,
+        tx_lanes=None if tx.lane_parent is None else tx.lane_parent >= 0,
     )
 
 

@@ -1,0 +1,68 @@
+"""curves.tx_lanes: copies of merging Tx lines that run beside the line they merge into."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from curves_fixture import bunny
+from retrotouch.nodes.curves.lanes import BASE_LEVEL, STEP_MM, TxLanesParams, dense_points, merges, tx_lanes
+from retrotouch.nodes.curves.ring_levels import radial_function, row_values
+from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
+from retrotouch.nodes.data.types import CurveEnd
+
+OFFSET_TOLERANCE_MM = 0.35  # the level set of the piecewise-linear distance on the test mesh's 2.8 mm edges
+
+
+@pytest.fixture(scope="module")
+def families():
+    mesh, regions, tables, tx_field, _ = bunny()
+    tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
+    return tx, tx_lanes(TxLanesParams(), mesh, regions, tx)
+
+
+def rows_of(curves, c):
+    return curves.faces[curves.curve(c)], curves.bary[curves.curve(c)]
+
+
+def test_field_lines_are_kept_in_order_each_followed_by_its_lanes(families):
+    tx, out = families
+    field = np.flatnonzero(out.lane_parent < 0)
+    assert len(field) == tx.count and out.count > tx.count  # the bunny's second ear: lines merge down its flank
+    for k, c in enumerate(field):
+        assert np.array_equal(rows_of(out, c)[0], rows_of(tx, k)[0])
+        assert np.array_equal(rows_of(out, c)[1], rows_of(tx, k)[1])
+    owner = np.cumsum(out.lane_parent < 0) - 1  # the field line each curve follows in the family
+    assert np.array_equal(out.lane_parent[out.lane_parent >= 0], owner[out.lane_parent >= 0])
+
+
+def test_a_lane_leaves_its_line_and_keeps_one_offset_from_the_spine(families):
+    tx, out = families
+    params = TxLanesParams()
+    points, curve, arc = dense_points(tx, STEP_MM)
+    spine_of = merges(points, curve, arc, tx.count, params, min(params.offsets_mm))
+    for lane in np.flatnonzero(out.lane_parent >= 0):
+        parent = int(out.lane_parent[lane])
+        own, parents = rows_of(out, lane)[0], rows_of(tx, parent)[0]
+        shared = int(np.argmin(np.r_[own[: len(parents)] == parents[: len(own)], False]))
+        assert shared >= 2  # the lane starts as its line
+        beside = out.points[out.curve(lane)][shared + 1:]
+        to_spine = cKDTree(points[curve == spine_of[parent][0]]).query(beside)[0]
+        offset = min(params.offsets_mm, key=lambda o: abs(o - np.median(to_spine)))
+        assert np.abs(to_spine - offset).max() < OFFSET_TOLERANCE_MM
+
+
+def test_lanes_end_on_the_base(families):
+    mesh, regions, tables, *_ = bunny()
+    _, out = families
+    u = radial_function(tables, regions, int(regions.far_vertex))
+    lanes = np.flatnonzero(out.lane_parent >= 0)
+    last = out.offsets[lanes + 1] - 1
+    assert (row_values(tables, u, out.faces[last], out.bary[last]) >= BASE_LEVEL).all()
+    assert (out.end_reason[lanes] == int(CurveEnd.BASE)).all()
+
+
+def test_no_offsets_keep_the_field_lines_alone(families):
+    mesh, regions, *_ = bunny()
+    tx, _ = families
+    assert tx_lanes(TxLanesParams(offsets_mm=[]), mesh, regions, tx) is tx
