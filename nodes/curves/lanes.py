@@ -120,7 +120,8 @@ def walk_from(tables: MeshTables, chains, face: int, start: np.ndarray, u: np.nd
         if len(hits) == 0:
             continue
         k = int(hits[0])
-        u_ends = row_values(tables, u, faces[[0, k, -1]], np.clip(tables.bary_of_points(faces[[0, k, -1]], points[[0, k, -1]]), 0, 1))
+        ends = [0, k, -1]
+        u_ends = row_values(tables, u, faces[ends], np.clip(tables.bary_of_points(faces[ends], points[ends]), 0.0, 1.0))
         if u_ends[2] >= u_ends[0]:
             return np.vstack([start, points[k + 1:]]), np.r_[faces[k], faces[k + 1:]]
         return np.vstack([start, points[: k + 1][::-1]]), np.r_[faces[k], faces[:k][::-1], faces[0]]

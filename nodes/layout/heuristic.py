@@ -188,10 +188,11 @@ def heuristic_selection(
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The better of two starts, improved by :func:`local_search`: the greedy construction and an evenly
     spread pick over the candidate order (curves are traced in angular order, so evenly spaced indices
-    spread over the surface; Tx lanes, listed after the field lines, are left out of it), repaired for C1/C2. Without the secondary objective only the even pick
-    is used, since the greedy construction optimises the summed distance."""
+    spread over the surface; Tx lanes, each listed after its field line, are left out of it), repaired for
+    C1/C2. Without the secondary objective only the even pick is used, since the greedy construction
+    optimises the summed distance."""
     usable_t, usable_r = np.flatnonzero(problem.tx_usable), np.flatnonzero(problem.rx_usable)
-    if problem.tx_lanes is not None:  # lanes follow their field lines' order elsewhere: spread over the field lines
+    if problem.tx_lanes is not None:
         usable_t = usable_t[~problem.tx_lanes[usable_t]]
     starts = {"greedy": greedy_selection(problem, n_drive, n_sense)}
     if len(usable_t) and len(usable_r):

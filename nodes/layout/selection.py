@@ -252,25 +252,29 @@ def solve_radius_stage(
     power: int = PHASE1_POWER,
     solver: str = "cpsat",
     highs_max_nodes: int = HIGHS_MAX_NODES,
+    bound_apart: bool = True,
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
     ``secondary`` says whether a power-mean stage follows (the start's local search scores it too).
     With Tx lanes among the candidates, the stage is first solved over the field lines alone, and that
     selection starts the whole problem when it is the better start: lanes never leave a branch worse off
-    than its field lines, whatever the trust region."""
+    than its field lines, whatever the trust region. Without ``bound_apart`` a trust region's stage
+    reports the model's lowest level as its global bound instead of the layer relaxation's (that first
+    solve only hands on its selection)."""
     args = (n_drive, n_sense, secondary, resolution_mm, time_limit_s, seed, workers, max_memberships, power, solver,
             highs_max_nodes)
     start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
     lanes_seconds = 0.0
     if problem.tx_lanes is not None and problem.tx_lanes.any():
         field_lines = solve_radius_stage(
-            dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None), *args)
+            dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None), *args,
+            bound_apart=False)
         lanes_seconds = field_lines.seconds
-        heuristic["field_lines"] = {"radius_mm": field_lines.radius_mm}
-        if _start_key(problem, *field_lines.selection, resolution_mm, power) < _start_key(problem, start_tx, start_rx,
-                                                                                        resolution_mm, power):
+        better = (_start_key(problem, *field_lines.selection, resolution_mm, power)
+                  < _start_key(problem, start_tx, start_rx, resolution_mm, power))
+        heuristic["field_lines"] = {"radius_mm": field_lines.radius_mm, "starts_the_stage": bool(better)}
+        if better:
             start_tx, start_rx = field_lines.selection
-            heuristic["start"] = "field_lines"
     q = _quantised_distances(problem, resolution_mm)
     q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
@@ -294,7 +298,7 @@ def solve_radius_stage(
     else:
         stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
         if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
-            low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings)
+            low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings) if bound_apart else model.r_low
             stage1["global_bound"] = float(low * resolution_mm)
         else:
             stage1["global_bound"] = stage1["bound"]
