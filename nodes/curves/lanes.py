@@ -7,8 +7,8 @@ the layout may select only one line of such a bundle, and what the others reache
 stays far from any Tx trace.
 
 A *lane* is a copy of a merging line that keeps its own way up to where it comes within ``offset`` of
-the line it merges into (its *spine*, the first line in the family order it comes closer than the
-smallest offset to, over ``merge_run_mm``, beyond ``from_mm`` of its start) and from there follows the
+the line it merges into (its *spine*: a line before it in the family order that it runs closer than the
+smallest offset to for ``merge_run_mm``, beyond ``from_mm`` of its start) and from there follows the
 spine at that offset to the base: the level set ``|x - spine| = offset`` (Euclidean, on the surface) on
 the side it arrives from. With offsets above the layout's trace width + clearance (2 mm by default,
 conflicts flagged from 2.25 mm: the default offsets, 3 and 5.5 mm, stay clear of that with the error of

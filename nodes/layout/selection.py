@@ -298,7 +298,8 @@ def solve_radius_stage(
     else:
         stage1, found, seconds = _radius_stage(model, problem, (start_tx, start_rx), settings)
         if restricted:  # the model's bound holds inside the trust region only: bound the problem apart
-            low = layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings) if bound_apart else model.r_low
+            low = (layer_radius_bound(problem, q, (n_drive, n_sense), model.r_low, level, settings) if bound_apart
+                   else model.r_low)
             stage1["global_bound"] = float(low * resolution_mm)
         else:
             stage1["global_bound"] = stage1["bound"]
