@@ -6,13 +6,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from curves_fixture import bunny
-from retrotouch.nodes.curves.lanes import BASE_LEVEL, STEP_MM, TxLanesParams, dense_points, merges, tx_lanes
+from retrotouch.nodes.curves.lanes import (BASE_LEVEL, STEP_MM, TxLanesParams, dense_points, merges, spine_distance,
+                                           tx_lanes)
 from retrotouch.nodes.curves.ring_levels import radial_function, row_values
 from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
-
-OFFSET_TOLERANCE_MM = 0.35  # the level set of the piecewise-linear distance on the test mesh's 2.8 mm edges
-
 
 @pytest.fixture(scope="module")
 def families():
@@ -37,19 +35,28 @@ def test_field_lines_are_kept_in_order_each_followed_by_its_lanes(families):
 
 
 def test_a_lane_leaves_its_line_and_keeps_one_offset_from_the_spine(families):
+    """Beyond its branch a lane lies on the level set of the piecewise-linear distance from its spine
+    (exactly), and in space within half the mesh's longest edge of that offset (the interpolation error)."""
+    mesh, regions, tables, *_ = bunny()
     tx, out = families
     params = TxLanesParams()
     points, curve, arc = dense_points(tx, STEP_MM)
     spine_of = merges(points, curve, arc, tx.count, params, min(params.offsets_mm))
+    vertex_tree = cKDTree(mesh.vertices)
+    longest_edge = np.linalg.norm(np.diff(mesh.vertices[mesh.faces[:, [0, 1, 2, 0]]], axis=1), axis=2).max()
     for lane in np.flatnonzero(out.lane_parent >= 0):
         parent = int(out.lane_parent[lane])
         own, parents = rows_of(out, lane)[0], rows_of(tx, parent)[0]
         shared = int(np.argmin(np.r_[own[: len(parents)] == parents[: len(own)], False]))
         assert shared >= 2  # the lane starts as its line
-        beside = out.points[out.curve(lane)][shared + 1:]
-        to_spine = cKDTree(points[curve == spine_of[parent][0]]).query(beside)[0]
-        offset = min(params.offsets_mm, key=lambda o: abs(o - np.median(to_spine)))
-        assert np.abs(to_spine - offset).max() < OFFSET_TOLERANCE_MM
+        spine_points = points[curve == spine_of[parent][0]]
+        to_spine = spine_distance(tables, spine_points, max(params.offsets_mm) + 2.0, vertex_tree)
+        rows = np.arange(out.offsets[lane] + shared + 1, out.offsets[lane + 1])
+        on_level = row_values(tables, to_spine, out.faces[rows], out.bary[rows])
+        offset = min(params.offsets_mm, key=lambda o: abs(o - np.median(on_level)))
+        assert np.abs(on_level - offset).max() < 1e-6
+        in_space = cKDTree(spine_points).query(out.points[rows])[0]
+        assert np.abs(in_space - offset).max() < 0.5 * longest_edge
 
 
 def test_lanes_end_on_the_base(families):
