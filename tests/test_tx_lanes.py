@@ -12,6 +12,7 @@ from retrotouch.nodes.curves.ring_levels import radial_function, row_values
 from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
 
+
 @pytest.fixture(scope="module")
 def families():
     mesh, regions, tables, tx_field, _ = bunny()
