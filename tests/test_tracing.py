@@ -9,6 +9,7 @@ from curves_fixture import bunny
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import drop_near, find_crossings, segments_of
 from retrotouch.nodes.curves.lanes import TxLanesParams, tx_lanes
+from retrotouch.nodes.curves.ring_levels import RingLevelsParams, ring_levels
 from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_rx_curves, trace_tx, trace_tx_curves
 from retrotouch.nodes.curves.tx_seeding import fan_angles, fan_sectors, tx_starts, uniform_angles
@@ -26,9 +27,10 @@ def bunny_curves():
 
 def all_sets(bunny_curves):
     """Every family the checks of curves on the surface apply to: Tx (with its lanes) and Rx."""
-    mesh, regions, *_ = bunny()
+    mesh, regions, _, tx_field, _ = bunny()
     tx, rx = bunny_curves
-    return [tx_lanes(TxLanesParams(), mesh, regions, tx["curves"])] + [r["curves"] for r in rx.values()]
+    levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx["curves"])
+    return [tx_lanes(TxLanesParams(), mesh, levels, tx["curves"])] + [r["curves"] for r in rx.values()]
 
 
 def test_points_lie_on_their_faces(bunny_curves):

@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from curves_fixture import bunny
 from retrotouch.nodes.curves.lanes import (BASE_LEVEL, STEP_MM, TxLanesParams, dense_points, merges, spine_distance,
                                            tx_lanes)
-from retrotouch.nodes.curves.ring_levels import radial_function, row_values
+from retrotouch.nodes.curves.ring_levels import RingLevelsParams, radial_function, ring_levels, row_values
 from retrotouch.nodes.curves.tracing import TraceTxParams, trace_tx
 from retrotouch.nodes.data.types import CurveEnd
 
@@ -17,7 +17,8 @@ from retrotouch.nodes.data.types import CurveEnd
 def families():
     mesh, regions, tables, tx_field, _ = bunny()
     tx = trace_tx(TraceTxParams(), mesh, regions, tx_field)["curves"]
-    return tx, tx_lanes(TxLanesParams(), mesh, regions, tx)
+    levels = ring_levels(RingLevelsParams(), mesh, regions, tx_field, tx)
+    return tx, tx_lanes(TxLanesParams(), mesh, levels, tx), levels
 
 
 def rows_of(curves, c):
@@ -25,7 +26,7 @@ def rows_of(curves, c):
 
 
 def test_field_lines_are_kept_in_order_each_followed_by_its_lanes(families):
-    tx, out = families
+    tx, out, _ = families
     field = np.flatnonzero(out.lane_parent < 0)
     assert len(field) == tx.count and out.count > tx.count  # the bunny's second ear: lines merge down its flank
     for k, c in enumerate(field):
@@ -39,7 +40,7 @@ def test_a_lane_leaves_its_line_and_keeps_one_offset_from_the_spine(families):
     """Beyond its branch a lane lies on the level set of the piecewise-linear distance from its spine
     (exactly), and in space within half the mesh's longest edge of that offset (the interpolation error)."""
     mesh, regions, tables, *_ = bunny()
-    tx, out = families
+    tx, out, _ = families
     params = TxLanesParams()
     points, curve, arc = dense_points(tx, STEP_MM)
     spine_of = merges(points, curve, arc, tx.count, params, min(params.offsets_mm))
@@ -62,7 +63,7 @@ def test_a_lane_leaves_its_line_and_keeps_one_offset_from_the_spine(families):
 
 def test_lanes_end_on_the_base(families):
     mesh, regions, tables, *_ = bunny()
-    _, out = families
+    _, out, _ = families
     u = radial_function(tables, regions, int(regions.far_vertex))
     lanes = np.flatnonzero(out.lane_parent >= 0)
     last = out.offsets[lanes + 1] - 1
@@ -71,6 +72,6 @@ def test_lanes_end_on_the_base(families):
 
 
 def test_no_offsets_keep_the_field_lines_alone(families):
-    mesh, regions, *_ = bunny()
-    tx, _ = families
-    assert tx_lanes(TxLanesParams(offsets_mm=[]), mesh, regions, tx) is tx
+    mesh, *_ = bunny()
+    tx, _, levels = families
+    assert tx_lanes(TxLanesParams(offsets_mm=[]), mesh, levels, tx) is tx

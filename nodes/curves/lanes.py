@@ -27,10 +27,10 @@ import numpy as np
 from pydantic import Field
 
 from ...graph.node import NodeParams, node
-from ..data.types import CurveEnd, CurveSet, Mesh
+from ..data.types import CurveEnd, CurveSet, Mesh, row_arcs
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .assembly import polyline_rows
-from .ring_levels import between_faces, radial_function, row_values
+from .ring_levels import RingLevels, between_faces, row_values
 from .rx_seeding import chain_walks, zero_set
 
 STEP_MM = 0.25
@@ -51,10 +51,7 @@ class TxLanesParams(NodeParams):
 
 def dense_points(curves: CurveSet, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points every ``step_mm`` along every curve: (points (P, 3), curve (P,), arc (P,) mm from its start)."""
-    seg = np.linalg.norm(np.diff(curves.points, axis=0), axis=1)
-    row_curve = np.repeat(np.arange(curves.count), np.diff(curves.offsets))
-    cum = np.r_[0.0, np.cumsum(np.where(row_curve[1:] == row_curve[:-1], seg, 0.0))]
-    row_arc = cum - cum[curves.offsets[:-1]][row_curve]
+    row_arc = row_arcs(curves)
     lengths = row_arc[curves.offsets[1:] - 1]
     counts = np.floor(lengths / step_mm).astype(np.int64) + 1
     curve = np.repeat(np.arange(curves.count), counts)
@@ -135,6 +132,7 @@ def lane_rows(tables: MeshTables, curves: CurveSet, params: TxLanesParams, u: np
 
     offsets = sorted(params.offsets_mm)
     points, curve, arc = dense_points(curves, STEP_MM)
+    arcs = row_arcs(curves)
     reach = offsets[-1] + 2.0
     vertex_tree = cKDTree(tables.vertices)
     distances: dict[int, np.ndarray] = {}
@@ -146,8 +144,7 @@ def lane_rows(tables: MeshTables, curves: CurveSet, params: TxLanesParams, u: np
         rows = slice(curves.offsets[c], curves.offsets[c + 1])
         faces, bary, xyz = curves.faces[rows], curves.bary[rows], curves.points[rows]
         row_distance = np.sum(np.where(bary > 0, to_spine[tables.faces[faces]], 0.0) * bary, axis=1)
-        row_arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))]
-        before_merge = int(np.searchsorted(row_arc, merge_arc))
+        before_merge = int(np.searchsorted(arcs[rows], merge_arc))
         near = region & np.isfinite(to_spine[tables.faces]).all(axis=1)
         for offset in offsets:
             outside = np.flatnonzero(row_distance[:before_merge] >= offset)
@@ -166,13 +163,14 @@ def lane_rows(tables: MeshTables, curves: CurveSet, params: TxLanesParams, u: np
     return lanes
 
 
-@node("curves.tx_lanes", params=TxLanesParams, inputs=("mesh", "regions", "tx"), outputs=("curves",))
-def tx_lanes(params: TxLanesParams, mesh: Mesh, regions, tx: CurveSet) -> CurveSet:
-    """The Tx field lines, each followed by its lanes (see the module docstring)."""
+@node("curves.tx_lanes", params=TxLanesParams, inputs=("mesh", "levels", "tx"), outputs=("curves",))
+def tx_lanes(params: TxLanesParams, mesh: Mesh, levels: RingLevels, tx: CurveSet) -> CurveSet:
+    """The Tx field lines, each followed by its lanes (see the module docstring); ``levels`` gives the
+    radial function around the Tx pole (``curves.ring_levels``), 0 there and 1 on the base."""
     if not params.offsets_mm or tx.count < 2:
         return tx
     tables = build_tables(mesh.vertices, mesh.faces)
-    u = radial_function(tables, regions, int(regions.far_vertex))
+    u = levels.values
     lanes = lane_rows(tables, tx, params, u, between_faces(tables, u))
     rows, ends, parent = [], [], []
     for c in range(tx.count):  # each field line, then its lanes: the family keeps its order at the pole

@@ -70,6 +70,15 @@ class CurveSet:
         return slice(int(self.offsets[c]), int(self.offsets[c + 1]))
 
 
+def row_arcs(curves: CurveSet) -> np.ndarray:
+    """(P,) arc length (mm) of every row from its curve's first row."""
+    seg = np.linalg.norm(np.diff(curves.points, axis=0), axis=1)
+    row_curve = np.repeat(np.arange(curves.count), np.diff(curves.offsets))
+    seg = np.where(row_curve[1:] == row_curve[:-1], seg, 0.0)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    return cum - cum[curves.offsets[:-1]][row_curve]
+
+
 @dataclasses.dataclass(frozen=True)
 class Crossings:
     """Crossings between curves of layer ``layer_a`` and layer ``layer_b`` (possibly the same layer).

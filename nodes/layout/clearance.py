@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..data.types import CurveSet, Mesh
+from ..data.types import CurveSet, Mesh, row_arcs
 from ..geometry.thin_walls import ThinWalls, thin_walls
 from .samples import array_digest
 
@@ -48,15 +48,6 @@ def walls_for(mesh: Mesh, bound_mm: float) -> ThinWalls:
         while len(_walls_memo) > 2:
             _walls_memo.popitem(last=False)
     return walls
-
-
-def row_arcs(curves: CurveSet) -> np.ndarray:
-    """(P,) arc length (mm) of every row from its curve's first row."""
-    seg = np.linalg.norm(np.diff(curves.points, axis=0), axis=1)
-    row_curve = np.repeat(np.arange(curves.count), np.diff(curves.offsets))
-    seg = np.where(row_curve[1:] == row_curve[:-1], seg, 0.0)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    return cum - cum[curves.offsets[:-1]][row_curve]
 
 
 def resample(curves: CurveSet, face_mask: np.ndarray, step_mm: float
