@@ -118,11 +118,35 @@ def test_a_touch_few_crossings_see_is_not_fitted_at_its_mirror_place(field_lines
     amplitude implies, gains on the mean and the worst press (board seed 3: 1.83 against 2.35 mm mean,
     10.4 against 13.6 mm max; seeds 0 and 1: 2.53 / 3.34 and 2.28 / 2.44 mm mean). On the layout without
     Tx lanes, whose holes (439 faces) these figures were measured on: the lanes' layout has 62 such faces,
-    in one place, where board seed 3 splits 5 of the 150 presses."""
-    layout = field_lines_layout
+    in one place (the next test)."""
+    from retrotouch.nodes.sensing import coupling_fit
+
+    summary = _presses_at_holes(field_lines_layout, 3, tmp_path)
+    around = summary()
+    monkeypatch.setattr(coupling_fit, "RING_STARTS_MAX_CROSSINGS", 0)
+    from_peak = summary()
+    assert around["missed_presses"] == 0 and around["presses_without_one_touch_down"] == 0
+    assert around["localization_error_mm_mean"] < 0.9 * from_peak["localization_error_mm_mean"]
+    assert around["localization_error_mm_max"] <= from_peak["localization_error_mm_max"]
+
+
+def test_a_finger_in_a_hole_between_crossings_far_apart_is_one_touch(layout, tmp_path):
+    """At the default layout's hole (as in the previous test), calibrated, on the mismatched board: the
+    finger raises a peak on two crossings about 26 mm apart, whose first fits each put a weak finger
+    beside their peak, and the joint fit from between them slides to one side. One finger held
+    between the first fits explains both, so every press is one touch-down (board seed 3 split 5 of
+    the 150 presses with 6 ghost touches, 5.75 mm mean error; now 3.59)."""
+    for seed in (0, 3):
+        report = _presses_at_holes(layout, seed, tmp_path)()
+        assert report["missed_presses"] == 0 and report["presses_without_one_touch_down"] == 0
+        assert report["ghost_touches"] == 0 and report["localization_error_mm_mean"] < 5.0
+
+
+def _presses_at_holes(layout: Path, seed: int, tmp_path: Path):
+    """The summary, as a function, of 15 x 10 presses spread over the faces 12-18 mm from every
+    crossing, calibrated, on the mismatched board with ``seed``."""
     from retrotouch.nodes.geometry.surface import farthest_point_sampling
     from retrotouch.nodes.geometry.triangles import corners
-    from retrotouch.nodes.sensing import coupling_fit
     from retrotouch.nodes.sensing.evaluation import calibrate_simulator
     from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD
 
@@ -130,18 +154,9 @@ def test_a_touch_few_crossings_see_is_not_fitted_at_its_mirror_place(field_lines
     centroids = corners(sensing_map.vertices, sensing_map.faces).mean(axis=1)[sensing_map.sensing_faces]
     nearest = np.min(np.linalg.norm(centroids[:, None] - sensing_map.cell_points[None], axis=2), axis=1)
     holes = centroids[(nearest > 12.0) & (nearest < 18.0)]
-    locations = tmp_path / "holes.json"
+    locations = tmp_path / f"holes_{layout.parent.name}.json"
     locations.write_text(json.dumps(holes[farthest_point_sampling(holes, 15, 0)].tolist()))
-    board = REALISTIC_BOARD.model_copy(update={"seed": 3})
-    calibration, _ = calibrate_simulator(sensing_map, board, seed=3)
-
-    def summary() -> dict:
-        return evaluate_simulator(layout, board, EvalParams(seed=3), calibration=calibration, through_pty=False,
-                                  locations=locations).summary()
-
-    around = summary()
-    monkeypatch.setattr(coupling_fit, "RING_STARTS_MAX_CROSSINGS", 0)
-    from_peak = summary()
-    assert around["missed_presses"] == 0 and around["presses_without_one_touch_down"] == 0
-    assert around["localization_error_mm_mean"] < 0.9 * from_peak["localization_error_mm_mean"]
-    assert around["localization_error_mm_max"] <= from_peak["localization_error_mm_max"]
+    board = REALISTIC_BOARD.model_copy(update={"seed": seed})
+    calibration, _ = calibrate_simulator(sensing_map, board, seed=seed)
+    return lambda: evaluate_simulator(layout, board, EvalParams(seed=seed), calibration=calibration,
+                                      through_pty=False, locations=locations).summary()

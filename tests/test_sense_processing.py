@@ -362,8 +362,8 @@ def test_one_finger_between_two_peaks_is_not_split_by_a_crossing_reading_below_i
     squared = np.sum((cells - middle) ** 2, axis=1)
     delta = processor.cell_gain * amplitude * fit.profile.at_squared(squared)[0]
     sigma = np.full(bunny_map.cell_count, noise)
-    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma)
+    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma, None) is not None
     faint = (delta > 0.2 * noise) & (delta < 2.0 * noise)  # the finger reaches them, barely
     faint[[first, second]] = False
     delta[np.flatnonzero(faint)[0]] = -3.5 * noise
-    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma)
+    assert fit._one_finger_between(first, second, np.log(amplitude), delta, sigma, None) is not None

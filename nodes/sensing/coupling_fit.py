@@ -106,15 +106,16 @@ class CouplingFit:
         if single:
             return
         fits = self._merge_same_finger(found, fits)
+        start = (self.map.cell_points[found[0][0]], int(self.map.cell_faces[found[0][0]]))
         if len(found) > 1:
-            separate = self._separate_fingers(found, fits, delta, sigma)
+            separate, between = self._separate_fingers(found, fits, delta, sigma)
             found[0][4] += sum(entry[4] for entry, own in zip(found, separate) if not own)
             found[:] = [entry for entry, own in zip(found, separate) if own]
             fits = [fit for fit, own in zip(fits, separate) if own]
+            start = between or start
         if len(found) == 1:  # merged into one finger after all: fit it to every delta
             entry = found[0]
-            refined = self.refine(self.map.cell_points[entry[0]], int(self.map.cell_faces[entry[0]]), delta, sigma,
-                                  learn_profile=True)
+            refined = self.refine(*start, delta, sigma, learn_profile=True)
             if refined is not None:
                 entry[1:4] = refined[:3]
             return
@@ -138,38 +139,42 @@ class CouplingFit:
             fits = [fits[j] for j in kept]
         return fits
 
-    def _separate_fingers(self, found: list[list[Any]], fits: list, delta: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        """Which entries are fingers of their own (the strongest always): the strongest peak's finger
+    def _separate_fingers(self, found: list[list[Any]], fits: list, delta: np.ndarray,
+                          sigma: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, int] | None]:
+        """Which entries are fingers of their own (the strongest always), and where the first finger
+        between two peaks that explains both lies (point, face; None if none): the strongest peak's finger
         (its first fit) could not have raised a secondary peak whose delta exceeds ``SPLIT_SIGMA``
         noise sigmas plus twice that finger's coupling there under the heaviest plausible tail,
         :meth:`tail_envelope` (cell gains known to a factor 2). A finger's tail, or a finger between
         crossings of a sparse layout, raises local maxima that no bound from a learned
         Gaussian-like profile tells from a second finger; a second finger reads about the full
         amplitude at its own crossing."""
-        separate = np.ones(len(found), dtype=bool)
+        separate, between = np.ones(len(found), dtype=bool), None
         if fits[0] is None:
-            return separate
+            return separate, between
         point, log_amplitude = fits[0]
         peaks = np.array([entry[0] for entry in found])
         squared = np.sum((self.map.cell_points[peaks] - point) ** 2, axis=1)
         reach = self.cell_gain[peaks] * math.exp(log_amplitude) * self.tail_envelope(squared)
         separate[1:] = (delta[peaks] > 2.0 * reach + SPLIT_SIGMA * sigma[peaks])[1:]
         for k in np.flatnonzero(separate[1:]) + 1:
-            separate[k] = not self._one_finger_between(peaks[0], peaks[k], log_amplitude, delta, sigma)
-        return separate
+            beside = None if fits[k] is None else (point, fits[k][0])
+            one = self._one_finger_between(peaks[0], peaks[k], log_amplitude, delta, sigma, beside)
+            separate[k] = one is None
+            between = between or one
+        return separate, between
 
-    def _one_finger_between(self, first: int, second: int, log_amplitude: float, delta: np.ndarray,
-                            sigma: np.ndarray) -> bool:
-        """Whether one finger of plausible amplitude, fitted to every delta from between two peak
-        crossings, explains both peaks (reads at least half of each, less ``SPLIT_SIGMA`` noise
-        sigmas) and lights no crossing near it more than twice its delta (0 if negative: noise below
-        the baseline is no darker than none) plus ``SPLIT_SIGMA`` noise sigmas (two fingers with dark
-        crossings between them are two). A finger in a gap between
-        crossings far apart raises a peak on either side, and the first fits, each seeing only its
-        own peak's crossings, put a weak finger beside each peak. Plausible: at most
-        ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the
-        factor squared until the width is learned, as a too-narrow initial width makes a finger
-        between crossings need more amplitude), or the amplitude prior plus the larger of
+    def _one_finger_between(self, first: int, second: int, log_amplitude: float, delta: np.ndarray, sigma: np.ndarray,
+                            beside: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, int] | None:
+        """Where (point, face) one finger of plausible amplitude between two peak crossings explains
+        both peaks (:meth:`_explains`); None if nowhere. A finger in a gap between crossings far apart
+        raises a peak on either side, and the first fits, each seeing only its own peak's crossings,
+        put a weak finger beside each peak (``beside``: their points). The finger is fitted to every
+        delta from between the peaks; as that fit can slide to one peak's side, a finger held at
+        points between the first fits, of any plausible amplitude, counts too. Plausible: at most
+        ``JOINT_AMPLITUDE_FACTOR`` times the strongest peak's first fit (``log_amplitude``; the factor
+        squared until the width is learned, as a too-narrow initial width makes a finger between
+        crossings need more amplitude), or the amplitude prior plus the larger of
         ``JOINT_AMPLITUDE_SIGMAS`` spreads and that factor, if more. Two fingers on crossings far
         apart would need a finger between them many times stronger than either; peaks farther apart
         than such a finger's coupling can reach to explain both are two without a fit."""
@@ -185,21 +190,36 @@ class CouplingFit:
         reaches = [self.profile.farthest_reading((delta[peak] - SPLIT_SIGMA * sigma[peak])
                                                  / (2.0 * gains[peak] * math.exp(limit))) for peak in (first, second)]
         if reaches[0] + reaches[1] + REACH_MARGIN_MM < self.cell_distance[first, second]:
-            return False
-        weights = delta[[first, second]] / gains[[first, second]]
-        middle = weights @ cells[[first, second]] / weights.sum()
-        points, faces, _ = self.projector.project(middle, self.map.cell_normals[first])
+            return None
+        peaks = np.array([first, second])
+        weights = delta[peaks] / gains[peaks]
+        points, faces, _ = self.projector.project(weights @ cells[peaks] / weights.sum(), self.map.cell_normals[first])
         joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
-        if joint is None or joint[3] > limit:
-            return False
-        squared = np.sum((cells - joint[0]) ** 2, axis=1)
+        if joint is not None and joint[3] <= limit and self._explains(joint[0], joint[3], joint[3], peaks, delta, sigma):
+            return joint[0], joint[1]
+        if beside is None:
+            return None
+        held = beside[0] + np.array([[0.25], [0.5], [0.75]]) * (beside[1] - beside[0])
+        points, faces, _ = self.projector.project(held, self.map.cell_normals[first])
+        return next(((point, int(face)) for point, face in zip(points, faces)
+                     if self._explains(point, -math.inf, limit, peaks, delta, sigma)), None)
+
+    def _explains(self, point: np.ndarray, low: float, high: float, peaks: np.ndarray, delta: np.ndarray,
+                  sigma: np.ndarray) -> bool:
+        """Whether a finger at ``point`` of some log-amplitude in [``low``, ``high``] reads at least half
+        of each of the ``peaks``' deltas, less ``SPLIT_SIGMA`` noise sigmas, and lights no crossing near
+        it more than twice its delta (0 if negative: noise below the baseline is no darker than none)
+        plus ``SPLIT_SIGMA`` noise sigmas (two fingers with dark crossings between them are two)."""
+        squared = np.sum((self.map.cell_points - point) ** 2, axis=1)
         near = (squared <= (3.0 * self.coupling_sigma + self.pitch) ** 2) & np.isfinite(delta)
-        near[[first, second]] = False
-        near = np.concatenate([np.flatnonzero(near), [first, second]])  # the peaks last
-        model = gains[near] * math.exp(joint[3]) * self.profile.at_squared(squared[near])[0]
+        near[peaks] = True
+        shape = self.cell_gain[near] * self.profile.at_squared(squared[near])[0]  # reading per unit amplitude
         tolerance = SPLIT_SIGMA * sigma[near]
-        explains_peaks = np.all(delta[[first, second]] <= 2.0 * model[-2:] + tolerance[-2:])
-        return bool(explains_peaks and np.all(model <= 2.0 * np.maximum(delta[near], 0.0) + tolerance))
+        is_peak = np.isin(np.flatnonzero(near), peaks)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            least = np.max((delta[near][is_peak] - tolerance[is_peak]) / (2.0 * shape[is_peak]))
+            most = np.min((2.0 * np.maximum(delta[near], 0.0) + tolerance) / shape)
+        return bool(max(least, math.exp(low)) <= min(most, math.exp(high)))
 
     def tail_envelope(self, squared: np.ndarray) -> np.ndarray:
         """The larger of the coupling profile and ``(1 + d^2 / h^2)^(-3/2)`` at squared distances
