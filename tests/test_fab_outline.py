@@ -232,5 +232,16 @@ def test_small_pocket_between_tab_bend_and_pad_is_filled():
     pieces = shapely.unary_union([Polygon(outlines.tab[0]), LineString(line).buffer(0.5, quad_segs=8),
                                   Point(outlines.pad_xy[0]).buffer(unfolded.pad_radius_mm, quad_segs=8),
                                   Point(outlines.landmark_xy[0]).buffer(1.0, quad_segs=8)])
-    assert len(pieces.interiors) == 1 and polygon.buffer(1e-3).contains(pieces)
+    assert len(pieces.interiors) == 1 and polygon.buffer(Params().simplify_mm + 1e-6).contains(pieces)
     assert 0 < polygon.area - pieces.area <= 8.0  # only the pocket was added
+
+
+def test_the_outline_drops_only_vertices_it_does_not_need():
+    """``simplify_mm``: the cut outline lies within that distance of the exact one, with far fewer
+    vertices (a dense centreline's buffer repeats points a few micrometres apart)."""
+    unfolded = unfolded_from_polylines([long_arc()])
+    exact = outline(Params(simplify_mm=0.0), unfolded).polygon(0)
+    simplified = outline(Params(), unfolded).polygon(0)
+    assert exact.hausdorff_distance(simplified) <= Params().simplify_mm + 1e-9
+    assert len(simplified.exterior.coords) < 0.8 * len(exact.exterior.coords)
+    assert abs(simplified.area - exact.area) < 1e-3 * exact.area

@@ -58,6 +58,9 @@ class Params(NodeParams):
         0.15, gt=0, le=1, description="split traces into pieces whose convex hull covers at most this share of fit_mat's "
                                       "usable area (a curled trace left whole takes a sheet to itself)")
     arc_segments: int = Field(8, ge=2, le=64, description="polygon segments per quarter circle")
+    simplify_mm: float = Field(
+        0.01, ge=0, le=0.1, description="farthest (mm) an outline may move as the vertices it does not need are "
+                                        "dropped (Douglas-Peucker); 0 keeps every vertex")
     fill_hole_mm2: float = Field(
         8.0, gt=0, description="holes of a part up to this area (mm2) are filled: pockets between the tab, a sharp "
                                "bend and a pad, too small to cut")
@@ -298,6 +301,7 @@ def _piece(params: Params, unfolded: UnfoldedTraces, c: int, discs: tuple, u0: f
             f"{part_name}: its outline is not one closed polygon without holes ({shape.geom_type}, "
             f"{len(getattr(shape, 'interiors', []))} holes); raise self_clearance_mm so the trace is split"
         )
+    shape = shape.simplify(params.simplify_mm, preserve_topology=True)
     margin = params.label_margin_mm
     glyphs = label_glyphs(part_name, tab_xy + (tab_len / 2) * direction, direction,
                           tab_len - 2 * margin, 2 * tab_w2 - 2 * margin, params.label_height_mm)
