@@ -75,3 +75,9 @@ def test_no_offsets_keep_the_field_lines_alone(families):
     mesh, *_ = bunny()
     tx, _, levels = families
     assert tx_lanes(TxLanesParams(offsets_mm=[]), mesh, levels, tx) is tx
+
+
+@pytest.mark.parametrize("offsets", [[3.0, 0.0], [-2.0]])
+def test_an_offset_that_is_not_positive_is_refused(offsets):
+    with pytest.raises(ValueError, match="greater than 0"):
+        TxLanesParams(offsets_mm=offsets)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveFloat
 
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh, row_arcs
@@ -41,7 +41,7 @@ BASE_LEVEL = 0.98
 
 
 class TxLanesParams(NodeParams):
-    offsets_mm: list[float] = Field([3.0, 5.5], description="lane offsets from the spine (mm), above trace width + "
+    offsets_mm: list[PositiveFloat] = Field([3.0, 5.5], description="lane offsets from the spine (mm), above trace width + "
                                     "clearance; [] keeps the field lines alone")
     from_mm: float = Field(60.0, ge=0, description="merges nearer the pole than this arc length (mm) make no lane: the "
                            "lines' starts are trimmed there")
