@@ -53,10 +53,7 @@ def assemble(
     counts = np.bincount(traces.curve[keep_row], minlength=n)[kept]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     points = tables.points(faces, bary)
-    row_curve = np.repeat(np.arange(len(kept)), counts)
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    within = row_curve[1:] == row_curve[:-1]
-    lengths = np.bincount(row_curve[:-1][within], weights=seg[within], minlength=len(kept))
+    lengths = curve_lengths(points, offsets)
     curves = CurveSet(
         layer=layer,
         points=points,
@@ -85,6 +82,24 @@ def assemble(
         mean_length_mm=float(lengths.mean()) if len(kept) else 0.0,
     )
     return curves, stats
+
+
+def curve_lengths(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(C,) length (mm) of each of the C polylines packed as ``points[offsets[c]:offsets[c + 1]]``."""
+    row_curve = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    segment = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    within = row_curve[1:] == row_curve[:-1]
+    return np.bincount(row_curve[:-1][within], weights=segment[within], minlength=len(offsets) - 1)
+
+
+def packed_rows(tables: MeshTables, rows: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The curves' rows ``(faces, bary)`` packed as the ``CurveSet`` fields ``points`` (mm), ``faces``,
+    ``bary``, ``offsets`` and ``lengths_mm``."""
+    faces = np.concatenate([f for f, _ in rows]) if rows else np.empty(0, dtype=np.int64)
+    bary = np.concatenate([b for _, b in rows]) if rows else np.empty((0, 3))
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f, _ in rows])]).astype(np.int64)
+    points = tables.points(faces, bary)
+    return {"points": points, "faces": faces, "bary": bary, "offsets": offsets, "lengths_mm": curve_lengths(points, offsets)}
 
 
 def reversed_walk(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -29,7 +29,7 @@ from pydantic import Field, PositiveFloat
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh, row_arcs
 from ..geometry.mesh_tables import MeshTables, build_tables
-from .assembly import polyline_rows
+from .assembly import packed_rows, polyline_rows
 from .ring_levels import RingLevels, between_faces, row_values
 from .rx_seeding import chain_walks, zero_set
 
@@ -180,13 +180,5 @@ def tx_lanes(params: TxLanesParams, mesh: Mesh, levels: RingLevels, tx: CurveSet
         rows += lanes.get(c, [])
         ends += [int(CurveEnd.BASE)] * len(lanes.get(c, []))
         parent += [c] * len(lanes.get(c, []))
-    faces = np.concatenate([f for f, _ in rows])
-    bary = np.concatenate([b for _, b in rows])
-    offsets = np.r_[0, np.cumsum([len(f) for f, _ in rows])].astype(np.int64)
-    points = tables.points(faces, bary)
-    segment = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    row_curve = np.repeat(np.arange(len(rows)), np.diff(offsets))
-    within = row_curve[1:] == row_curve[:-1]
-    lengths = np.bincount(row_curve[:-1][within], weights=segment[within], minlength=len(rows))
-    return dataclasses.replace(tx, points=points, faces=faces, bary=bary, offsets=offsets, lengths_mm=lengths,
-                               end_reason=np.asarray(ends, dtype=np.int8), lane_parent=np.asarray(parent, dtype=np.int64))
+    return dataclasses.replace(tx, **packed_rows(tables, rows), end_reason=np.asarray(ends, dtype=np.int8),
+                               lane_parent=np.asarray(parent, dtype=np.int64))

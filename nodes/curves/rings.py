@@ -59,7 +59,7 @@ from pydantic import Field
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
 from ..geometry.mesh_tables import MeshTables, build_tables
-from .assembly import TraceStats, polyline_rows, reversed_walk
+from .assembly import TraceStats, packed_rows, polyline_rows, reversed_walk
 from .ring_levels import LevelSets, RingLevels, row_values
 
 STOP_MARGIN_MM = 0.5
@@ -267,13 +267,7 @@ def resample_polyline(points: np.ndarray, step_mm: float) -> np.ndarray:
 
 def pack(tables: MeshTables, rows: list, ends: np.ndarray, angle: float, family: str) -> CurveSet:
     """The candidates' rows as one CurveSet (layer rx)."""
-    faces = np.concatenate([f for f, _ in rows]) if rows else np.empty(0, dtype=np.int64)
-    bary = np.concatenate([b for _, b in rows]) if rows else np.empty((0, 3))
-    offsets = np.concatenate([[0], np.cumsum([len(f) for f, _ in rows])]).astype(np.int64)
-    points = tables.points(faces, bary)
-    lengths = np.array([np.linalg.norm(np.diff(points[a:b], axis=0), axis=1).sum() for a, b in zip(offsets[:-1], offsets[1:])])
-    return CurveSet(layer="rx", points=points, faces=faces, bary=bary, offsets=offsets, lengths_mm=lengths,
-                    end_reason=ends, angle=float(angle), family=family)
+    return CurveSet(layer="rx", **packed_rows(tables, rows), end_reason=ends, angle=float(angle), family=family)
 
 
 def packed_stats(curves: CurveSet, traced: int) -> TraceStats:
