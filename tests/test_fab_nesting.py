@@ -210,3 +210,16 @@ def test_a_pass_stops_once_worse_than_the_best_and_only_then():
     assert run((sheets, length)) == full  # not worse than the bound: the same placement
     assert run((sheets, length * 0.99)) is None
     assert run((sheets - 1, np.inf)) is None
+
+
+def test_a_placement_on_one_sheet_ends_the_passes(monkeypatch):
+    """No pass can save a sheet when the first one used one: the raster nester runs once."""
+    from retrotouch.nodes.fab import nesting
+
+    passes = []
+    monkeypatch.setattr(nesting, "raster_nest", lambda *args: passes.append(args[5]) or raster_nest(*args))
+    nested = nest(Params(), traces([250, 200, 180, 120, 100, 60], bend=10.0))
+    assert nested.sheet_count == 1 and passes == [3 * nesting.ROTATION_STEP] and nested.rotations == passes[0]
+    passes.clear()
+    nested = nest(Params(mat="custom", sheet_width_mm=130, sheet_height_mm=20), traces([100] * 5))
+    assert nested.sheet_count >= 2 and len(passes) >= 2  # more angles may save a sheet: a second pass runs
