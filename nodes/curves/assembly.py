@@ -99,7 +99,8 @@ def packed_rows(tables: MeshTables, rows: list[tuple[np.ndarray, np.ndarray]]) -
     bary = np.concatenate([b for _, b in rows]) if rows else np.empty((0, 3))
     offsets = np.concatenate([[0], np.cumsum([len(f) for f, _ in rows])]).astype(np.int64)
     points = tables.points(faces, bary)
-    return {"points": points, "faces": faces, "bary": bary, "offsets": offsets, "lengths_mm": curve_lengths(points, offsets)}
+    return {"points": points, "faces": faces, "bary": bary, "offsets": offsets,
+            "lengths_mm": curve_lengths(points, offsets)}
 
 
 def reversed_walk(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

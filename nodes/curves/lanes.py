@@ -41,8 +41,9 @@ BASE_LEVEL = 0.98
 
 
 class TxLanesParams(NodeParams):
-    offsets_mm: list[PositiveFloat] = Field([3.0, 5.5], description="lane offsets from the spine (mm), above trace width + "
-                                    "clearance; [] keeps the field lines alone")
+    offsets_mm: list[PositiveFloat] = Field(
+        [3.0, 5.5], description="lane offsets from the spine (mm), above trace width + clearance; [] keeps the field "
+                                "lines alone")
     from_mm: float = Field(60.0, ge=0, description="merges nearer the pole than this arc length (mm) make no lane: the "
                            "lines' starts are trimmed there")
     merge_run_mm: float = Field(10.0, gt=0, description="a line merges where it stays closer than the smallest offset to "

@@ -13,10 +13,10 @@ up to ``max_rotations`` trial angles per part and stops as soon as a pass no lon
 or shortens the last sheet's strip by ``min_gain``, so its work grows with the parts and with how
 much more angles still help (a pass stops as soon as its placement so far is worse than the best
 pass's: it would end worse and stop the passes). A placement on one sheet ends the passes: no pass
-can save a sheet there, and the last strip's length changes from pass to pass without a trend. The fallback (``nester: shelf``, or when the
-raster result fails the check) is shelf packing of minimum rotated bounding boxes, first fit by
-decreasing height. Every result is verified with shapely: parts inside their sheet, no overlaps,
-every gap >= ``spacing_mm``.
+can save a sheet there, and the last strip's length changes from pass to pass without a trend. The
+fallback (``nester: shelf``, or when the raster result fails the check) is shelf packing of minimum
+rotated bounding boxes, first fit by decreasing height. Every result is verified with shapely: parts
+inside their sheet, no overlaps, every gap >= ``spacing_mm``.
 """
 from __future__ import annotations
 

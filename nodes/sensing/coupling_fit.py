@@ -195,7 +195,7 @@ class CouplingFit:
         weights = delta[peaks] / gains[peaks]
         points, faces, _ = self.projector.project(weights @ cells[peaks] / weights.sum(), self.map.cell_normals[first])
         joint = self.refine(points[0], int(faces[0]), delta, sigma, update=False)
-        if joint is not None and joint[3] <= limit and self._explains(joint[0], joint[3], joint[3], peaks, delta, sigma):
+        if joint is not None and self._explains(joint[0], joint[3], min(joint[3], limit), peaks, delta, sigma):
             return joint[0], joint[1]
         if beside is None:
             return None
