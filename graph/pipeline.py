@@ -322,8 +322,8 @@ def _declare_map(doc: Document, name: str, spec: NodeSpec, params: dict[str, Any
             raise doc.fail(mpath, f"node {name!r}: param {key!r} is both set in params and mapped; "
                                   "keep one", key=True)
         values = interpolate(doc, values, mpath)
-        if not isinstance(values, list) or not values:
-            raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a non-empty list of values, "
+        if not isinstance(values, list):
+            raise doc.fail(mpath, f"node {name!r}: map {key!r} needs a list of values ([] for no branch), "
                                   f"got {values!r}")
         for i, value in enumerate(values):
             if value in values[:i]:

@@ -5,7 +5,8 @@ Branches: a node with ``map: {k: [...]}`` has one instance per value (several ke
 in the order written). Each mapped key is an *axis*. A node inherits the axes of its plain inputs
 (so downstream nodes are mapped branch-wise; inputs mapped over different axes combine as a
 product) and a fan-in input ``x[*]`` receives, as a list in branch order, every branch of ``x``
-along the axes the consuming node does not have itself.
+along the axes the consuming node does not have itself. A map over ``[]`` makes no branch: its node
+and every node mapped with it drop out of the run, and a fan-in over them receives nothing from them.
 """
 from __future__ import annotations
 

@@ -82,7 +82,7 @@ def test_cycle(tmp_path, test_nodes):
 
 def test_bad_map_values(tmp_path, test_nodes):
     assert error_of(tmp_path, GOOD.replace("deltas: [1, 2]", "deltas: 5")) == \
-        "p.yaml:12:18: node 'plus': map 'delta' needs a non-empty list of values, got 5"
+        "p.yaml:12:18: node 'plus': map 'delta' needs a list of values ([] for no branch), got 5"
     assert error_of(tmp_path, GOOD.replace("deltas: [1, 2]", "deltas: [1, oops]")).startswith(
         "p.yaml:12:18: node 'plus' (t.add): param 'delta': Input should be a valid number")
     assert error_of(tmp_path, GOOD.replace("map: {delta:", "map: {delt:")).startswith(

@@ -301,6 +301,24 @@ def test_a_reduce_over_two_mapped_nodes_sums_both(tmp_path, test_nodes):
     assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL + more_total
 
 
+def test_a_map_over_no_value_drops_its_branches_from_the_run(tmp_path, test_nodes):
+    """``map: {delta: []}``: the node and the nodes mapped with it have no instance, and a fan-in
+    over several mapped nodes sums the others; a fan-in left with nothing receives an empty list."""
+    text = SWEEP.replace('tot:   {type: t.sum, inputs: {xs: "plus[*]"}}',
+                         'more:  {type: t.add, inputs: {x: src}, map: {delta: "${more_deltas}"}}\n'
+                         '  tot:   {type: t.sum, inputs: {xs: ["plus[*]", "more[*]"]}}').replace(
+                             "  scales: [1, 2, 3]\n", "  scales: [1, 2, 3]\n  more_deltas: []\n")
+    result = run_pipeline(pipeline_file(tmp_path, text), [], out_dir=str(tmp_path / "out"),
+                          cache_dir=str(tmp_path / "cache"), scheduler="sync")
+    assert json.loads((tmp_path / "out" / "value.json").read_text()) == SWEEP_TOTAL
+    assert not [i for i in result.plan.instances if i.node == "more"]
+    run_pipeline(pipeline_file(tmp_path, text), ["scales=[]"], out_dir=str(tmp_path / "out2"),
+                 cache_dir=str(tmp_path / "cache"), scheduler="sync")
+    assert json.loads((tmp_path / "out2" / "value.json").read_text()) == 0
+    manifest = json.loads((tmp_path / "out2" / "manifest.json").read_text())
+    assert sorted(manifest["files"]) == ["value.json"]  # no branch wrote a mean
+
+
 PRIORITY = """\
 nodes:
   src:  {type: t.source, params: {n: 3}}

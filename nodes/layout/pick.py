@@ -162,6 +162,9 @@ def best_note(outputs: dict[str, object]) -> str:
 @node("layout.pick_best", params=PickParams, inputs=("candidates",), outputs=("layout", "metrics", "regions"), note=best_note)
 def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, object]:
     """Keep the best branch (radius, secondary, cells, Voronoi CV), its regions, and the per-branch table."""
+    if not candidates:
+        raise UserError("no layout branch to pick from: the Tx poles' list, or every Rx family's, is empty ([]); give "
+                        "them at least one value (e.g. -S tx_poles=[far] -S helix_windings=[left])")
     feasible = [i for i, c in enumerate(candidates) if c.feasible]
     screened = [c for c in candidates if c.metrics.get("screened")]
     if not feasible:
