@@ -191,13 +191,13 @@ def test_default_pipeline_end_to_end(repo, default_run, cli):
         assert manifest["files"][name]["sha256"] == hashlib.sha256((out / name).read_bytes()).hexdigest(), name
     assert manifest["pipeline"]["sha256"] == hashlib.sha256(pipeline.read_bytes()).hexdigest()
     assert all(n["status"] == "ran" for n in manifest["nodes"])
-    assert sum(n["node"] == "select" for n in manifest["nodes"]) == 5  # one branch per Rx dipole angle
+    assert sum(n["node"] == "select" for n in manifest["nodes"]) == 0  # the dipole loops: off unless rx_angles_deg lists angles
     assert sum(n["node"] == "ring_select" for n in manifest["nodes"]) == 16  # one per ring corridor, kind of legs and climb
     assert sum(n["node"] == "helix_select" for n in manifest["nodes"]) == 4  # one per winding sense and climb
     assert sum(n["node"] == "grid_select" for n in manifest["nodes"]) == 2  # lines across or along as Tx
     metrics = json.loads((out / "metrics.json").read_text())
-    assert len(metrics["angles"]) == 27
-    assert {row["rx_family"] for row in metrics["angles"]} == {"dipole", "rings", "rings_tx", "rings_per_line", "rings_tx_per_line",
+    assert len(metrics["angles"]) == 22
+    assert {row["rx_family"] for row in metrics["angles"]} == {"rings", "rings_tx", "rings_per_line", "rings_tx_per_line",
                                                                    "helices", "helices_per_line", "grid"}
 
     ply = (out / "mesh.ply").read_bytes()
