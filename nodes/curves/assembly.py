@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from ..data.types import CurveEnd, CurveSet
+from ..data.types import CurveEnd, CurveSet, curve_lengths
 from ..geometry.mesh_tables import MeshTables
 from .integrator import Traces
 
@@ -82,14 +82,6 @@ def assemble(
         mean_length_mm=float(lengths.mean()) if len(kept) else 0.0,
     )
     return curves, stats
-
-
-def curve_lengths(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(C,) length (mm) of each of the C polylines packed as ``points[offsets[c]:offsets[c + 1]]``."""
-    row_curve = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-    segment = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    within = row_curve[1:] == row_curve[:-1]
-    return np.bincount(row_curve[:-1][within], weights=segment[within], minlength=len(offsets) - 1)
 
 
 def packed_rows(tables: MeshTables, rows: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -70,13 +70,25 @@ class CurveSet:
         return slice(int(self.offsets[c]), int(self.offsets[c + 1]))
 
 
+def _segments(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(curve of each row (P,), length (mm) from each row to the next (P - 1,), 0 from a curve's last
+    row to the next curve's first) of polylines packed as ``points[offsets[c]:offsets[c + 1]]``."""
+    row_curve = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    return row_curve, np.where(row_curve[1:] == row_curve[:-1], seg, 0.0)
+
+
 def row_arcs(curves: CurveSet) -> np.ndarray:
     """(P,) arc length (mm) of every row from its curve's first row."""
-    seg = np.linalg.norm(np.diff(curves.points, axis=0), axis=1)
-    row_curve = np.repeat(np.arange(curves.count), np.diff(curves.offsets))
-    seg = np.where(row_curve[1:] == row_curve[:-1], seg, 0.0)
+    row_curve, seg = _segments(curves.points, curves.offsets)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     return cum - cum[curves.offsets[:-1]][row_curve]
+
+
+def curve_lengths(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(C,) length (mm) of each of the C polylines packed as ``points[offsets[c]:offsets[c + 1]]``."""
+    row_curve, seg = _segments(points, offsets)
+    return np.bincount(row_curve[:-1], weights=seg, minlength=len(offsets) - 1)
 
 
 @dataclasses.dataclass(frozen=True)
