@@ -323,17 +323,21 @@ def test_sense_says_when_the_board_goes_away_and_is_back_and_ctrl_c_exits_130(la
                 board.stop()
 
 
-def test_replay_of_a_file_that_is_not_a_recording_is_one_line_exit_2(layout, tmp_path):
+def test_replay_of_a_file_that_is_not_a_recording_is_one_line_exit_2(app, layout, tmp_path):
+    """Every kind of wrong file is a user error naming it and ``--record``; the command (one
+    subprocess, for its exit code and stderr) prints that as one line and exits 2."""
     for name, content in (("random.bin", bytes(range(256)) * 4), ("list.jsonl", b"[1, 2]\n"),
                           ("other.jsonl", b'{"format": "something/else"}\n'),
                           ("records.jsonl", b'{"format": "retrotouch.muca_recording/1"}\n{"t": "x"}\n')):
         path = tmp_path / name
         path.write_bytes(content)
-        done = subprocess.run([sys.executable, "-m", "retrotouch.nodes", "sense", "--replay", str(path), "--layout",
-                               str(layout)], capture_output=True, text=True, timeout=120)
-        assert done.returncode == 2, done.stderr
-        (line,) = done.stderr.strip().splitlines()
-        assert f"recording {path}" in line and "--record" in line, line
+        with pytest.raises(UserError, match=re.escape(f"recording {path}") + ".*--record"):
+            invoke(app, "--replay", path, "--layout", layout)
+    done = subprocess.run([sys.executable, "-m", "retrotouch.nodes", "sense", "--replay", str(path), "--layout",
+                           str(layout)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    (line,) = done.stderr.strip().splitlines()
+    assert f"recording {path}" in line and "--record" in line, line
 
 
 @pytest.mark.parametrize("delay_s", [0.3, 6.0])
