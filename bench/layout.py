@@ -8,13 +8,13 @@ diagonal) -> ``mesh.remesh`` (about ``--vertices``) -> ``regions.detect`` -> ``c
 which has Tx lines of its own), each with ``curves.crossings`` (``--family dipole``, ``rings`` or
 ``helices``: one family only), all called as plain functions.
 
-Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic
-fields, shared by all branches) + ``layout.coverage`` for the 25 branches on ``--jobs`` processes
-(joblib/loky; each process factorises the heat operators once) + ``layout.screen`` (default
-parameters; ``--no-screen`` finishes every branch) + ``layout.finish`` the same way +
-``layout.pick_best``; ``branches_finished`` says how many the screen kept. The sweep is
-run a second time with ``secondary=false`` for the ablation (``voronoi_cv_without_secondary``; skipped with
-``--no-ablation``).
+Timed sweep (``sweep_seconds``, wall): ``layout.samples`` (K reference samples and their geodesic fields,
+shared by all branches) + ``layout.bound`` for the 25 branches on ``--jobs`` processes (joblib/loky; each
+process factorises the heat operators once) + ``layout.prescreen`` + ``layout.coverage`` the same way +
+``layout.screen`` (default parameters; ``--no-screen`` solves and finishes every branch) +
+``layout.finish`` the same way + ``layout.pick_best``; ``branches_finished`` says how many the screen
+kept. The sweep is run a second time with ``secondary=false`` for the ablation
+(``voronoi_cv_without_secondary``; skipped with ``--no-ablation``).
 ``voronoi_cv_fps_all_candidates`` is a reference for what the curve families allow: as many pads
 as chosen, spread by farthest-point sampling over all candidate crossings of the chosen angle.
 
@@ -55,8 +55,8 @@ from retrotouch.nodes.layout.problem import candidate_crossings
 from retrotouch.nodes.layout.metrics import coefficient_of_variation, voronoi_cell_areas
 from retrotouch.nodes.layout.pick import PickParams, pick_best
 from retrotouch.nodes.layout.selection import select_curves
-from retrotouch.nodes.layout.screen import ScreenParams, screen
-from retrotouch.nodes.layout.sweep import OptimizeParams, branch_problem, coverage, finish
+from retrotouch.nodes.layout.screen import ScreenParams, prescreen, screen_branches
+from retrotouch.nodes.layout.sweep import OptimizeParams, bound, branch_problem, coverage, finish
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, remesh, repair_mesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
@@ -114,11 +114,17 @@ def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screen
     start = time.perf_counter()
     samples = surface_samples(SamplesParams(), mesh, regions)
     samples_s = time.perf_counter() - start
-    starts = Parallel(n_jobs=jobs)(
-        delayed(coverage)(branch_params(params, rx), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+    bounds = Parallel(n_jobs=jobs)(
+        delayed(bound)(branch_params(params, rx), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
         for rx, tx_rx, tx_tx, rx_rx in branches
     )
-    cut = screen(ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None), starts)
+    rule = ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None)
+    kept = prescreen(rule, bounds)
+    starts = Parallel(n_jobs=jobs)(
+        delayed(coverage)(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch_bound, kept)
+        for (rx, tx_rx, tx_tx, rx_rx), branch_bound in zip(branches, bounds)
+    )
+    cut = screen_branches(rule, starts)
     candidates = Parallel(n_jobs=jobs)(
         delayed(finish)(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, cut, regions)
         for (rx, tx_rx, tx_tx, rx_rx), branch in zip(branches, starts)

@@ -13,8 +13,8 @@ from test_layout_sensing_map import validate_sensing_map
 from retrotouch.graph.node import NodeParams
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.layout.pick import PickParams, pick_best
-from retrotouch.nodes.layout.screen import Screen
-from retrotouch.nodes.layout.sweep import OptimizeParams, coverage, finish, optimize
+from retrotouch.nodes.layout.screen import PreScreen, Screen
+from retrotouch.nodes.layout.sweep import OptimizeParams, bound, coverage, finish, optimize
 from retrotouch.nodes.layout.sensing_map import SensingMapParams, write_sensing_map
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.curves.tracing import TraceRxParams, TraceTxParams, trace_rx, trace_tx
@@ -35,19 +35,26 @@ def bunny_run():
 def test_the_radius_stage_bounds_the_finished_layout_and_a_screen_below_it_skips_the_rest(bunny_run):
     mesh, tx, rx, cross, params, candidate, regions = bunny_run
     samples = surface_samples(SamplesParams(count=150), mesh, regions)
-    branch = coverage(params, mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
-    radius, bound = candidate.metrics["coverage_radius_mm"], branch.stage.lower_bound_mm
-    assert bound < radius  # trimming may only take crossings away
+    curves = (mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"])
+    start = bound(params, *curves)
+    branch = coverage(NodeParams(), *curves, start, PreScreen(np.inf, np.inf, {}, ""))
+    radius, low = candidate.metrics["coverage_radius_mm"], branch.stage.lower_bound_mm
+    assert low < radius  # trimming may only take crossings away
+    # the stage only improves on the heuristic start, and nothing beats the layer bound
+    assert start.lower_bound_mm <= branch.stage.radius_mm <= start.start_radius_mm
+    dropped = coverage(NodeParams(), *curves, start, PreScreen(start.lower_bound_mm - 0.1, 0.0, {}, ""))
+    assert dropped.stage is None and dropped.prescreened_bound_mm == start.lower_bound_mm
+    assert finish(NodeParams(), *curves, dropped, Screen(np.inf, np.inf, ""), regions).metrics["screened"]
 
     def finished(threshold_mm):
         return finish(NodeParams(), mesh, samples, tx, rx, cross["tx_rx"], cross["tx_tx"], cross["rx_rx"], branch,
                       Screen(threshold_mm, threshold_mm, ""), regions)
 
-    below = finished(bound - 0.1)
+    below = finished(low - 0.1)
     assert not below.feasible and below.layout is None and below.metrics["screened"]
     assert below.regions is regions  # a candidate carries the regions it was laid out on, screened or not
-    assert below.message.startswith(f"screened out: its coverage radius is at least {bound:.1f} mm")
-    at_bound = finished(bound)  # kept by the bound, then the model capped there is proven infeasible
+    assert below.message.startswith(f"screened out: its coverage radius is at least {low:.1f} mm")
+    at_bound = finished(low)  # kept by the bound, then the model capped there is proven infeasible
     assert at_bound.metrics["screened"] and at_bound.message.endswith("(proven)")
     kept = finished(branch.stage.radius_mm)
     assert kept.feasible and kept.metrics["coverage_radius_mm"] == radius

@@ -11,7 +11,7 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.layout import solvers
 from retrotouch.nodes.layout.problem import SelectionProblem, evaluate_selection
 from retrotouch.nodes.layout.selection import select_curves
-from retrotouch.nodes.layout.sweep import selection_problem
+from retrotouch.nodes.layout.candidates import selection_problem
 from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
 
 

@@ -8,7 +8,7 @@ import pytest
 from types import SimpleNamespace
 
 from retrotouch.nodes.layout.pick import PickParams, angle_table, best_branch, best_note, pick_best
-from retrotouch.nodes.layout.screen import ScreenParams, screen
+from retrotouch.nodes.layout.screen import BranchBound, ScreenParams, prescreen, screen_branches
 from retrotouch.nodes.layout.sweep import AngleLayout
 
 
@@ -77,16 +77,31 @@ def started(radius, lower_bound):
 
 def test_the_screen_finishes_what_can_still_tie_the_best_stage1_radius_and_at_least_two():
     branches = [started(20.0, 19.5), started(21.0, 21.4), started(23.5, 22.6), started(30.0, 22.0), started(None, None)]
-    cut = screen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=1), branches)
+    cut = screen_branches(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=1), branches)
     assert cut.threshold_mm == pytest.approx(22.0)  # 20 + 1 + 1
     assert [cut.keeps(b) for b in branches] == [True, True, False, True, True]  # no stage: finish reports why
     assert [cut.needs_proof(b) for b in branches] == [False, False, True, True, False]  # 30.0 is beyond 22
-    assert cut.summary.startswith("4 of 5 branches kept")
-    tight = screen(ScreenParams(radius_tolerance_mm=0.0, margin_mm=0.0, keep_at_least=2), branches)
+    assert cut.summary.startswith("3 of 4 solved branches kept")
+    tight = screen_branches(ScreenParams(radius_tolerance_mm=0.0, margin_mm=0.0, keep_at_least=2), branches)
     assert [tight.keeps(b) for b in branches] == [True, True, False, False, True]  # 21.0: the second radius
     assert not tight.needs_proof(branches[1])  # kept in any case: no proof can drop it
-    every = screen(ScreenParams(margin_mm=None), branches)
+    every = screen_branches(ScreenParams(margin_mm=None), branches)
     assert all(every.keeps(b) for b in branches) and not any(every.needs_proof(b) for b in branches)
+
+
+def bounded(start, lower_bound):
+    return BranchBound({}, "rings", 0.0, {}, None, start, lower_bound, "ok" if start is not None else "no crossings")
+
+
+def test_the_prescreen_solves_what_can_still_tie_the_best_start_and_at_least_two():
+    bounds = [bounded(20.0, 12.0), bounded(25.0, 21.5), bounded(23.0, 22.5), bounded(40.0, 39.5), bounded(None, None)]
+    cut = prescreen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=2), bounds)
+    assert cut.threshold_mm == pytest.approx(22.0) and cut.sure_mm == 23.0  # 20 + 1 + 1; the second start
+    assert [cut.keeps(b) for b in bounds] == [True, True, True, False, True]  # 23.0 kept as a best start; no bound: coverage says why
+    assert cut.summary.startswith("3 of 4 branches solved")
+    assert ScreenParams.model_validate(cut.settings).keep_at_least == 2  # layout.screen applies the same
+    every = prescreen(ScreenParams(margin_mm=None), bounds)
+    assert all(every.keeps(b) for b in bounds) and every.summary == "all 5 branches solved"
 
 
 def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(caplog):

@@ -143,7 +143,8 @@ def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim:
     return rows
 
 
-NO_GRID = "remove the grid nodes (grid, grid_layers, grid_crossings, grid_select, grid_finish) from the pipeline"
+NO_GRID = ("remove the grid nodes (grid, grid_layers, grid_crossings, grid_select, grid_radius, grid_finish) and their "
+           "entries in prescreen, screen and best from the pipeline")
 
 
 @node("curves.trace_grid", params=TraceGridParams, inputs=("mesh", "regions"), outputs=("across", "along"))

@@ -112,7 +112,7 @@ def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> l
             "min_same_layer_clearance_mm": m.get("min_same_layer_clearance_mm"),
             "channels": f"{m.get('tx_channels', 0)}x{m.get('rx_channels', 0)}",
             "deterministic_time": _deterministic_time(m),
-            "status": "/".join(s["status"] for s in stages) or c.message,
+            "status": "/".join(s["status"] for s in stages) or ("PRESCREENED" if m.get("screened") else c.message),
             "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
             "global_gap": None if not stages or any(s.get("global_gap") is None for s in stages)
             else max(s["global_gap"] for s in stages),
@@ -169,14 +169,15 @@ def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, ob
     screened = [c for c in candidates if c.metrics.get("screened")]
     if not feasible:
         reasons = "; ".join(f"{c.family} {c.angle_deg:+.0f} deg: {c.message}" for c in candidates)
-        fix = " (rerun with -S screen.margin_mm=null to finish the screened ones)" if screened else ""
+        fix = " (rerun with -S prescreen.margin_mm=null to solve and finish the screened ones)" if screened else ""
         raise UserError(f"no branch gives a feasible layout{fix} ({reasons})")
     best = best_branch(candidates, params.radius_tolerance_mm, params.mean_tolerance)
     reach = candidates[best].metrics["coverage_radius_mm"] + params.radius_tolerance_mm
     missed = [c for c in screened if c.metrics["coverage_radius_lower_bound_mm"] <= reach]
     if missed:
         log.warning("%d screened branch(es) could have tied the chosen one (coverage radius %.1f mm): rerun with a larger "
-                    "-S screen.margin_mm, or null to finish every branch", len(missed), reach - params.radius_tolerance_mm)
+                    "-S prescreen.margin_mm, or null to solve and finish every branch", len(missed),
+                    reach - params.radius_tolerance_mm)
     rows = angle_table(candidates, params.outlier_factor)
     if params.print_table:
         print_angle_table(rows, best)

@@ -1,5 +1,5 @@
 """The phase-1 problem (candidate curves, crossings, conflicts, sample distances), its evaluation,
-the phase-1 defaults shared by the solver and the ``layout.coverage`` params, and the CP-SAT solver
+the phase-1 defaults shared by the solver and the ``layout.bound`` params, and the CP-SAT solver
 settings both phases use. Units: mm."""
 from __future__ import annotations
 

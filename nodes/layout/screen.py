@@ -1,22 +1,32 @@
-"""``layout.screen``: which branches of the layout sweep are worth finishing.
+"""``layout.prescreen`` and ``layout.screen``: which branches of the layout sweep are worth phase 1's
+radius stage, and which of those are worth finishing.
 
-After phase 1's radius stage (``layout.coverage``) every branch has a radius and a lower bound no
-layout of it can beat (:class:`retrotouch.nodes.layout.selection.RadiusStage`). ``layout.pick_best``
-takes the smallest coverage radius first, and counts radii within ``radius_tolerance_mm`` of it as
-equal; so a branch whose lower bound exceeds the smallest stage-1 radius by more than that tolerance
-cannot be chosen, unless finishing (trimming crowded free ends, relaxing pads) makes the best branches
-worse. ``margin_mm`` allows for that, and the ``keep_at_least`` branches with the smallest stage-1
-radii are finished in any case. Another kept branch whose stage-1 radius is beyond the threshold while
-its bound is not (a trust region's bound is weak) is first put to the proof in ``layout.finish``: the
-model with every sample's cap at the threshold, proven infeasible, screens it out too.
-``layout.pick_best`` checks afterwards that no screened branch could have tied the chosen one, and
-says so when one could. Units: mm.
+``layout.pick_best`` takes the smallest coverage radius first, and counts radii within
+``radius_tolerance_mm`` of it as equal; so a branch whose coverage radius is proven to exceed a radius
+another branch reaches by more than that tolerance cannot be chosen, unless finishing (trimming
+crowded free ends, relaxing pads) makes the best branches worse. ``margin_mm`` allows for that, and
+the ``keep_at_least`` branches with the smallest radii go on in any case. The rule is applied twice:
+
+- ``layout.prescreen``, before any radius stage, on what ``layout.bound`` finds cheaply per branch
+  (:class:`BranchBound`): the radius of phase 1's heuristic start (a selection, which the stage only
+  improves on) and the layer relaxation's lower bound (:mod:`retrotouch.nodes.layout.bounds`);
+  ``layout.coverage`` solves the radius stage of the branches it keeps only;
+- ``layout.screen``, after it, on the stage-1 radii and lower bounds
+  (:class:`retrotouch.nodes.layout.selection.RadiusStage`), with the prescreen's parameters (set once,
+  on ``layout.prescreen``). Another kept branch whose stage-1 radius is beyond the threshold while its
+  bound is not (a trust region's bound is weak) is first put to the proof in ``layout.finish``: the
+  model with every sample's cap at the threshold, proven infeasible, screens it out too.
+
+The branch with the smallest stage-1 radius always passes the prescreen (its bound is below that
+radius, which is below every start's). ``layout.pick_best`` checks afterwards that no screened branch
+could have tied the chosen one, and says so when one could. Units: mm.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
 
+import numpy as np
 from pydantic import Field
 
 from ...graph.node import NodeParams, node
@@ -24,10 +34,28 @@ from .selection import RadiusStage
 
 
 @dataclasses.dataclass(frozen=True)
+class BranchBound:
+    """One branch before phase 1's radius stage (``layout.bound``): the parameters it is solved with (the
+    OptimizeParams fields, which ``layout.coverage`` and ``layout.finish`` use too), the report so far,
+    phase 1's heuristic start (Tx ids, Rx ids, its report), its radius and a lower bound on any of the
+    branch's layouts' (all None when phase 1 cannot be set up, ``message`` says why)."""
+
+    params: dict
+    family: str
+    angle_deg: float
+    base: dict
+    start: tuple[np.ndarray, np.ndarray, dict] | None
+    start_radius_mm: float | None
+    lower_bound_mm: float | None
+    message: str
+
+
+@dataclasses.dataclass(frozen=True)
 class BranchStart:
     """One branch after phase 1's radius stage (``layout.coverage``): the radius stage (None when phase 1
-    cannot be set up, ``message`` says why), the report so far and the parameters it is solved with,
-    which ``layout.finish`` uses too (it rebuilds the phase-1 problem from them)."""
+    cannot be set up or ``layout.prescreen`` dropped the branch, ``message`` says why), the report so
+    far and the parameters it is solved with, which ``layout.finish`` uses too (it rebuilds the
+    phase-1 problem from them)."""
 
     params: dict  # the OptimizeParams fields
     family: str
@@ -35,6 +63,7 @@ class BranchStart:
     base: dict
     stage: RadiusStage | None
     message: str
+    prescreened_bound_mm: float | None = None  # the lower bound of a branch ``layout.prescreen`` dropped (stage None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +85,23 @@ class Screen:
         return branch.stage is not None and branch.stage.radius_mm > max(self.threshold_mm, self.sure_mm)
 
 
+@dataclasses.dataclass(frozen=True)
+class PreScreen:
+    """Which branches ``layout.coverage`` solves (``layout.prescreen``): those whose lower bound is at
+    most ``threshold_mm`` (inf: all), and surely those whose start's radius is at most ``sure_mm``;
+    ``settings`` the ScreenParams fields, which ``layout.screen`` applies too; ``summary`` says how
+    many and why."""
+
+    threshold_mm: float
+    sure_mm: float
+    settings: dict
+    summary: str
+
+    def keeps(self, bound: BranchBound) -> bool:
+        return (bound.lower_bound_mm is None or bound.lower_bound_mm <= self.threshold_mm
+                or bound.start_radius_mm <= self.sure_mm)
+
+
 class ScreenParams(NodeParams):
     radius_tolerance_mm: float = Field(
         1.0, ge=0, description="coverage radii within this of the best count as equal (as best.radius_tolerance_mm)"
@@ -66,20 +112,50 @@ class ScreenParams(NodeParams):
     keep_at_least: int = Field(2, ge=1, description="finish at least this many branches, those with the smallest stage-1 radii")
 
 
-def _note(screen: Screen) -> str:
-    return screen.summary
+def _cut(params: ScreenParams, radii: list[float]) -> tuple[float, float] | None:
+    """(threshold, sure) radii of the rule in the module docstring over the branches' ``radii``; None
+    when every branch goes on."""
+    if params.margin_mm is None or len(radii) <= params.keep_at_least:
+        return None
+    radii = sorted(radii)
+    return radii[0] + params.radius_tolerance_mm + params.margin_mm, radii[params.keep_at_least - 1]
 
 
-@node("layout.screen", params=ScreenParams, inputs=("branches",), outputs=("screen",), note=_note)
-def screen(params: ScreenParams, branches: list[BranchStart]) -> Screen:
+def _summary(value: Screen | PreScreen) -> str:
+    return value.summary
+
+
+@node("layout.prescreen", params=ScreenParams, inputs=("bounds",), outputs=("prescreen",), note=_summary)
+def prescreen(params: ScreenParams, bounds: list[BranchBound]) -> PreScreen:
+    """The threshold on the branches' lower bounds up to which ``layout.coverage`` solves their radius stage."""
+    bounded = [b for b in bounds if b.lower_bound_mm is not None]
+    cut = _cut(params, [b.start_radius_mm for b in bounded])
+    if cut is None:
+        return PreScreen(math.inf, math.inf, params.model_dump(), f"all {len(bounds)} branches solved")
+    threshold, sure = cut
+    kept = sum(PreScreen(threshold, sure, {}, "").keeps(b) for b in bounded)
+    best = min(b.start_radius_mm for b in bounded)
+    return PreScreen(threshold, sure, params.model_dump(), (
+        f"{kept} of {len(bounded)} branches solved: the others' coverage radius is proven above {threshold:.1f} mm "
+        f"(best heuristic start {best:.1f} mm + tolerance + margin; the {params.keep_at_least} best starts solved in any "
+        f"case)"))
+
+
+def screen_branches(params: ScreenParams, branches: list[BranchStart]) -> Screen:
     """The threshold on the branches' stage-1 lower bounds up to which ``layout.finish`` completes them."""
     staged = [b.stage for b in branches if b.stage is not None]
-    if params.margin_mm is None or len(staged) <= params.keep_at_least:
-        return Screen(math.inf, math.inf, f"all {len(branches)} branches kept")
-    radii = sorted(s.radius_mm for s in staged)
-    threshold = radii[0] + params.radius_tolerance_mm + params.margin_mm
-    cut = Screen(threshold, radii[params.keep_at_least - 1], "")
-    kept = sum(cut.keeps(b) for b in branches)
-    return dataclasses.replace(cut, summary=(
-        f"{kept} of {len(branches)} branches kept: the others' coverage radius is proven above {threshold:.1f} mm "
-        f"(best stage-1 radius {radii[0]:.1f} mm + tolerance + margin; the {params.keep_at_least} best kept in any case)"))
+    cut = _cut(params, [s.radius_mm for s in staged])
+    if cut is None:
+        return Screen(math.inf, math.inf, f"all {len(staged)} solved branches kept")
+    threshold, sure = cut
+    kept = sum(Screen(threshold, sure, "").keeps(b) for b in branches if b.stage is not None)
+    best = min(s.radius_mm for s in staged)
+    return Screen(threshold, sure, (
+        f"{kept} of {len(staged)} solved branches kept: the others' coverage radius is proven above {threshold:.1f} mm "
+        f"(best stage-1 radius {best:.1f} mm + tolerance + margin; the {params.keep_at_least} best kept in any case)"))
+
+
+@node("layout.screen", inputs=("branches", "prescreen"), outputs=("screen",), note=_summary)
+def screen(params: NodeParams, branches: list[BranchStart], prescreen: PreScreen) -> Screen:
+    """:func:`screen_branches` with the prescreen's parameters."""
+    return screen_branches(ScreenParams.model_validate(prescreen.settings), branches)

@@ -68,6 +68,7 @@ whether any selection covers every sample within a radius. Units: mm.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -253,6 +254,7 @@ def solve_radius_stage(
     solver: str = "cpsat",
     highs_max_nodes: int = HIGHS_MAX_NODES,
     bound_apart: bool = True,
+    start: tuple[np.ndarray, np.ndarray, dict] | None = None,
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
     ``secondary`` says whether a power-mean stage follows (the start's local search scores it too).
@@ -260,10 +262,13 @@ def solve_radius_stage(
     selection starts the whole problem when it is the better start: lanes never leave a branch worse off
     than its field lines, whatever the trust region. Without ``bound_apart`` a trust region's stage
     reports the model's lowest level as its global bound instead of the layer relaxation's (that first
-    solve only hands on its selection)."""
+    solve only hands on its selection). ``start`` is the heuristic start (Tx ids, Rx ids, its report) when
+    already known (:func:`start_and_bound`)."""
     args = (n_drive, n_sense, secondary, resolution_mm, time_limit_s, seed, workers, max_memberships, power, solver,
             highs_max_nodes)
-    start_tx, start_rx, heuristic = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
+    if start is None:
+        start = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
+    start_tx, start_rx, heuristic = start[0], start[1], dict(start[2])
     lanes_seconds = 0.0
     if problem.tx_lanes is not None and problem.tx_lanes.any():
         field_lines = solve_radius_stage(
@@ -307,6 +312,20 @@ def solve_radius_stage(
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
     return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
                        seconds + lanes_seconds)
+
+
+def start_and_bound(problem: SelectionProblem, n_drive: int, n_sense: int, secondary: bool, resolution_mm: float,
+                    power: int, time_limit_s: float, seed: int, workers: int) -> tuple[tuple, float, float]:
+    """Phase 1's heuristic start (Tx ids, Rx ids, its report), its coverage radius (quantised up as
+    stage 1's) and a lower bound on any selection's (the layer relaxation), in mm: what
+    ``layout.prescreen`` compares across branches before their radius stages."""
+    start = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
+    level = int(_nearest_levels(problem, start[0], start[1], resolution_mm).max())
+    if level >= UNREACHABLE_LEVEL:
+        return start, math.inf, 0.0
+    settings = {"time_limit_s": time_limit_s, "seed": seed, "workers": workers}
+    low = layer_radius_bound(problem, _quantised_distances(problem, resolution_mm), (n_drive, n_sense), 0, level, settings)
+    return start, level * resolution_mm, max(low - 1, 0) * resolution_mm  # a level-j distance lies in ((j - 1) res, j res]
 
 
 def _start_key(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float, power: int) -> tuple:

@@ -1,9 +1,11 @@
-"""The layout optimisation per branch: ``layout.coverage`` and ``layout.finish`` (both mapped; between
-them the screen, :mod:`retrotouch.nodes.layout.screen`; the pick is :mod:`retrotouch.nodes.layout.pick`).
+"""The layout optimisation per branch: ``layout.bound``, ``layout.coverage`` and ``layout.finish`` (all
+mapped; between them the prescreen and the screen, :mod:`retrotouch.nodes.layout.screen`; the pick is
+:mod:`retrotouch.nodes.layout.pick`).
 
-A branch is one Rx candidate family (one initial angle). ``layout.coverage`` sets up its phase-1
-problem and solves the radius stage (:mod:`retrotouch.nodes.layout.selection`); ``layout.finish``,
-with the same parameters, the power-mean stage, geodesic distances among the active crossings, phase 2
+A branch is one Rx candidate family (one initial angle). ``layout.bound`` sets up its phase-1 problem
+(:mod:`retrotouch.nodes.layout.candidates`), its heuristic start and a lower bound;
+``layout.coverage`` solves the radius stage (:mod:`retrotouch.nodes.layout.selection`) and
+``layout.finish``, with the same parameters, the power-mean stage, geodesic distances among the active crossings, phase 2
 pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, and the metrics
 (:mod:`retrotouch.nodes.layout.metrics`, :mod:`retrotouch.nodes.layout.clearance`). With
 ``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
@@ -24,7 +26,9 @@ feasible. Units: mm, degrees in Params and in the reports.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
+import math
 from typing import Literal
 
 import numpy as np
@@ -32,19 +36,20 @@ from pydantic import Field
 
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
+from .candidates import selection_problem
 from .problem import (PHASE1_MAX_MEMBERSHIPS, PHASE1_POWER, PHASE1_RELATIVE_GAP, PHASE1_RESOLUTION_MM, PHASE1_TIME_LIMIT_S,
-                      SelectionProblem, candidate_crossings, merge_pairs, same_layer_conflicts)
-from .clearance import PARALLEL_RUN_MM, close_pairs, free_end_trims, parallel_pairs, trim_free_ends, walls_for
-from .screen import BranchStart, Screen
-from .selection import finish_selection, radius_proven_above, solve_radius_stage
+                      SelectionProblem)
+from .clearance import free_end_trims, trim_free_ends, walls_for
+from .screen import BranchBound, BranchStart, PreScreen, Screen
+from .selection import finish_selection, radius_proven_above, solve_radius_stage, start_and_bound
 from .solvers import HIGHS_MAX_NODES
 from ..data.board import NUM_RX, NUM_TX
 from ..geometry.thin_walls import ThinWalls
-from ..data.types import (CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveEnd, CurveSet, Layout, Mesh,
+from ..data.types import (CLEARANCE_MM, PAD_RADIUS_MM, TRACE_WIDTH_MM, Crossings, CurveSet, Layout, Mesh,
                           SurfaceRegions)
 from .metrics import layout_metrics
 from .pads import PAD_TIME_LIMIT_S, PadResult, place_pads, sparseness
-from .samples import HeatGeodesics, SurfaceSamples, geodesics_for
+from .samples import SurfaceSamples, geodesics_for
 
 log = logging.getLogger(__name__)
 
@@ -134,58 +139,6 @@ def subset_curves(curves: CurveSet, ids: np.ndarray) -> CurveSet:
         angle=curves.angle,
         family=curves.family,
         lane_parent=None if curves.lane_parent is None else curves.lane_parent[ids],
-    )
-
-
-def _usable(curves: CurveSet, require_base_end: bool) -> np.ndarray:
-    if not require_base_end:
-        return np.ones(curves.count, dtype=bool)
-    return curves.end_reason == int(CurveEnd.BASE)
-
-
-def selection_problem(
-    geo: HeatGeodesics,
-    samples: SurfaceSamples,
-    tx: CurveSet,
-    rx: CurveSet,
-    tx_rx: Crossings,
-    tx_tx: Crossings,
-    rx_rx: Crossings,
-    require_base_end: bool,
-    clearance_bound_mm: float | None = None,
-    tx_free_start_mm: float = 0.0,
-    rx_free_end_mm: float = 0.0,
-    trace_width_mm: float = TRACE_WIDTH_MM,
-    walls: ThinWalls | None = None,
-) -> SelectionProblem:
-    """Phase-1 input from the curve families: single crossings, C1/C2 conflicts (a Tx/Rx pair laid
-    along each other, closer than a trace width over more than ``PARALLEL_RUN_MM``, conflicts like a
-    pair crossing twice), sample distances;
-    with ``clearance_bound_mm``, same-layer pairs closer than it in the sensing region conflict too
-    (not counting the first ``tx_free_start_mm`` of each Tx curve and the last ``rx_free_end_mm`` of
-    each Rx curve, which the selected ones may lose, and pairs close only across one of the ``walls``)."""
-    rows, multi = candidate_crossings(tx_rx, tx.count, rx.count)
-    multi = np.unique(np.concatenate([multi, parallel_pairs(tx, rx, samples.sensing_faces, trace_width_mm, PARALLEL_RUN_MM)]), axis=0)
-    tx_conflicts, rx_conflicts = same_layer_conflicts(tx_tx), same_layer_conflicts(rx_rx)
-    clearance_pairs = (0, 0)
-    if clearance_bound_mm is not None:
-        tx_close = close_pairs(tx, samples.sensing_faces, clearance_bound_mm, tx_free_start_mm, "start", walls=walls)
-        rx_close = close_pairs(rx, samples.sensing_faces, clearance_bound_mm, rx_free_end_mm, "end", walls=walls)
-        merged_tx, merged_rx = merge_pairs(tx_conflicts, tx_close), merge_pairs(rx_conflicts, rx_close)
-        clearance_pairs = (len(merged_tx) - len(tx_conflicts), len(merged_rx) - len(rx_conflicts))
-        tx_conflicts, rx_conflicts = merged_tx, merged_rx
-    return SelectionProblem(
-        tx_usable=_usable(tx, require_base_end),
-        rx_usable=_usable(rx, require_base_end),
-        cross_tx=tx_rx.curve_a[rows].astype(np.int64),
-        cross_rx=tx_rx.curve_b[rows].astype(np.int64),
-        cross_rows=rows,
-        distance=geo.evaluate(samples.distances, tx_rx.faces[rows], tx_rx.bary[rows]),
-        multi_pairs=multi,
-        tx_conflicts=tx_conflicts,
-        rx_conflicts=rx_conflicts,
-        clearance_pairs=clearance_pairs,
-        tx_lanes=None if tx.lane_parent is None else tx.lane_parent >= 0,
     )
 
 
@@ -291,34 +244,45 @@ def _failed(family: str, angle_deg: float, base: dict, message: str, **report) -
     return AngleLayout(family, angle_deg, False, message, None, {**base, "feasible": False, "message": message, **report})
 
 
-@node(
-    "layout.coverage",
-    params=OptimizeParams,
-    inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx"),
-    outputs=("branch",),
-)
-def coverage(
-    params: OptimizeParams,
-    mesh: Mesh,
-    samples: SurfaceSamples,
-    tx: CurveSet,
-    rx: CurveSet,
-    tx_rx: Crossings,
-    tx_tx: Crossings,
-    rx_rx: Crossings,
-) -> BranchStart:
-    """Phase 1's problem and radius stage for one branch (see the module docstring); ``layout.finish``
-    completes it with the same parameters."""
+@node("layout.bound", params=OptimizeParams, inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx"),
+      outputs=("bound",))
+def bound(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+          tx_tx: Crossings, rx_rx: Crossings) -> BranchBound:
+    """One branch's phase-1 problem, its heuristic start's radius and a lower bound on its layouts' (what
+    ``layout.prescreen`` compares); ``layout.coverage`` and ``layout.finish`` solve it with these parameters."""
     angle_deg = float(np.rad2deg(rx.angle))
     problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
     base = _branch_report(params, angle_deg, tx, rx, problem)
     try:
-        stage = solve_radius_stage(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
-                                   params.time_limit_s, params.seed, params.workers, params.max_model_memberships,
-                                   params.secondary_power, params.solver, params.highs_max_nodes)
+        start, radius, low = start_and_bound(problem, params.n_drive, params.n_sense, params.secondary, params.resolution_mm,
+                                             params.secondary_power, params.time_limit_s, params.seed, params.workers)
     except UserError as exc:
-        return BranchStart(params.model_dump(), rx.family, angle_deg, base, None, str(exc))
-    return BranchStart(params.model_dump(), rx.family, angle_deg, base, stage, "ok")
+        return BranchBound(params.model_dump(), rx.family, angle_deg, base, None, None, None, str(exc))
+    return BranchBound(params.model_dump(), rx.family, angle_deg, base, start, radius, low, "ok")
+
+
+@node("layout.coverage", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "bound", "prescreen"),
+      outputs=("branch",))
+def coverage(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
+             tx_tx: Crossings, rx_rx: Crossings, bound: BranchBound, prescreen: PreScreen) -> BranchStart:
+    """Phase 1's radius stage for a branch the ``prescreen`` keeps (see the module docstring), with the
+    parameters of its ``layout.bound``; ``layout.finish`` completes it with them too."""
+    p = OptimizeParams.model_validate(bound.params)
+    start = functools.partial(BranchStart, bound.params, bound.family, bound.angle_deg, bound.base)
+    if bound.lower_bound_mm is None:
+        return start(None, bound.message)
+    if not prescreen.keeps(bound):
+        return start(None, f"screened out before its radius stage: its coverage radius is at least "
+                           f"{bound.lower_bound_mm:.1f} mm, above {prescreen.threshold_mm:.1f} mm",
+                     prescreened_bound_mm=bound.lower_bound_mm)
+    problem = branch_problem(p, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+    try:
+        stage = solve_radius_stage(problem, p.n_drive, p.n_sense, p.secondary, p.resolution_mm, p.time_limit_s, p.seed,
+                                   p.workers, p.max_model_memberships, p.secondary_power, p.solver, p.highs_max_nodes,
+                                   start=bound.start)
+    except UserError as exc:
+        return start(None, str(exc))
+    return start(stage, "ok")
 
 
 @node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "branch", "screen", "regions"),
@@ -333,9 +297,12 @@ def finish(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet
 def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings, tx_tx: Crossings,
                   rx_rx: Crossings, branch: BranchStart, screen: Screen | None) -> AngleLayout:
     """Phase 1's power-mean stage + phase 2 (pads) + metrics for a branch the ``screen`` keeps (all
-    when None), with the parameters of its ``layout.coverage``; a branch it drops is reported as
+    when None), with the parameters of its ``layout.bound``; a branch it drops is reported as
     screened out with its radius stage."""
     params, angle_deg, base = OptimizeParams.model_validate(branch.params), branch.angle_deg, branch.base
+    if branch.prescreened_bound_mm is not None:
+        return _failed(branch.family, angle_deg, base, branch.message, screened=True,
+                       coverage_radius_lower_bound_mm=branch.prescreened_bound_mm)
     if branch.stage is None:
         return _failed(branch.family, angle_deg, base, branch.message)
     if screen is not None and not screen.keeps(branch):
@@ -343,7 +310,7 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
                    f"{screen.threshold_mm:.1f} mm")
         return _failed(branch.family, angle_deg, base, message, screened=True,
                        coverage_radius_lower_bound_mm=branch.stage.lower_bound_mm, phase1=branch.stage.report)
-    problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.coverage's, rebuilt: not cached twice
+    problem = branch_problem(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)  # as layout.bound's, rebuilt: not cached
     if screen is not None and screen.needs_proof(branch) and radius_proven_above(problem, branch.stage, screen.threshold_mm):
         message = f"screened out: no selection of it covers the surface within {screen.threshold_mm:.1f} mm (proven)"
         return _failed(branch.family, angle_deg, base, message, screened=True,
@@ -393,6 +360,9 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
 
 def optimize(params: OptimizeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSet, tx_rx: Crossings,
              tx_tx: Crossings, rx_rx: Crossings) -> AngleLayout:
-    """One branch start to end, unscreened: ``layout.coverage`` then ``layout.finish`` (plain functions)."""
-    branch = coverage(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
+    """One branch start to end, unscreened: ``layout.bound``, ``layout.coverage`` and ``layout.finish`` (plain
+    functions)."""
+    every = PreScreen(math.inf, math.inf, {}, "")
+    branch = coverage(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx,
+                      bound(params, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx), every)
     return finish_branch(mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch, None)
