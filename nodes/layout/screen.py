@@ -107,9 +107,11 @@ class ScreenParams(NodeParams):
         1.0, ge=0, description="coverage radii within this of the best count as equal (as best.radius_tolerance_mm)"
     )
     margin_mm: float | None = Field(
-        1.0, ge=0, description="finish also the branches whose lower bound is within this beyond (mm); null: finish every branch"
+        1.0, ge=0, description="solve and finish also the branches whose lower bound is within this beyond (mm); null: "
+        "solve and finish every branch"
     )
-    keep_at_least: int = Field(2, ge=1, description="finish at least this many branches, those with the smallest stage-1 radii")
+    keep_at_least: int = Field(2, ge=1, description="solve at least this many branches, those with the smallest starts, "
+                               "and finish as many, those with the smallest stage-1 radii")
 
 
 def _cut(params: ScreenParams, radii: list[float]) -> tuple[float, float] | None:

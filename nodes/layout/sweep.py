@@ -5,9 +5,10 @@ mapped; between them the prescreen and the screen, :mod:`retrotouch.nodes.layout
 A branch is one Rx candidate family (one initial angle). ``layout.bound`` sets up its phase-1 problem
 (:mod:`retrotouch.nodes.layout.candidates`), its heuristic start and a lower bound;
 ``layout.coverage`` solves the radius stage (:mod:`retrotouch.nodes.layout.selection`) and
-``layout.finish``, with the same parameters, the power-mean stage, geodesic distances among the active crossings, phase 2
-pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation ladder, and the metrics
-(:mod:`retrotouch.nodes.layout.metrics`, :mod:`retrotouch.nodes.layout.clearance`). With
+``layout.finish``, with the same parameters, the power-mean stage, geodesic distances among the
+active crossings, phase 2 pad placement (:mod:`retrotouch.nodes.layout.pads`) with the relaxation
+ladder, and the metrics (:mod:`retrotouch.nodes.layout.metrics`,
+:mod:`retrotouch.nodes.layout.clearance`). With
 ``enforce_clearance`` (default) two curves of one layer whose centre lines come closer than
 ``trace_width_mm + clearance_mm`` in the sensing region are a phase-1 conflict, like two that cross;
 Tx curves may come closer within the first ``tx_free_start_mm`` of their free start near the pole,
