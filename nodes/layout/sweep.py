@@ -269,21 +269,21 @@ def coverage(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveS
     """Phase 1's radius stage for a branch the ``prescreen`` keeps (see the module docstring), with the
     parameters of its ``layout.bound``; ``layout.finish`` completes it with them too."""
     p = OptimizeParams.model_validate(bound.params)
-    start = functools.partial(BranchStart, bound.params, bound.family, bound.angle_deg, bound.base)
+    branch_start = functools.partial(BranchStart, bound.params, bound.family, bound.angle_deg, bound.base)
     if bound.lower_bound_mm is None:
-        return start(None, bound.message)
+        return branch_start(None, bound.message)
     if not prescreen.keeps(bound):
-        return start(None, f"screened out before its radius stage: its coverage radius is at least "
-                           f"{bound.lower_bound_mm:.1f} mm, above {prescreen.threshold_mm:.1f} mm",
-                     prescreened_bound_mm=bound.lower_bound_mm)
+        return branch_start(None, f"screened out before its radius stage: its coverage radius is at least "
+                                  f"{bound.lower_bound_mm:.1f} mm, above {prescreen.threshold_mm:.1f} mm",
+                            prescreened_bound_mm=bound.lower_bound_mm)
     problem = branch_problem(p, mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx)
     try:
         stage = solve_radius_stage(problem, p.n_drive, p.n_sense, p.secondary, p.resolution_mm, p.time_limit_s, p.seed,
                                    p.workers, p.max_model_memberships, p.secondary_power, p.solver, p.highs_max_nodes,
                                    start=bound.start)
     except UserError as exc:
-        return start(None, str(exc))
-    return start(stage, "ok")
+        return branch_start(None, str(exc))
+    return branch_start(stage, "ok")
 
 
 @node("layout.finish", inputs=("mesh", "samples", "tx", "rx", "tx_rx", "tx_tx", "rx_rx", "branch", "screen", "regions"),
