@@ -255,8 +255,9 @@ def main(application: App, argv: list[str] | None = None) -> None:
     ``argv`` None means this process's own command line: then SIGINT/SIGTERM stay ignored once the
     command is done (the process is exiting); otherwise the previous handlers are put back.
     """
-    previous = interrupts.install()
+    previous: dict[int, object] = {}
     try:
+        previous = interrupts.install()  # a signal may arrive during it: the caller's handler raises then
         _main(application, argv)
     except interrupts.Interrupted as exc:  # between the handler's installation and _main's own handling
         interrupts.exit_interrupted(application.name, exc)

@@ -35,10 +35,11 @@ def main(argv: list[str] | None = None) -> None:
     """``retrotouch ...``: the engine's command line with the sensing and projection commands."""
     from ..graph import interrupts
 
-    if argv is None:  # this process's own command line: Ctrl-C from the first moment is one clean line
-        interrupts.install()
     try:
+        if argv is None:  # this process's own command line: Ctrl-C from the first moment is one clean line
+            interrupts.install()
         from ..graph.cli import main as engine_main
-    except interrupts.Interrupted as exc:
+
+        engine_main(APP, argv)
+    except interrupts.Interrupted as exc:  # before the engine's own handling is in place
         interrupts.exit_interrupted(APP.name, exc)
-    engine_main(APP, argv)
