@@ -13,7 +13,9 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, resolve_mesh_path, scale_mesh
 from retrotouch.nodes.geometry.triangles import signed_volume
-from retrotouch.nodes.mesh.repair import RemeshParams, RepairParams, decimate_dense, remesh, repair_mesh
+from retrotouch.nodes.mesh.repair import (
+    RemeshParams, RepairParams, decimate_dense, flat_faces, remesh, remove_flat_faces, repair_mesh,
+)
 from retrotouch.nodes.mesh.topology import CheckTopologyParams, check_topology, keeps_closed_topology, topology_report
 
 REPO = Path(__file__).resolve().parents[1]
@@ -289,12 +291,28 @@ def test_a_cloud_denser_than_the_poisson_grid_is_thinned_first() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
     points = np.asarray(trimesh.sample.sample_surface_even(sphere, 60000, seed=0)[0])
     assert len(points) > POINTS_PER_DEPTH_CELL * 4**5
-    vertices, faces, stride = reconstruct_from_points(points, 5, "cloud")
-    assert stride == -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**5)) > 1
+    vertices, faces, stride, strays = reconstruct_from_points(points, 5, "cloud")
+    assert stride == -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**5)) > 1 and strays == 0
     report = topology_report(vertices, faces)
     assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
     radius = np.linalg.norm(vertices, axis=1)
     assert np.abs(radius - 40.0).max() < 1.0  # a 2.5 mm grid cell: the surface stays on the sphere
+
+
+def test_a_stray_point_far_from_the_scan_is_dropped_before_the_reconstruction(tmp_path: Path) -> None:
+    from retrotouch.nodes.mesh.reconstruct import reconstruct_from_points
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    points = np.asarray(trimesh.sample.sample_surface_even(sphere, 6000, seed=0)[0])
+    strays = np.array([[500.0, 0.0, 0.0], [0.0, -300.0, 200.0]])  # a reflection, a point of the room
+    clean_vertices, clean_faces, _, none = reconstruct_from_points(points, 6, "cloud")
+    vertices, faces, _, dropped = reconstruct_from_points(np.vstack([points, strays]), 6, "cloud")
+    assert (none, dropped) == (0, 2)
+    np.testing.assert_array_equal(faces, clean_faces)  # the octree spans the object alone: same resolution
+    np.testing.assert_allclose(vertices, clean_vertices)
+    path = tmp_path / "scan.xyz"
+    np.savetxt(path, np.vstack([points, strays]))
+    assert ", 2 stray point(s) far from the rest dropped" in load_mesh(LoadParams(path=str(path), poisson_depth=6)).repairs[0]
 
 
 def test_decimation_keeps_a_genus_one_scan_genus_one() -> None:
@@ -427,6 +445,46 @@ def test_noisy_dense_scan_is_decimated_and_remeshed_to_its_target() -> None:
     assert abs(len(out.vertices) - 1000) / 1000 <= 0.10, len(out.vertices)
     assert out.repairs[0].startswith("decimated a dense input from 81,920 to 4,000 faces")
     assert check_topology(CheckTopologyParams(), out)["report"]["genus"] == 0
+
+
+@pytest.mark.parametrize("seed", [1, 2, 6])
+def test_stray_facets_sharing_tips_are_repaired_away_round_by_round(seed: int) -> None:
+    """Facets hanging off a sphere's edges, several sharing a tip outside it (a scan's stray facets):
+    removing the faces of the non-manifold edges leaves non-manifold vertices, and splitting those
+    leaves new ones for a round or two; repair goes on until none is left, and one closed genus-0
+    surface remains (one round left non-manifold vertices, which the topology check refused)."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    rng = np.random.default_rng(seed)
+    vertices = list(sphere.vertices)
+    tips = []
+    for _ in range(rng.integers(1, 4)):
+        tips.append(len(vertices))
+        vertices.append(sphere.vertices[rng.integers(len(sphere.vertices))] * 1.5)
+    facets = [[a, b, tips[rng.integers(len(tips))] if rng.random() < 0.7 else rng.integers(len(sphere.vertices))]
+              for a, b in sphere.edges_unique[rng.choice(len(sphere.edges_unique), rng.integers(2, 10), replace=False)]]
+    mesh = Mesh(np.array(vertices), np.vstack([sphere.faces, facets]).astype(np.int64), "facets")
+    assert topology_report(mesh.vertices, mesh.faces)["non_manifold_edges"] > 0
+    repaired = repair_mesh(RepairParams(), mesh)
+    report = check_topology(CheckTopologyParams(), repaired)["report"]
+    assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
+
+
+def test_remeshing_flips_away_a_face_whose_vertex_lies_on_its_opposite_edge() -> None:
+    """A closed mesh with one vertex moved onto the edge opposite it (three corners in a line, as the
+    remesher can leave at a crease): the topology check refuses its zero-area face in one line, and
+    the edge flip that mesh.remesh applies removes it without touching a vertex or the topology."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    vertices, faces = np.array(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    a, b, c = faces[0]
+    vertices[c] = 0.5 * (vertices[a] + vertices[b])
+    with pytest.raises(UserError, match=r"^flat: 1 faces of zero area: remesh to another vertex count"):
+        check_topology(CheckTopologyParams(), Mesh(vertices, faces, "flat"))
+    flipped_vertices, flipped_faces, removed = remove_flat_faces(vertices, faces)
+    assert removed >= 1 and not flat_faces(flipped_vertices, flipped_faces).any()
+    np.testing.assert_array_equal(flipped_vertices, vertices)
+    assert len(flipped_faces) == len(faces) and np.count_nonzero(np.any(flipped_faces != faces, axis=1)) == 2
+    report = check_topology(CheckTopologyParams(), Mesh(flipped_vertices, flipped_faces, "flipped"))["report"]
+    assert (report["genus"], report["zero_area_faces"]) == (0, 0)
 
 
 def test_a_pinch_vertex_split_by_repair_stays_split_after_remeshing() -> None:

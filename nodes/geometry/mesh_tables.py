@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...graph.errors import UserError
+from .triangles import zero_area
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,7 +115,7 @@ def build_tables(vertices: np.ndarray, faces: np.ndarray) -> MeshTables:
     p0, p1, p2 = (vertices[faces[:, i]] for i in range(3))
     cross = np.cross(p1 - p0, p2 - p0)
     double_area = np.linalg.norm(cross, axis=1)
-    if np.any(double_area <= 1e-14 * max(1.0, float(np.max(double_area, initial=0.0)))):
+    if np.any(zero_area(double_area)):
         raise UserError("mesh has degenerate (zero-area) faces: run mesh.repair or mesh.remesh first")
     normals = cross / double_area[:, None]
     e1 = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1)[:, None]

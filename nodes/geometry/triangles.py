@@ -24,6 +24,12 @@ def areas(triangles: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(cross_products(triangles), axis=1)
 
 
+def zero_area(double_areas: np.ndarray) -> np.ndarray:
+    """Mask of the degenerate triangles among ``(m,)`` doubled areas (mm^2): at most 1e-14 of the
+    largest (or of 1 mm^2), where the geometry's divisions by the area stop being meaningful."""
+    return double_areas <= 1e-14 * max(1.0, float(np.max(double_areas, initial=0.0)))
+
+
 def normals(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``((m, 3) unit outward normals, (m,) areas)`` of ``(m, 3, 3)`` triangles; a degenerate
     triangle gets the zero vector."""

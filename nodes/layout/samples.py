@@ -28,7 +28,7 @@ from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
 from ..geometry.sparse_spd import cholesky, solve
-from ..geometry.triangles import areas, corners, cross_products
+from ..geometry.triangles import areas, corners, cross_products, zero_area
 
 _COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
 
@@ -44,7 +44,7 @@ class HeatGeodesics:
         n, m = len(V), len(F)
         normal2 = cross_products(corners(V, F))  # length = 2 * area
         double_area = np.linalg.norm(normal2, axis=1)
-        if np.any(double_area <= 1e-14 * max(1.0, double_area.max())):
+        if np.any(zero_area(double_area)):
             raise UserError("mesh has degenerate (zero-area) faces: run mesh.repair before the layout")
         unit_n = normal2 / double_area[:, None]
         area = 0.5 * double_area

@@ -114,10 +114,11 @@ def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.n
         if len(vertices) == 0:
             raise UserError(f"mesh file {path} contains no triangles: {fix}")
         point_count = len(vertices)
-        vertices, faces, stride = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
+        vertices, faces, stride, strays = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
         thinned = f", one in {stride} kept" if stride > 1 else ""
+        dropped = f", {strays:,} stray point(s) far from the rest dropped" if strays else ""
         repairs = (
-            f"reconstructed a closed surface from {point_count:,} points{thinned} "
+            f"reconstructed a closed surface from {point_count:,} points{thinned}{dropped} "
             f"(screened Poisson, depth {poisson_depth}): {len(faces):,} faces",
         )
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces), repairs

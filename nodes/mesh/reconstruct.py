@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pymeshlab
+from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
 
@@ -12,18 +13,31 @@ MIN_POINTS = 100
 """Fewer points than this cannot describe a surface."""
 NORMAL_NEIGHBOURS = 12
 """Neighbours per point for the normal estimate."""
+STRAY_SPACING_FACTOR = 10.0
+"""A point whose mean distance to its ``NORMAL_NEIGHBOURS`` nearest neighbours is more than this many
+times the cloud's median is a stray (a reflection, dust, a point of the room): dropped before the
+reconstruction, whose octree would otherwise span it and lose resolution on the object."""
 POINTS_PER_DEPTH_CELL = 24
 """A cloud keeps at most ``POINTS_PER_DEPTH_CELL * 4**depth`` points: about four per cell of the
 octree's finest level that a closed surface meets (some ``6 * 4**depth``). More points add nothing
 the grid can resolve, and the normal estimate's time grows with them."""
 
 
-def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[np.ndarray, np.ndarray, int]:
-    """``(vertices, faces, stride)`` of the screened Poisson surface through ``points`` (n, 3) read
-    from the file ``name`` (for messages).
+def stray_points(points: np.ndarray) -> np.ndarray:
+    """Mask of the points (n, 3) farther from their neighbours than :data:`STRAY_SPACING_FACTOR` times
+    the cloud's median spacing (mean distance to the ``NORMAL_NEIGHBOURS`` nearest)."""
+    neighbours = min(NORMAL_NEIGHBOURS, len(points) - 1)
+    distances, _ = cKDTree(points).query(points, k=neighbours + 1)
+    spacing = distances[:, 1:].mean(axis=1)
+    return spacing > STRAY_SPACING_FACTOR * np.median(spacing)
+
+
+def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """``(vertices, faces, stride, strays)`` of the screened Poisson surface through ``points`` (n, 3)
+    read from the file ``name`` (for messages).
 
     A cloud denser than ``POINTS_PER_DEPTH_CELL * 4**depth`` is thinned to every ``stride``-th point
-    (1: all of them). Normals are estimated from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the
+    (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Normals are estimated from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the
     octree depth (grid of ``2**depth`` cells along the longest side). One thread: deterministic, and
     faster on a loaded machine than many.
     """
@@ -33,8 +47,11 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
             f"least {MIN_POINTS} points to be reconstructed, export the scan with more points or as a mesh"
         )
     stride = -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**depth))
+    kept = points[::stride]
+    stray = stray_points(kept)
+    kept = kept[~stray]
     meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points[::stride], dtype=np.float64)))
+    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(kept, dtype=np.float64)))
     meshset.compute_normal_for_point_clouds(k=NORMAL_NEIGHBOURS, smoothiter=2)
     meshset.generate_surface_reconstruction_screened_poisson(depth=depth, threads=1)
     current = meshset.current_mesh()
@@ -45,4 +62,4 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
             f"screened Poisson found no surface in the {len(points)} points of {name}: the points do not sample a "
             "closed object; export the scan as a mesh"
         )
-    return vertices, faces, stride
+    return vertices, faces, stride, int(np.count_nonzero(stray))

@@ -43,6 +43,12 @@ MAX_REMESH_VERTICES = 1_000_000
 SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
+NON_MANIFOLD_ROUNDS = 4
+"""mesh.repair: rounds of non-manifold edge and vertex repair before it gives up."""
+FLAT_FACE_RATIO = 100.0
+"""mesh.remesh: a face whose longest edge is more than this many times its height is nearly flat (the
+remesher can leave three vertices in a line at a crease; a regular remesh stays below 30); an edge
+flip removes it."""
 
 
 def keep_largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str | None]:
@@ -118,14 +124,23 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
     measures = meshset.get_topological_measures()  # a filter costs seconds on a dense scan: only the needed ones run
     if measures["non_two_manifold_edges"] or measures["non_two_manifold_vertices"]:
         method = "Remove Faces" if params.non_manifold_edges == "remove_faces" else "Split Vertices"
-        meshset.meshing_repair_non_manifold_edges(method=method)
-        meshset.meshing_repair_non_manifold_vertices()
-        meshset.meshing_remove_unreferenced_vertices()
+        for _ in range(NON_MANIFOLD_ROUNDS):  # a round's removals and splits can leave new non-manifold vertices
+            meshset.meshing_repair_non_manifold_edges(method=method)
+            meshset.meshing_repair_non_manifold_vertices()
+            meshset.meshing_remove_unreferenced_vertices()
+            measures = meshset.get_topological_measures()
+            if not (measures["non_two_manifold_edges"] or measures["non_two_manifold_vertices"]):
+                break
+        else:
+            raise UserError(
+                f"{measures['non_two_manifold_edges']:,} non-manifold edges and {measures['non_two_manifold_vertices']:,} "
+                f"non-manifold vertices remain after {NON_MANIFOLD_ROUNDS} rounds of repair: make the surface "
+                "manifold in a mesh editor (e.g. MeshLab's Cleaning and Repairing filters)"
+            )
         repaired = counted(meshset)
         if repaired != after:
             done.append(f"repaired non-manifold edges/vertices (vertices {after[0]:,} -> {repaired[0]:,}, "
                         f"faces {after[1]:,} -> {repaired[1]:,})")
-        measures = meshset.get_topological_measures()
     meshset.meshing_re_orient_faces_coherently()
     if params.close_holes and measures["boundary_edges"]:
         holes = measures["number_holes"]
@@ -276,6 +291,30 @@ def remesh_to_count(
     return got_vertices, got_faces, note
 
 
+def flat_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Mask of the faces whose longest edge is more than :data:`FLAT_FACE_RATIO` times their height."""
+    points = corners(vertices, faces)
+    longest = np.max(np.linalg.norm(points - np.roll(points, 1, axis=1), axis=2), axis=1)
+    double_area = np.linalg.norm(np.cross(points[:, 1] - points[:, 0], points[:, 2] - points[:, 0]), axis=1)
+    return longest * longest > FLAT_FACE_RATIO * double_area
+
+
+def remove_flat_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(vertices, faces, count)``: the :func:`flat_faces` that pymeshlab's edge flips remove (a vertex
+    lying on its face's opposite edge) removed, and how many; the mesh unchanged when it has none, or
+    when the flips would change its topology. Flat faces left (two vertices at one point) are no
+    error here: the topology check refuses those of zero area."""
+    count = int(np.count_nonzero(flat_faces(vertices, faces)))
+    if not count:
+        return vertices, faces, 0
+    meshset = to_meshset(vertices, faces)
+    meshset.meshing_remove_t_vertices(method="Edge Flip", threshold=FLAT_FACE_RATIO, repeat=True)
+    flipped_vertices, flipped_faces = from_meshset(meshset)
+    if not keeps_closed_topology(vertices, faces, flipped_vertices, flipped_faces):
+        return vertices, faces, 0
+    return flipped_vertices, flipped_faces, count - int(np.count_nonzero(flat_faces(flipped_vertices, flipped_faces)))
+
+
 @node("mesh.remesh", params=RemeshParams, inputs=("mesh",), outputs=("mesh",))
 def remesh(params: RemeshParams, mesh: Mesh) -> Mesh:
     """Isotropic remeshing to ``target_edge_mm``, or to about ``target_vertices`` vertices (a dense
@@ -306,6 +345,9 @@ def remesh(params: RemeshParams, mesh: Mesh) -> Mesh:
                     f"({100 * miss:.0f}% off)")
             log.warning("mesh.remesh: %s", line)
             done.append(line)
+    vertices, faces, flat = remove_flat_faces(vertices, faces)
+    if flat:
+        done.append(f"removed {flat:,} nearly flat face(s) the remesher left, by edge flips")
     if signed_volume(vertices, faces) * signed_volume(mesh.vertices, mesh.faces) < 0.0:
         faces = np.ascontiguousarray(faces[:, ::-1])
     return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))

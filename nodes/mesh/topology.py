@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.triangles import areas, corners, signed_volume
+from ..geometry.triangles import areas, corners, cross_products, signed_volume, zero_area
 from .meshset import face_components, to_meshset
 
 MIN_MEAN_THICKNESS_MM = 0.01
@@ -62,6 +62,7 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "non_manifold_edges": int(np.count_nonzero(edge_count > 2)),
         "non_manifold_vertices": int(measures["non_two_manifold_vertices"]),
         "inconsistent_edges": int(np.count_nonzero(directed_count > 1)),
+        "zero_area_faces": int(np.count_nonzero(zero_area(np.linalg.norm(cross_products(corners(vertices, faces)), axis=1)))),
         "euler_characteristic": int(chi),
         "genus": int((2 * components - chi - holes) // 2),
         "signed_volume_mm3": volume,
@@ -122,6 +123,11 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
         )
     elif report["signed_volume_mm3"] < 0 and not report["boundary_edges"]:
         problems.append("faces point inward (negative signed volume): add mesh.repair before this node")
+    if report["zero_area_faces"]:
+        problems.append(
+            f"{report['zero_area_faces']} faces of zero area: remesh to another vertex count (-S vertices=...), "
+            "or collapse them in a mesh editor"
+        )
     if not problems and report["mean_thickness_mm"] < MIN_MEAN_THICKNESS_MM:
         problems.append(
             f"the surface encloses no volume (mean thickness {report['mean_thickness_mm']:.2g} mm): it is a "
