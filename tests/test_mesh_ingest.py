@@ -469,6 +469,19 @@ def test_stray_facets_sharing_tips_are_repaired_away_round_by_round(seed: int) -
     assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
 
 
+def test_non_manifold_vertices_repair_cannot_remove_are_named_in_one_line() -> None:
+    """Twenty facets hanging off a sphere's edges, all sharing one tip: every round of repair leaves
+    one non-manifold vertex, and repair says so after its last round instead of failing later."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    rng = np.random.default_rng(0)
+    tip = len(sphere.vertices)
+    edges = sphere.edges_unique[rng.choice(len(sphere.edges_unique), 20, replace=False)]
+    facets = np.column_stack([edges, np.full(len(edges), tip)])
+    mesh = Mesh(np.vstack([sphere.vertices, 1.5 * sphere.vertices[:1]]), np.vstack([sphere.faces, facets]), "fan")
+    with pytest.raises(UserError, match=r"^0 non-manifold edges and 1 non-manifold vertices remain after 4 rounds"):
+        repair_mesh(RepairParams(), mesh)
+
+
 def test_remeshing_flips_away_a_face_whose_vertex_lies_on_its_opposite_edge() -> None:
     """A closed mesh with one vertex moved onto the edge opposite it (three corners in a line, as the
     remesher can leave at a crease): the topology check refuses its zero-area face in one line, and

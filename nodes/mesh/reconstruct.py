@@ -37,9 +37,9 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
     read from the file ``name`` (for messages).
 
     A cloud denser than ``POINTS_PER_DEPTH_CELL * 4**depth`` is thinned to every ``stride``-th point
-    (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Normals are estimated from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the
-    octree depth (grid of ``2**depth`` cells along the longest side). One thread: deterministic, and
-    faster on a loaded machine than many.
+    (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Normals are estimated
+    from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the octree depth (grid of ``2**depth`` cells
+    along the longest side). One thread: deterministic, and faster on a loaded machine than many.
     """
     if len(points) < MIN_POINTS:
         raise UserError(

@@ -26,7 +26,7 @@ from pydantic import Field, model_validator
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.triangles import areas, corners, signed_volume
+from ..geometry.triangles import areas, corners, cross_products, signed_volume
 from .meshset import face_components, from_meshset, to_meshset
 from .topology import keeps_closed_topology
 
@@ -295,8 +295,7 @@ def flat_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Mask of the faces whose longest edge is more than :data:`FLAT_FACE_RATIO` times their height."""
     points = corners(vertices, faces)
     longest = np.max(np.linalg.norm(points - np.roll(points, 1, axis=1), axis=2), axis=1)
-    double_area = np.linalg.norm(np.cross(points[:, 1] - points[:, 0], points[:, 2] - points[:, 0]), axis=1)
-    return longest * longest > FLAT_FACE_RATIO * double_area
+    return longest * longest > FLAT_FACE_RATIO * np.linalg.norm(cross_products(points), axis=1)
 
 
 def remove_flat_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
