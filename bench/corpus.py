@@ -1,7 +1,7 @@
 """Corpus benchmark: the default pipeline, with no overrides, on every object a user may bring.
 
 Runs ``retrotouch run pipelines/retrofit.yaml -S mesh=PATH -S diagonal_mm=D -S vertices=N`` (one
-fresh process per mesh, a shared cache folder) on every mesh in ``--meshes`` (default
+fresh process per mesh, a shared cache folder) on every mesh or point cloud in ``--meshes`` (default
 ``../shared/meshes``) and on one generated shape per class of ``tests/shapes.py`` (a plate, a bowl
 with a foot ring, a four-legged figurine, a lying spoon-like object, a bust with a cut base, a box, a
 narrow-necked vase, a point-cloud scan with holes and fragments; written at their natural size).
@@ -38,6 +38,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the generated shapes are test fixtures, shared with the e2e tests
 
 import shapes  # noqa: E402
+
+from retrotouch.nodes.mesh.loading import SUPPORTED_SUFFIXES  # noqa: E402  (every file the pipeline reads)
 
 DEFAULT_DIAGONAL_MM = 170.0
 ERROR_LINE = re.compile(r"error: node (?P<node>[\w.\-]+)(?:\[[^\]]*\])?: (?P<message>.*)")
@@ -108,7 +110,7 @@ def corpus(args: argparse.Namespace, work: Path) -> list[tuple[str, Path, float]
     items = []
     folder = Path(args.meshes)
     if folder.is_dir():
-        for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".obj", ".stl", ".off", ".glb")):
+        for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in SUPPORTED_SUFFIXES):
             items.append((path.stem, path, float(sizes.get(path.stem, DEFAULT_DIAGONAL_MM))))
     if not args.no_shapes:
         for name in shapes.CLASSES:
