@@ -188,6 +188,19 @@ def test_scale_by_units_and_param_validation(bunny: Mesh) -> None:
         scale_mesh(ScaleParams(), bunny)  # unitless numbers kept as mm: too small for a table object
 
 
+def test_a_gltf_scan_kept_at_its_size_is_told_that_gltf_stores_metres(tmp_path: Path) -> None:
+    path = tmp_path / "mug_scan.glb"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(path)  # a 10 cm object, in metres
+    loaded = load_mesh(LoadParams(path=str(path)))
+    with pytest.raises(UserError, match=r"is 0\.173 mm across .* as loaded: .*; glTF stores metres: set units: m, or set"):
+        scale_mesh(ScaleParams(), loaded)
+    assert abs(np.ptp(load_mesh(LoadParams(path=str(path), units="m")).vertices[:, 0]) - 100.0) < 1e-4  # float32 in GLB
+    ply = tmp_path / "mug_scan.ply"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(ply)
+    with pytest.raises(UserError, match=r"as loaded: .*; check the file's units, or set"):  # other formats: no unit
+        scale_mesh(ScaleParams(), load_mesh(LoadParams(path=str(ply))))
+
+
 def test_a_file_in_metres_keeps_its_real_size_through_the_default_pipeline(tmp_path) -> None:
     """``-S units=m -S diagonal_mm=null``: a phone scan in metres arrives at its size in mm."""
     from retrotouch.graph.runner import make_plan

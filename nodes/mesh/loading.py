@@ -37,6 +37,8 @@ OBJECT_DIAGONAL_RANGE_MM = (10.0, 10_000.0)
 above, it is no object a person sets on a table (and the per-object arrays outgrow the machine)."""
 
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".xyz")
+GLTF_SUFFIXES = (".glb", ".gltf")
+"""glTF files, whose numbers are metres by the format's definition (phone scanning apps export them)."""
 
 
 def resolve_mesh_path(path: str) -> Path:
@@ -200,8 +202,12 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
     low, high = OBJECT_DIAGONAL_RANGE_MM
     if not low * (1 - 1e-9) <= diagonal <= high * (1 + 1e-9):
         read_in = f" read in {params.units}" if params.units else " as loaded" if params.keeps_size else ""
+        fix = "check the file's units"
+        in_metres = low <= diagonal * MM_PER_UNIT["m"] <= high
+        if params.keeps_size and in_metres and Path(mesh.source.split(" sha256:")[0]).suffix.lower() in GLTF_SUFFIXES:
+            fix = "glTF stores metres: set units: m"
         raise UserError(
             f"the object is {diagonal:.3g} mm across (bounding-box diagonal){read_in}: the method covers "
-            f"{low:g} to {high:g} mm; check the file's units, or set diagonal_mm to its real size"
+            f"{low:g} to {high:g} mm; {fix}, or set diagonal_mm to its real size"
         )
     return dataclasses.replace(mesh, vertices=vertices)
