@@ -31,6 +31,11 @@ class Mesh:
     source: str  # where it came from (file name or "builtin:bunny"), for reports only
     repairs: tuple[str, ...] = ()  # what ingest changed (reconstruction, fragments, holes, ...), one line each
 
+    @property
+    def source_name(self) -> str:
+        """``source`` without the content hash that ``mesh.load`` appends (``" sha256:<hex>"``)."""
+        return self.source.split(" sha256:")[0]
+
 
 class CurveEnd(IntEnum):
     """Why tracing stopped, per curve."""

@@ -204,7 +204,7 @@ def scale_mesh(params: ScaleParams, mesh: Mesh) -> Mesh:
         read_in = f" read in {params.units}" if params.units else " as loaded" if params.keeps_size else ""
         fix = "check the file's units"
         in_metres = low <= diagonal * MM_PER_UNIT["m"] <= high
-        if params.keeps_size and in_metres and Path(mesh.source.split(" sha256:")[0]).suffix.lower() in GLTF_SUFFIXES:
+        if params.keeps_size and in_metres and Path(mesh.source_name).suffix.lower() in GLTF_SUFFIXES:
             fix = "glTF stores metres: set units: m"
         raise UserError(
             f"the object is {diagonal:.3g} mm across (bounding-box diagonal){read_in}: the method covers "

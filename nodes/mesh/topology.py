@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh
-from ..geometry.triangles import areas, corners, cross_products, signed_volume, zero_area
+from ..geometry.triangles import corners, cross_products, signed_volume, zero_area
 from .meshset import face_components, to_meshset
 
 MIN_MEAN_THICKNESS_MM = 0.01
@@ -51,6 +51,7 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
     measures = to_meshset(vertices, faces).get_topological_measures()
     chi = len(used) - len(edges) + len(faces)
     volume = signed_volume(vertices, faces)
+    double_areas = np.linalg.norm(cross_products(corners(vertices, faces)), axis=1)
     return {
         "vertices": int(len(used)),
         "faces": int(len(faces)),
@@ -62,11 +63,11 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "non_manifold_edges": int(np.count_nonzero(edge_count > 2)),
         "non_manifold_vertices": int(measures["non_two_manifold_vertices"]),
         "inconsistent_edges": int(np.count_nonzero(directed_count > 1)),
-        "zero_area_faces": int(np.count_nonzero(zero_area(np.linalg.norm(cross_products(corners(vertices, faces)), axis=1)))),
+        "zero_area_faces": int(np.count_nonzero(zero_area(double_areas))),
         "euler_characteristic": int(chi),
         "genus": int((2 * components - chi - holes) // 2),
         "signed_volume_mm3": volume,
-        "mean_thickness_mm": 2.0 * abs(volume) / max(float(areas(corners(vertices, faces)).sum()), 1e-300),
+        "mean_thickness_mm": 4.0 * abs(volume) / max(float(double_areas.sum()), 1e-300),
         "flat_extent_mm": flat_extent(vertices[used]),
     }
 
@@ -169,10 +170,10 @@ def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]
     if len(mesh.faces) == 0:
         raise UserError(f"{mesh.source} has no faces: load a triangle mesh")
     if not np.isfinite(mesh.vertices).all():
-        raise UserError(f"{mesh.source.split(' sha256:')[0]} has vertices at NaN or infinite coordinates: "
+        raise UserError(f"{mesh.source_name} has vertices at NaN or infinite coordinates: "
                         "repair the file, or check the scale (units, diagonal_mm)")
     report = topology_report(mesh.vertices, mesh.faces)
     problems = topology_problems(report, params.expected_genus)
     if problems:
-        raise UserError(f"{mesh.source.split(' sha256:')[0]}: " + "; ".join(problems))
+        raise UserError(f"{mesh.source_name}: " + "; ".join(problems))
     return {"mesh": mesh, "report": report}
