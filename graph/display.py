@@ -113,4 +113,5 @@ def run_summary(app_name: str, result: Any) -> dict[str, Any]:
     ran = len(result.ran())
     return {"format": f"{app_name}.run-summary/{SUMMARY_FORMAT_VERSION}", "pipeline": os.path.abspath(result.plan.file),
             "out_dir": result.out_dir, "manifest": os.path.join(result.out_dir, "manifest.json"), "seconds": round(result.seconds, 6),
-            "ran": ran, "cached": len(result.plan.instances) - ran, "repaired": result.repaired, "nodes": nodes}
+            "ran": ran, "cached": len(result.plan.instances) - ran, "fallback": result.fallback, "repaired": result.repaired,
+            "nodes": nodes}

@@ -185,6 +185,7 @@ def _manifest(plan: Any, refs: dict[int, ArtifactRef], files: dict[str, Any], ru
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(created_time())),
         "pipeline": {"path": os.path.abspath(plan.file), "sha256": plan.text_sha256},
         "overrides": plan.overrides,
+        "fallback": run.get("fallback"),
         "scheduler": run["scheduler"],
         "cache_dir": plan.store.root,
         "files": dict(sorted(files.items())),

@@ -11,6 +11,9 @@ Format (see README.md for the full reference)::
       pick:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, cache: recompute}
       both:   {type: some.reduce, inputs: {meshes: ["sweep[*]", "other[*]"]}}   # several fan-ins, in order
       slow:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, priority: 1}  # starts before ready priority-0 tasks
+    fallback:                    # optional: run again with more overrides when a result falls short (.fallback)
+      when: {value: pick.score, above: 0.2}
+      set: {nodes.sweep.map.target_edge_mm: [1, 2, 3, 4]}
 
 Every problem is reported as one line ``file:line:col: message`` (or ``-S PATH=VALUE: message`` for
 an override) through :class:`PipelineError`, a :class:`UserError`.
@@ -32,7 +35,7 @@ from .node import NodeSpec
 
 Path = tuple[str | int, ...]
 NODE_KEYS = ("type", "inputs", "params", "map", "cache", "priority")
-TOP_KEYS = ("params", "nodes")
+TOP_KEYS = ("params", "nodes", "fallback")
 CACHE_MODES = ("default", "recompute", "disable")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 _REF = re.compile(r"^([A-Za-z_][A-Za-z0-9_\-]*)(?:\.([A-Za-z_][A-Za-z0-9_]*))?(\[\*\])?$")
@@ -204,6 +207,7 @@ class Pipeline:
     doc: Document
     nodes: dict[str, NodeDecl]
     overrides: list[str]
+    fallback: Any = None  # a .fallback.Fallback, or None
 
     @property
     def file(self) -> str:
@@ -222,6 +226,7 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
 
     ``registry`` defaults to discovering the node types the file names.
     """
+    from .fallback import declare_fallback
     from .overrides import apply_override
 
     doc = load_document(file)
@@ -237,7 +242,7 @@ def load_pipeline(file: str, overrides: Iterable[str] = (), registry: dict[str, 
         registry = discovery.load(types)
     decls = {name: _declare(doc, name, body, registry) for name, body in raw_nodes.items()}
     _resolve_references(doc, decls)
-    return Pipeline(doc, _toposort(doc, decls), overrides)
+    return Pipeline(doc, _toposort(doc, decls), overrides, declare_fallback(doc, decls))
 
 
 def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec]) -> NodeDecl:

@@ -22,6 +22,7 @@ class RunResult:
     out_dir: str
     seconds: float
     repaired: list[str] = dataclasses.field(default_factory=list)  # damaged cache entries found and recomputed
+    fallback: str | None = None  # what the pipeline's fallback read and did (.fallback), None without one
 
     def ran(self) -> list[str]:
         """Ids (``node`` or ``node[branch]``) of the instances that actually ran."""
@@ -76,7 +77,8 @@ def run_pipeline(
 ) -> RunResult:
     """Plan, run what is missing, write the output folder; see :mod:`.execute`.
 
-    ``on_plan`` sees the plan before anything runs (the CLI prints ``--explain`` there);
+    ``on_plan`` sees the plan before anything runs (the CLI prints ``--explain`` there), and the
+    wider plan too when a ``fallback:`` runs one (:mod:`.fallback`, full runs only);
     ``progress(total)`` returns a context manager yielding an object with ``start(instance id)``
     and ``done(instance id)``. A cache entry found damaged on the way (its sha256 no longer matches)
     is discarded, and the run re-plans and recomputes it (listed in ``RunResult.repaired``).
@@ -94,57 +96,114 @@ def run_pipeline(
     if plan is None:
         plan = make_plan(pipeline, overrides, store.root, targets)
     preflight(out_dir, store)
-    if explain and isinstance(plan, planning.Plan):
-        planning.explain(plan)
-    if on_plan:
-        on_plan(plan)
-    status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans
+
+    def planned(p: Any) -> None:
+        if explain and isinstance(p, planning.Plan):
+            planning.explain(p)
+        if on_plan:
+            on_plan(p)
+
+    planned(plan)
+    status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans and the fallback's two parts
     repaired: list[str] = []
-    for attempt in range(DAMAGED_RETRIES + 1):
-        try:
-            manifest = _execute_and_write(plan, scheduler, out_dir, status, progress)
-            break
-        except CorruptEntry as exc:
-            if attempt == DAMAGED_RETRIES:
-                raise UserError(f"cache {store.root}: entries keep failing their sha256 check ({exc}); check the "
-                                f"disk, or start afresh with `{current().name} cache clear`") from None
-            repaired.append(str(exc))
-            plan = make_plan(pipeline, overrides, store.root, targets)  # the damaged entry is a miss now
+    fallback_note = getattr(plan, "fallback_note", None)
+    if isinstance(plan, planning.Plan) and plan.pipeline.fallback and not targets:
+        plan, fallback_note = _run_fallback(plan, pipeline, store, scheduler, status, progress, repaired)
+        if plan.overrides != overrides:
+            planned(plan)
+    plan, manifest = _repairing(plan, lambda p: make_plan(pipeline, p.overrides, store.root, targets), repaired,
+                                lambda p: _execute_and_write(p, scheduler, out_dir, status, progress, fallback_note))
     if isinstance(plan, planning.Plan) and not targets:  # a partial plan would overwrite the full records
         planning.record_run(plan)
-        snapshot.save(plan, overrides)
+        snapshot.save(plan, overrides, fallback_note)
     for inst in plan.instances:
         if inst.cached is not None:
             plan.store.touch(inst.cached)
     by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
-    return RunResult(plan, by_instance, manifest, os.path.abspath(out_dir), time.perf_counter() - start, repaired)
+    return RunResult(plan, by_instance, manifest, os.path.abspath(out_dir), time.perf_counter() - start, repaired,
+                     fallback_note)
+
+
+def _repairing(plan: Any, replan: Callable[[Any], Any], repaired: list[str], work: Callable[[Any], Any]) -> tuple[Any, Any]:
+    """``(plan, work(plan))``, planning afresh (``replan(plan)``) after each damaged cache entry found."""
+    for attempt in range(DAMAGED_RETRIES + 1):
+        try:
+            return plan, work(plan)
+        except CorruptEntry as exc:
+            if attempt == DAMAGED_RETRIES:
+                raise UserError(f"cache {plan.store.root}: entries keep failing their sha256 check ({exc}); check the "
+                                f"disk, or start afresh with `{current().name} cache clear`") from None
+            repaired.append(str(exc))
+            plan = replan(plan)  # the damaged entry is a miss now
+    raise AssertionError("unreachable")
+
+
+def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: str, status: dict[str, dict[str, Any]],
+                  progress: Callable[[int], Any] | None, repaired: list[str]) -> tuple[planning.Plan, str]:
+    """Run the ``fallback:``'s node and what it needs, read its value, and return the plan to run on
+    (planned afresh, so what just ran is a hit; with the fallback's overrides when the value falls
+    short) and the summary line. The wider plan is checked before anything runs."""
+    fallback = plan.pipeline.fallback
+    wider = plan.overrides + list(fallback.overrides)
+    try:
+        wider_plan = make_plan(pipeline, wider, store.root)
+    except UserError as exc:
+        raise UserError(f"{fallback.set_where}: fallback set: {exc}") from None
+    if [i.key for i in wider_plan.instances] == [i.key for i in plan.instances]:
+        return plan, f"its set changes nothing in this run ({' '.join(fallback.overrides)})"
+    first = planning.restrict(plan, [fallback.node])
+    node = [i for i in first.instances if i.node == fallback.node]
+    if len(node) != 1:
+        raise UserError(f"{fallback.where}: fallback value {fallback.value_name}: node {fallback.node!r} has "
+                        f"{len(node)} branches; name a node with one (a fan-in)")
+    run_id = uuid.uuid4().hex
+    try:
+        first, refs = _repairing(first, lambda p: planning.restrict(make_plan(pipeline, p.overrides, store.root),
+                                                                    [fallback.node]), repaired,
+                                 lambda p: _execute(p, scheduler, run_id, status, progress))
+        node = [i for i in first.instances if i.node == fallback.node][0]
+        value = fallback.read(store.load(refs[id(node)]))
+    finally:
+        store.drop_scratch(run_id)
+    chosen = wider if fallback.falls_short(value) else plan.overrides
+    return make_plan(pipeline, chosen, store.root), fallback.describe(value)
+
+
+def _execute(plan: Any, scheduler: str, run_id: str, status: dict[str, dict[str, Any]],
+             progress: Callable[[int], Any] | None) -> dict[int, Any]:
+    """Run what the plan misses; ``id(instance)`` -> its output's reference, for every instance (those
+    of ``cache: disable`` nodes in the run's scratch area, which the caller drops when done)."""
+    from .execute import execute, task_name
+
+    by_task = {task_name(i): i for i in plan.to_run}
+    bar = progress(len(by_task)) if progress else contextlib.nullcontext(None)
+    with bar as events:
+        def on_done(name: str, result: Any) -> None:
+            inst = by_task[name]
+            status[inst.id] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds,
+                               "note": result.ref.note}
+            if events is not None:
+                events.done(inst.id)
+
+        def on_start(name: str) -> None:
+            if events is not None:
+                events.start(by_task[name].id)
+
+        results = execute(plan, scheduler, run_id, on_done, on_start)
+    refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
+    refs.update({id(by_task[name]): result.ref for name, result in results.items()})
+    return refs
 
 
 def _execute_and_write(plan: Any, scheduler: str, out_dir: str, status: dict[str, dict[str, Any]],
-                       progress: Callable[[int], Any] | None) -> dict[str, Any]:
-    from .execute import execute, task_name
+                       progress: Callable[[int], Any] | None, fallback_note: str | None) -> dict[str, Any]:
     from .outputs import write_outputs
 
-    by_task = {task_name(i): i for i in plan.to_run}
     run_id = uuid.uuid4().hex
-    bar = progress(len(by_task)) if progress else contextlib.nullcontext(None)
     try:
-        with bar as events:
-            def on_done(name: str, result: Any) -> None:
-                inst = by_task[name]
-                status[inst.id] = {"status": "ran" if result.ran else "cached", "seconds": result.seconds,
-                                   "note": result.ref.note}
-                if events is not None:
-                    events.done(inst.id)
-
-            def on_start(name: str) -> None:
-                if events is not None:
-                    events.start(by_task[name].id)
-
-            results = execute(plan, scheduler, run_id, on_done, on_start)
-        refs = {id(i): i.cached for i in plan.instances if i.cached is not None}
-        refs.update({id(by_task[name]): result.ref for name, result in results.items()})
+        refs = _execute(plan, scheduler, run_id, status, progress)
         by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
-        return write_outputs(plan, refs, out_dir, {"status": by_instance, "scheduler": scheduler})
+        return write_outputs(plan, refs, out_dir, {"status": by_instance, "scheduler": scheduler,
+                                                   "fallback": fallback_note})
     finally:
         plan.store.drop_scratch(run_id)

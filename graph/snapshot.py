@@ -93,22 +93,24 @@ class SnapshotPlan:
 
     file: str
     text_sha256: str
-    overrides: list[str]
+    overrides: list[str]  # the run's, the pipeline fallback's included when it ran
     instances: list[SnapshotInstance]
     store: Store
+    fallback_note: str | None = None  # what the fallback read and did when the snapshot was saved
 
     @property
     def to_run(self) -> list[SnapshotInstance]:
         return []
 
 
-def save(plan: Any, overrides: list[str]) -> None:
-    """Remember a fully planned, successfully run plan (see the module docstring)."""
+def save(plan: Any, overrides: list[str], fallback_note: str | None = None) -> None:
+    """Remember a fully planned, successfully run plan under the run's ``overrides`` (see the module
+    docstring); the plan's own overrides may add a pipeline fallback's (``fallback_note`` says why)."""
     fp = fingerprint(plan.file, overrides)
     if fp is None or any(i.decl.cache != "default" for i in plan.instances):
         return
     data = {
-        "file": plan.file, "text_sha256": plan.text_sha256, "overrides": overrides,
+        "file": plan.file, "text_sha256": plan.text_sha256, "overrides": plan.overrides, "fallback": fallback_note,
         "input_files": sorted({p for i in plan.instances for p, _ in i.file_hashes}),
         "instances": [dataclasses.asdict(SnapshotInstance(
             i.node, i.label, i.branch, i.type_name, i.is_sink, i.params_dump, i.key, i.code_version))
@@ -140,4 +142,5 @@ def load(pipeline: str, overrides: list[str], store: Store) -> SnapshotPlan | No
         inst.cached = store.lookup(inst.key)
         if inst.cached is None:
             return None
-    return SnapshotPlan(data["file"], data["text_sha256"], list(overrides), instances, store)
+    return SnapshotPlan(data["file"], data["text_sha256"], list(data["overrides"]), instances, store,
+                        data.get("fallback"))

@@ -1,0 +1,92 @@
+"""A pipeline's ``fallback:``: a second, wider run when the first result falls short, reusing what the
+first part computed; every problem in it found before anything runs, in one line."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from retrotouch.graph.errors import UserError
+from retrotouch.graph.runner import run_pipeline
+
+SWEEP = """\
+params:
+  scales: [1, 2, 3]
+nodes:
+  src:   {type: t.source, map: {scale: "${scales}"}, params: {n: 3}}
+  plus:  {type: t.add, inputs: {x: src}, params: {delta: 10}}
+  tot:   {type: t.sum, inputs: {xs: "plus[*]"}}
+  out:   {type: t.write, inputs: {value: tot}}
+fallback:
+  when: {value: tot, %s}
+  set: {scales: [1, 2, 3, 4]}
+"""
+TOTAL_3 = 3 * (1 + 2 + 3) + 3 * 3 * 10  # sum over scales s of (0 + 1 + 2) * s + 3 * 10
+TOTAL_4 = TOTAL_3 + 3 * 4 + 3 * 10
+
+
+def run(tmp_path: Path, condition: str, overrides=(), text: str = SWEEP, **kw):
+    path = tmp_path / "sweep.yaml"
+    path.write_text(text % condition)
+    return run_pipeline(str(path), list(overrides), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"),
+                        scheduler="sync", **kw)
+
+
+def written(tmp_path: Path) -> float:
+    return json.loads((tmp_path / "out" / "value.json").read_text())
+
+
+def test_a_value_that_falls_short_runs_the_wider_pipeline_computing_only_what_is_new(tmp_path, test_nodes):
+    result = run(tmp_path, f"above: {TOTAL_3 - 1}")
+    assert written(tmp_path) == TOTAL_4
+    assert result.fallback == f"tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]"
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert manifest["overrides"] == ["scales=[1, 2, 3, 4]"] and manifest["fallback"] == result.fallback
+    # the first part's three branches ran once; the wider run added one branch and a new sum
+    sources = [e for e in (tmp_path / "cache" / "objects").rglob("meta.json")
+               if json.loads(e.read_text())["node"].startswith("src[")]
+    assert len(sources) == 4
+    assert sorted(result.ran()) == sorted(["src[scale=1]", "src[scale=2]", "src[scale=3]", "src[scale=4]",
+                                           "plus[scale=1]", "plus[scale=2]", "plus[scale=3]", "plus[scale=4]",
+                                           "tot", "out"])
+    again = run(tmp_path, f"above: {TOTAL_3 - 1}")
+    assert again.ran() == [] and again.fallback == result.fallback and written(tmp_path) == TOTAL_4
+
+
+def test_a_value_within_bounds_runs_the_pipeline_as_it_is(tmp_path, test_nodes):
+    result = run(tmp_path, f"below: {TOTAL_3 - 1}")
+    assert written(tmp_path) == TOTAL_3
+    assert result.fallback == f"tot is {TOTAL_3}, not below {TOTAL_3 - 1}: no second run"
+    assert json.loads((tmp_path / "out" / "manifest.json").read_text())["overrides"] == []
+    assert len(result.ran()) == 3 + 3 + 1 + 1
+
+
+def test_fallback_off_by_override_and_not_for_targets(tmp_path, test_nodes):
+    result = run(tmp_path, f"above: {TOTAL_3 - 1}", ["fallback=null"])
+    assert written(tmp_path) == TOTAL_3 and result.fallback is None
+    targeted = run(tmp_path, f"above: {TOTAL_3 - 1}", targets=["tot"])
+    assert targeted.fallback is None and targeted.ran() == []
+
+
+def test_a_set_already_in_effect_changes_nothing(tmp_path, test_nodes):
+    result = run(tmp_path, "above: 0", ["scales=[1, 2, 3, 4]"])
+    assert written(tmp_path) == TOTAL_4
+    assert result.fallback.startswith("its set changes nothing")
+
+
+@pytest.mark.parametrize("condition, overrides, message", [
+    ("above: 1", ["fallback.when.value=tot.mean"], r"fallback value tot\.mean: tot has no 'mean'"),
+    ("above: 1", ["fallback.when.value=plus"], r"node 'plus' has 3 branches; name a node with one"),
+    ("above: 1", ["fallback.when.value=totl"], r"unknown node 'totl'; did you mean 'tot'\?"),
+    ("above: 1, below: 2", [], r"exactly one of above and below"),
+    ("abov: 1", [], r"fallback\.when: unknown key 'abov'; did you mean 'above'\?"),
+    ("above: one", [], r"fallback\.when\.above must be a number"),
+    ("above: 1", ["fallback.set={scalez: [1]}"], r"fallback set: -S scalez=\[1\]: unknown path 'scalez'; did you mean"),
+    ("above: 1", ["fallback.set={scales: [1, 1]}"], r"fallback set: .*repeats the value 1"),
+])
+def test_problems_are_one_line_before_the_wider_run(tmp_path, test_nodes, condition, overrides, message):
+    with pytest.raises(UserError, match=message) as caught:
+        run(tmp_path, condition, overrides)
+    assert "\n" not in str(caught.value)
+    assert not (tmp_path / "out").exists()
