@@ -76,8 +76,10 @@ def failure(stem: str, stderr: str) -> dict[str, str]:
 
 
 def measured(stem: str, out: Path) -> dict[str, object]:
-    """The row of a successful run: layout metrics, sheet count, pose, base and sensing region."""
+    """The row of a successful run: layout metrics, sheet count, pose, base and sensing region, the
+    chosen layout's Tx pole and whether the pipeline's fallback (a second sweep) ran."""
     metrics = json.loads((out / "metrics.json").read_text())
+    manifest = json.loads((out / "manifest.json").read_text())
     report = json.loads((out / "sheets" / "report.json").read_text())
     sheet_count = report.get("sheet", {}).get("count")
     pose = metrics["pose"]
@@ -89,6 +91,8 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "sensing_percent": round(100 * pose["sensing_area_fraction"], 2),
         "touchable_percent": round(100 * metrics["touchable_share"], 2),
         "rx_family": metrics.get("rx_family"),
+        "tx_pole": pose.get("tx_pole"),
+        "fallback_ran": bool((manifest.get("fallback") or {}).get("ran_again")),
         "cells": metrics.get("cells"),
         "pads": metrics.get("pads"),
         "voronoi_cv": metrics.get("voronoi_cv"),
@@ -170,7 +174,8 @@ def main() -> None:
                 f"{fmt(row.get('coverage_radius_mm'), '7.1f')} {fmt(row.get('uncovered_percent'), '5.1f')} "
                 f"{fmt(row.get('uncovered_percent_sensing'), '5.1f')} "
                 f"{fmt(row.get('phase1_gap'), '6.3f')} "
-                f"{row.get('rx_family') or '-':16s} "
+                f"{row.get('rx_family') or '-':16s} {row.get('tx_pole') or '-':6s} "
+                f"{'yes' if row.get('fallback_ran') else 'no':8s} "
                 f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {seconds:7.1f}",
                 flush=True,
             )

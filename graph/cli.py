@@ -77,7 +77,7 @@ def run(
     for line in display.note_lines(result.plan, result.status):
         print(line)
     if result.fallback:
-        print(f"fallback: {result.fallback}")
+        print(f"fallback: {result.fallback['summary']}")
     print(f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s; outputs in {result.out_dir}")
 
 

@@ -10,7 +10,7 @@ is above (below) the threshold, the pipeline is planned again with ``set`` added
 overrides and that plan runs; otherwise the plan as it was. What the first part computed stays
 cached, so the wider run computes only what ``set`` changes. ``when``'s node must have one branch;
 ``set``'s overrides are checked before anything runs; ``-S fallback=null`` turns the fallback off.
-The run summary and the manifest say what was read and what was done.
+The run summary, ``run --json`` and the manifest say what was read and what was done (:meth:`Fallback.outcome`).
 """
 from __future__ import annotations
 
@@ -63,12 +63,18 @@ class Fallback:
     def falls_short(self, value: float) -> bool:
         return value > self.threshold if self.above else value < self.threshold
 
-    def describe(self, value: float) -> str:
-        """One line: what was read and whether the wider run followed."""
+    def outcome(self, value: float | None) -> dict[str, Any]:
+        """What was read (None: the overrides change nothing, so nothing was) and done, with a summary line."""
         side = "above" if self.above else "below"
-        if self.falls_short(value):
-            return f"{self.value_name} is {value:.4g}, {side} {self.threshold:g}: ran again with {' '.join(self.overrides)}"
-        return f"{self.value_name} is {value:.4g}, not {side} {self.threshold:g}: no second run"
+        wider = value is not None and self.falls_short(value)
+        if value is None:
+            summary = f"its set changes nothing in this run ({' '.join(self.overrides)})"
+        elif wider:
+            summary = f"{self.value_name} is {value:.4g}, {side} {self.threshold:g}: ran again with {' '.join(self.overrides)}"
+        else:
+            summary = f"{self.value_name} is {value:.4g}, not {side} {self.threshold:g}: no second run"
+        return {"value": self.value_name, "read": value, side: self.threshold, "set": list(self.overrides),
+                "ran_again": wider, "summary": summary}
 
 
 def declare_fallback(doc: Document, decls: dict[str, NodeDecl]) -> Fallback | None:

@@ -22,7 +22,7 @@ class RunResult:
     out_dir: str
     seconds: float
     repaired: list[str] = dataclasses.field(default_factory=list)  # damaged cache entries found and recomputed
-    fallback: str | None = None  # what the pipeline's fallback read and did (.fallback), None without one
+    fallback: dict[str, Any] | None = None  # what the pipeline's fallback read and did (.fallback), None without one
 
     def ran(self) -> list[str]:
         """Ids (``node`` or ``node[branch]``) of the instances that actually ran."""
@@ -106,22 +106,22 @@ def run_pipeline(
     planned(plan)
     status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans and the fallback's two parts
     repaired: list[str] = []
-    fallback_note = getattr(plan, "fallback_note", None)
+    fallback = getattr(plan, "fallback", None)
     if isinstance(plan, planning.Plan) and plan.pipeline.fallback and not targets:
-        plan, fallback_note = _run_fallback(plan, pipeline, store, scheduler, status, progress, repaired)
+        plan, fallback = _run_fallback(plan, pipeline, store, scheduler, status, progress, repaired)
         if plan.overrides != overrides:
             planned(plan)
     plan, manifest = _repairing(plan, lambda p: make_plan(pipeline, p.overrides, store.root, targets), repaired,
-                                lambda p: _execute_and_write(p, scheduler, out_dir, status, progress, fallback_note))
+                                lambda p: _execute_and_write(p, scheduler, out_dir, status, progress, fallback))
     if isinstance(plan, planning.Plan) and not targets:  # a partial plan would overwrite the full records
         planning.record_run(plan)
-        snapshot.save(plan, overrides, fallback_note)
+        snapshot.save(plan, overrides, fallback)
     for inst in plan.instances:
         if inst.cached is not None:
             plan.store.touch(inst.cached)
     by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
     return RunResult(plan, by_instance, manifest, os.path.abspath(out_dir), time.perf_counter() - start, repaired,
-                     fallback_note)
+                     fallback)
 
 
 def _repairing(plan: Any, replan: Callable[[Any], Any], repaired: list[str], work: Callable[[Any], Any]) -> tuple[Any, Any]:
@@ -139,10 +139,10 @@ def _repairing(plan: Any, replan: Callable[[Any], Any], repaired: list[str], wor
 
 
 def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: str, status: dict[str, dict[str, Any]],
-                  progress: Callable[[int], Any] | None, repaired: list[str]) -> tuple[planning.Plan, str]:
+                  progress: Callable[[int], Any] | None, repaired: list[str]) -> tuple[planning.Plan, dict[str, Any]]:
     """Run the ``fallback:``'s node and what it needs, read its value, and return the plan to run on
     (planned afresh, so what just ran is a hit; with the fallback's overrides when the value falls
-    short) and the summary line. The wider plan is checked before anything runs."""
+    short) and :meth:`.fallback.Fallback.outcome`. The wider plan is checked before anything runs."""
     fallback = plan.pipeline.fallback
     wider = plan.overrides + list(fallback.overrides)
     try:
@@ -150,7 +150,7 @@ def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: s
     except UserError as exc:
         raise UserError(f"{fallback.set_where}: fallback set: {exc}") from None
     if [i.key for i in wider_plan.instances] == [i.key for i in plan.instances]:
-        return plan, f"its set changes nothing in this run ({' '.join(fallback.overrides)})"
+        return plan, fallback.outcome(None)
     first = planning.restrict(plan, [fallback.node])
     node = [i for i in first.instances if i.node == fallback.node]
     if len(node) != 1:
@@ -166,7 +166,7 @@ def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: s
     finally:
         store.drop_scratch(run_id)
     chosen = wider if fallback.falls_short(value) else plan.overrides
-    return make_plan(pipeline, chosen, store.root), fallback.describe(value)
+    return make_plan(pipeline, chosen, store.root), fallback.outcome(value)
 
 
 def _execute(plan: Any, scheduler: str, run_id: str, status: dict[str, dict[str, Any]],
@@ -196,7 +196,7 @@ def _execute(plan: Any, scheduler: str, run_id: str, status: dict[str, dict[str,
 
 
 def _execute_and_write(plan: Any, scheduler: str, out_dir: str, status: dict[str, dict[str, Any]],
-                       progress: Callable[[int], Any] | None, fallback_note: str | None) -> dict[str, Any]:
+                       progress: Callable[[int], Any] | None, fallback: dict[str, Any] | None) -> dict[str, Any]:
     from .outputs import write_outputs
 
     run_id = uuid.uuid4().hex
@@ -204,6 +204,6 @@ def _execute_and_write(plan: Any, scheduler: str, out_dir: str, status: dict[str
         refs = _execute(plan, scheduler, run_id, status, progress)
         by_instance = {id(i): status[i.id] for i in plan.instances if i.id in status}
         return write_outputs(plan, refs, out_dir, {"status": by_instance, "scheduler": scheduler,
-                                                   "fallback": fallback_note})
+                                                   "fallback": fallback})
     finally:
         plan.store.drop_scratch(run_id)

@@ -96,21 +96,21 @@ class SnapshotPlan:
     overrides: list[str]  # the run's, the pipeline fallback's included when it ran
     instances: list[SnapshotInstance]
     store: Store
-    fallback_note: str | None = None  # what the fallback read and did when the snapshot was saved
+    fallback: dict[str, Any] | None = None  # what the pipeline's fallback read and did when the snapshot was saved
 
     @property
     def to_run(self) -> list[SnapshotInstance]:
         return []
 
 
-def save(plan: Any, overrides: list[str], fallback_note: str | None = None) -> None:
+def save(plan: Any, overrides: list[str], fallback: dict[str, Any] | None = None) -> None:
     """Remember a fully planned, successfully run plan under the run's ``overrides`` (see the module
-    docstring); the plan's own overrides may add a pipeline fallback's (``fallback_note`` says why)."""
+    docstring); the plan's own overrides may add a pipeline fallback's (``fallback`` says why)."""
     fp = fingerprint(plan.file, overrides)
     if fp is None or any(i.decl.cache != "default" for i in plan.instances):
         return
     data = {
-        "file": plan.file, "text_sha256": plan.text_sha256, "overrides": plan.overrides, "fallback": fallback_note,
+        "file": plan.file, "text_sha256": plan.text_sha256, "overrides": plan.overrides, "fallback": fallback,
         "input_files": sorted({p for i in plan.instances for p, _ in i.file_hashes}),
         "instances": [dataclasses.asdict(SnapshotInstance(
             i.node, i.label, i.branch, i.type_name, i.is_sink, i.params_dump, i.key, i.code_version))

@@ -40,7 +40,9 @@ def written(tmp_path: Path) -> float:
 def test_a_value_that_falls_short_runs_the_wider_pipeline_computing_only_what_is_new(tmp_path, test_nodes):
     result = run(tmp_path, f"above: {TOTAL_3 - 1}")
     assert written(tmp_path) == TOTAL_4
-    assert result.fallback == f"tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]"
+    assert result.fallback == {"value": "tot", "read": TOTAL_3, "above": TOTAL_3 - 1, "set": ["scales=[1, 2, 3, 4]"],
+                               "ran_again": True,
+                               "summary": f"tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]"}
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert manifest["overrides"] == ["scales=[1, 2, 3, 4]"] and manifest["fallback"] == result.fallback
     # the first part's three branches ran once; the wider run added one branch and a new sum
@@ -57,7 +59,8 @@ def test_a_value_that_falls_short_runs_the_wider_pipeline_computing_only_what_is
 def test_a_value_within_bounds_runs_the_pipeline_as_it_is(tmp_path, test_nodes):
     result = run(tmp_path, f"below: {TOTAL_3 - 1}")
     assert written(tmp_path) == TOTAL_3
-    assert result.fallback == f"tot is {TOTAL_3}, not below {TOTAL_3 - 1}: no second run"
+    assert not result.fallback["ran_again"]
+    assert result.fallback["summary"] == f"tot is {TOTAL_3}, not below {TOTAL_3 - 1}: no second run"
     assert json.loads((tmp_path / "out" / "manifest.json").read_text())["overrides"] == []
     assert len(result.ran()) == 3 + 3 + 1 + 1
 
@@ -72,7 +75,7 @@ def test_fallback_off_by_override_and_not_for_targets(tmp_path, test_nodes):
 def test_a_set_already_in_effect_changes_nothing(tmp_path, test_nodes):
     result = run(tmp_path, "above: 0", ["scales=[1, 2, 3, 4]"])
     assert written(tmp_path) == TOTAL_4
-    assert result.fallback.startswith("its set changes nothing")
+    assert result.fallback["read"] is None and result.fallback["summary"].startswith("its set changes nothing")
 
 
 @pytest.mark.parametrize("condition, overrides, message", [
@@ -90,3 +93,18 @@ def test_problems_are_one_line_before_the_wider_run(tmp_path, test_nodes, condit
         run(tmp_path, condition, overrides)
     assert "\n" not in str(caught.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_command_line_says_what_the_fallback_did_in_its_table_json_and_manifest(tmp_path, cli, test_nodes):
+    import jsonschema
+
+    schemas = Path(__file__).resolve().parents[1] / "graph" / "schemas"
+    (tmp_path / "p.yaml").write_text(SWEEP % f"above: {TOTAL_3 - 1}")
+    table = cli("run", "p.yaml", "--out", "out")
+    assert table.returncode == 0, table.stderr
+    assert f"fallback: tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]\n" in table.stdout
+    summary = json.loads(cli("run", "p.yaml", "--out", "out", "--json").stdout)
+    jsonschema.validate(summary, json.loads((schemas / "run-summary.schema.json").read_text()))
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    jsonschema.validate(manifest, json.loads((schemas / "manifest.schema.json").read_text()))
+    assert summary["fallback"] == manifest["fallback"] and manifest["fallback"]["ran_again"] and summary["ran"] == 0
