@@ -99,6 +99,10 @@ def plan_command(
                         [[i.node, i.label, i.type_name, i.key[:12], "run" if i.runs else ("cached" if i.cached else "skip"),
                           i.reason] for i in plan.instances])
     print(f"{len(plan.to_run)} of {len(plan.instances)} node instances would run")
+    fallback = plan.pipeline.fallback
+    if fallback and not targets:
+        side = "above" if fallback.above else "below"
+        print(f"then, when {fallback.value_name} is {side} {fallback.threshold:g}, again with {' '.join(fallback.overrides)}")
 
 
 def dag(

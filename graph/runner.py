@@ -106,7 +106,7 @@ def run_pipeline(
     planned(plan)
     status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans and the fallback's two parts
     repaired: list[str] = []
-    fallback = getattr(plan, "fallback", None)
+    fallback = getattr(plan, "fallback_outcome", None)  # a snapshot plan's
     if isinstance(plan, planning.Plan) and plan.pipeline.fallback and not targets:
         plan, fallback = _run_fallback(plan, pipeline, store, scheduler, status, progress, repaired)
         if plan.overrides != overrides:

@@ -96,7 +96,7 @@ class SnapshotPlan:
     overrides: list[str]  # the run's, the pipeline fallback's included when it ran
     instances: list[SnapshotInstance]
     store: Store
-    fallback: dict[str, Any] | None = None  # what the pipeline's fallback read and did when the snapshot was saved
+    fallback_outcome: dict[str, Any] | None = None  # what the pipeline's fallback read and did when the snapshot was saved
 
     @property
     def to_run(self) -> list[SnapshotInstance]:

@@ -100,6 +100,8 @@ def test_the_command_line_says_what_the_fallback_did_in_its_table_json_and_manif
 
     schemas = Path(__file__).resolve().parents[1] / "graph" / "schemas"
     (tmp_path / "p.yaml").write_text(SWEEP % f"above: {TOTAL_3 - 1}")
+    plan = cli("plan", "p.yaml")
+    assert plan.stdout.endswith(f"then, when tot is above {TOTAL_3 - 1}, again with scales=[1, 2, 3, 4]\n"), plan.stdout
     table = cli("run", "p.yaml", "--out", "out")
     assert table.returncode == 0, table.stderr
     assert f"fallback: tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]\n" in table.stdout
