@@ -199,6 +199,9 @@ def test_default_pipeline_end_to_end(repo, default_run, cli):
     assert len(metrics["angles"]) == 22
     assert {row["rx_family"] for row in metrics["angles"]} == {"rings", "rings_tx", "rings_per_line", "rings_tx_per_line",
                                                                    "helices", "helices_per_line", "grid"}
+    fallback = manifest["fallback"]  # the pipeline's second sweep (the centre Tx pole too) reads the chosen layout's metric
+    assert fallback["value"] == "best.metrics.uncovered_share" and fallback["read"] == metrics["uncovered_share"] < 0.2
+    assert not fallback["ran_again"] and manifest["overrides"] == []
 
     ply = (out / "mesh.ply").read_bytes()
     assert ply.startswith(b"ply\nformat binary_little_endian 1.0\n")
