@@ -12,10 +12,11 @@ Prints one row per mesh (mesh, ok, pose and base kind, tipping angle, base and s
 surface, the % of the sensing area a finger can touch, cells, pads, Voronoi CV over the pads and over
 all crossings, coverage radius mm, the % of the touchable sensing area farther than 10 mm from every
 cell (``uncovered_share`` of metrics.json) and the same over the whole sensing region, touchable or
-not (``sensing_region``), phase 1's gap, the chosen Rx family, sheets, joints,
-seconds) and, as the LAST line, one JSON object with ``meshes``,
-``succeeded``, ``failures`` (list of ``{mesh, node, message}``), ``median_voronoi_cv``,
-``median_cells``, the worst cases and per-row details. Usage::
+not (``sensing_region``), phase 1's gap, the chosen Rx family and Tx pole, whether the pipeline's
+fallback ran its second sweep (``manifest.json``), sheets, joints, seconds) and, as the LAST line,
+one JSON object with ``meshes``, ``succeeded``, ``failures`` (list of ``{mesh, node, message}``),
+``median_voronoi_cv``, ``median_cells``, the worst cases, ``fallback_runs``, ``chosen_tx_poles``
+and per-row details. Usage::
 
     python bench/corpus.py [--meshes DIR] [--sizes FILE.json] [--vertices N] [--angles -20,0,20]
                            [--set KEY=VALUE ...] [--only STEM ...] [--no-shapes] [--cache-dir DIR] [--timeout S]
@@ -149,7 +150,8 @@ def main() -> None:
         rows, failures = [], []
         print(
             f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'touch%':>6s} {'cells':>6s} {'pads':>5s} "
-            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'all%':>5s} {'gap':>6s} {'Rx family':16s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
+            f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'all%':>5s} {'gap':>6s} {'Rx family':16s} {'Tx':6s} "
+            f"{'fallback':8s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -202,6 +204,8 @@ def main() -> None:
         "most_sheets": max((r["sheets"] for r in good if r.get("sheets") is not None), default=None),
         "median_seconds": float(np.median([r["seconds"] for r in rows])) if rows else None,
         "slowest_seconds": max((r["seconds"] for r in rows), default=None),
+        "fallback_runs": sum(bool(r.get("fallback_ran")) for r in good),
+        "chosen_tx_poles": {pole: sum(r.get("tx_pole") == pole for r in good) for pole in sorted({r.get("tx_pole") for r in good})},
         "vertices": args.vertices,
         "rows": rows,
     }
