@@ -95,6 +95,8 @@ class WatchState:
             ran = len(result.ran())
             self.phase, self.error = "ok", ""
             self.summary = f"{ran} ran, {len(result.plan.instances) - ran} cached, {result.seconds:.2f} s"
+            if result.fallback and result.fallback["ran_again"]:
+                self.summary += f" (fallback: {result.fallback['summary']})"
             self.files = [{"path": p, "size": f["size"]} for p, f in sorted(result.manifest["files"].items())]
             self.result_version += 1
             self._bump()

@@ -102,3 +102,14 @@ def test_the_command_line_says_what_the_fallback_did_in_its_table_json_and_manif
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     jsonschema.validate(manifest, json.loads((schemas / "manifest.schema.json").read_text()))
     assert summary["fallback"] == manifest["fallback"] and manifest["fallback"]["ran_again"] and summary["ran"] == 0
+
+
+def test_watch_says_when_the_fallback_ran_again(tmp_path, test_nodes):
+    from retrotouch.graph.watch import WatchState, run_once
+
+    (tmp_path / "p.yaml").write_text(SWEEP + FALLBACK % f"above: {TOTAL_3 - 1}")
+    state = WatchState(str(tmp_path / "p.yaml"), str(tmp_path / "out"))
+    line = run_once(state, [], {"cache_dir": str(tmp_path / "cache"), "scheduler": "sync"})
+    assert line.endswith(f"(fallback: tot is {TOTAL_3}, above {TOTAL_3 - 1}: ran again with scales=[1, 2, 3, 4]); "
+                         f"outputs in {tmp_path / 'out'}"), line
+    assert written(tmp_path) == TOTAL_4
