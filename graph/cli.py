@@ -101,8 +101,8 @@ def plan_command(
     print(f"{len(plan.to_run)} of {len(plan.instances)} node instances would run")
     fallback = plan.pipeline.fallback
     if fallback and not targets:
-        side = "above" if fallback.above else "below"
-        print(f"then, when {fallback.value_name} is {side} {fallback.threshold:g}, again with {' '.join(fallback.overrides)}")
+        print(f"then, when {fallback.value_name} is {fallback.side} {fallback.threshold:g}, again with "
+              f"{' '.join(fallback.overrides)}")
 
 
 def dag(

@@ -41,7 +41,14 @@ class Fallback:
 
     @property
     def value_name(self) -> str:
-        return ".".join([self.node, *([self.output] if self.output else []), *self.keys])
+        return self._name(self.keys)
+
+    @property
+    def side(self) -> str:
+        return "above" if self.above else "below"
+
+    def _name(self, keys: tuple[str, ...]) -> str:
+        return ".".join([self.node, *([self.output] if self.output else []), *keys])
 
     def read(self, output: Any) -> float:
         """The value in the node's stored output (``output``); a missing key or a non-number is a UserError."""
@@ -53,8 +60,7 @@ class Fallback:
                 value = getattr(value, key)
             else:
                 known = list(value) if isinstance(value, dict) else list(getattr(value, "__dict__", {}))
-                at = ".".join([self.node, *([self.output] if self.output else []), *self.keys[:depth]])
-                raise UserError(f"{self.where}: fallback value {self.value_name}: {at} has no {key!r}"
+                raise UserError(f"{self.where}: fallback value {self.value_name}: {self._name(self.keys[:depth])} has no {key!r}"
                                 f"{did_you_mean(key, known)}; name a number in the node's output")
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise UserError(f"{self.where}: fallback value {self.value_name} is {type(value).__name__}, not a number")
@@ -65,15 +71,14 @@ class Fallback:
 
     def outcome(self, value: float | None) -> dict[str, Any]:
         """What was read (None: the overrides change nothing, so nothing was) and done, with a summary line."""
-        side = "above" if self.above else "below"
         wider = value is not None and self.falls_short(value)
         if value is None:
             summary = f"its set changes nothing in this run ({' '.join(self.overrides)})"
         elif wider:
-            summary = f"{self.value_name} is {value:.4g}, {side} {self.threshold:g}: ran again with {' '.join(self.overrides)}"
+            summary = f"{self.value_name} is {value:.4g}, {self.side} {self.threshold:g}: ran again with {' '.join(self.overrides)}"
         else:
-            summary = f"{self.value_name} is {value:.4g}, not {side} {self.threshold:g}: no second run"
-        return {"value": self.value_name, "read": value, side: self.threshold, "set": list(self.overrides),
+            summary = f"{self.value_name} is {value:.4g}, not {self.side} {self.threshold:g}: no second run"
+        return {"value": self.value_name, "read": value, self.side: self.threshold, "set": list(self.overrides),
                 "ran_again": wider, "summary": summary}
 
 
@@ -86,17 +91,12 @@ def declare_fallback(doc: Document, decls: dict[str, NodeDecl]) -> Fallback | No
     usage = "fallback: needs when: {value: NODE.OUTPUT.KEY, above: NUMBER (or below:)} and set: {PATH: VALUE}"
     if not isinstance(raw, dict):
         raise doc.fail(path, usage)
-    for key in list(raw) + [k for k in FALLBACK_KEYS if k not in raw]:
-        if key not in FALLBACK_KEYS:
-            raise doc.fail(path + (key,), f"fallback: unknown key {key!r}{did_you_mean(key, FALLBACK_KEYS)} "
-                                          f"(allowed: {', '.join(FALLBACK_KEYS)})", key=True)
+    _only_known_keys(doc, path, raw, FALLBACK_KEYS)
+    for key in FALLBACK_KEYS:
         if not isinstance(raw.get(key), dict) or not raw[key]:
             raise doc.fail(path + (key,) if key in raw else path, usage)
     when, settings = raw["when"], raw["set"]
-    for key in when:
-        if key not in WHEN_KEYS:
-            raise doc.fail(path + ("when", key), f"fallback.when: unknown key {key!r}{did_you_mean(key, WHEN_KEYS)} "
-                                                 f"(allowed: {', '.join(WHEN_KEYS)})", key=True)
+    _only_known_keys(doc, path + ("when",), when, WHEN_KEYS)
     sides = [k for k in ("above", "below") if k in when]
     if "value" not in when or len(sides) != 1:
         raise doc.fail(path + ("when",), usage + " (exactly one of above and below)")
@@ -107,6 +107,13 @@ def declare_fallback(doc: Document, decls: dict[str, NodeDecl]) -> Fallback | No
     overrides = tuple(f"{p}={json.dumps(v)}" for p, v in settings.items())
     return Fallback(node, output, keys, float(threshold), sides[0] == "above", overrides,
                     doc.where(path + ("when", "value")), doc.where(path + ("set",)))
+
+
+def _only_known_keys(doc: Document, path: tuple, mapping: dict, allowed: tuple[str, ...]) -> None:
+    for key in mapping:
+        if key not in allowed:
+            raise doc.fail(path + (key,), f"{'.'.join(path)}: unknown key {key!r}{did_you_mean(key, allowed)} "
+                                          f"(allowed: {', '.join(allowed)})", key=True)
 
 
 def _value_path(doc: Document, path: tuple, text: Any, decls: dict[str, NodeDecl]) -> tuple[str, str | None, tuple[str, ...]]:

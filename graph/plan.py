@@ -217,11 +217,16 @@ def restrict(plan: Plan, targets: list[str]) -> Plan:
         if inst.node in targets or id(inst) in keep:
             keep.add(id(inst))
             keep.update(id(u) for ups in inst.inputs.values() for u, _ in ups)
-    chosen = Plan(plan.pipeline, [i for i in plan.instances if id(i) in keep], plan.store)
-    for inst in chosen.instances:
+    return refresh(Plan(plan.pipeline, [i for i in plan.instances if id(i) in keep], plan.store))
+
+
+def refresh(plan: Plan) -> Plan:
+    """The plan with what runs decided afresh against the cache (after other runs filled it); keys
+    and params as planned."""
+    for inst in plan.instances:
         inst.runs, inst.reason, inst.cached = False, "", None
-    _decide(chosen)
-    return chosen
+    _decide(plan)
+    return plan
 
 
 def _decide(plan: Plan) -> None:

@@ -106,7 +106,7 @@ def run_pipeline(
     planned(plan)
     status: dict[str, dict[str, Any]] = {}  # instance id -> status, kept across re-plans and the fallback's two parts
     repaired: list[str] = []
-    fallback = getattr(plan, "fallback_outcome", None)  # a snapshot plan's
+    fallback = plan.fallback_outcome if isinstance(plan, snapshot.SnapshotPlan) else None
     if isinstance(plan, planning.Plan) and plan.pipeline.fallback and not targets:
         plan, fallback = _run_fallback(plan, pipeline, store, scheduler, status, progress, repaired)
         if plan.overrides != overrides:
@@ -141,12 +141,11 @@ def _repairing(plan: Any, replan: Callable[[Any], Any], repaired: list[str], wor
 def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: str, status: dict[str, dict[str, Any]],
                   progress: Callable[[int], Any] | None, repaired: list[str]) -> tuple[planning.Plan, dict[str, Any]]:
     """Run the ``fallback:``'s node and what it needs, read its value, and return the plan to run on
-    (planned afresh, so what just ran is a hit; with the fallback's overrides when the value falls
-    short) and :meth:`.fallback.Fallback.outcome`. The wider plan is checked before anything runs."""
+    (the wider one, planned before anything runs, when the value falls short; its cache hits decided
+    afresh, so what just ran is one) and :meth:`.fallback.Fallback.outcome`."""
     fallback = plan.pipeline.fallback
-    wider = plan.overrides + list(fallback.overrides)
     try:
-        wider_plan = make_plan(pipeline, wider, store.root)
+        wider_plan = make_plan(pipeline, plan.overrides + list(fallback.overrides), store.root)
     except UserError as exc:
         raise UserError(f"{fallback.set_where}: fallback set: {exc}") from None
     if [i.key for i in wider_plan.instances] == [i.key for i in plan.instances]:
@@ -165,8 +164,7 @@ def _run_fallback(plan: planning.Plan, pipeline: str, store: Store, scheduler: s
         value = fallback.read(store.load(refs[id(node)]))
     finally:
         store.drop_scratch(run_id)
-    chosen = wider if fallback.falls_short(value) else plan.overrides
-    return make_plan(pipeline, chosen, store.root), fallback.outcome(value)
+    return planning.refresh(wider_plan if fallback.falls_short(value) else plan), fallback.outcome(value)
 
 
 def _execute(plan: Any, scheduler: str, run_id: str, status: dict[str, dict[str, Any]],
