@@ -168,7 +168,7 @@ def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]
     Otherwise raise one line listing each problem with its fix. ``report`` holds the measures.
     """
     if len(mesh.faces) == 0:
-        raise UserError(f"{mesh.source} has no faces: load a triangle mesh")
+        raise UserError(f"{mesh.source_name} has no faces: load a triangle mesh")
     if not np.isfinite(mesh.vertices).all():
         raise UserError(f"{mesh.source_name} has vertices at NaN or infinite coordinates: "
                         "repair the file, or check the scale (units, diagonal_mm)")
