@@ -105,6 +105,19 @@ class CorruptEntry(Exception):
     """A stored entry failed validation (it is never used; the run recomputes it)."""
 
 
+_VERIFIED: dict[str, tuple[Any, ...]] = {}
+"""Entry folder -> its recorded content sha256 and its files' (inode, size, mtime in ns) when this
+process last checked their sha256."""
+
+
+def _stamp(folder: str, meta: dict[str, Any]) -> tuple[Any, ...]:
+    try:
+        stats = [os.stat(os.path.join(folder, name)) for name in sorted(meta["files"])]
+    except OSError as exc:
+        raise CorruptEntry(f"{folder}: {exc}") from None
+    return (meta["content_sha256"], *((st.st_ino, st.st_size, st.st_mtime_ns) for st in stats))
+
+
 class Store:
     """Artifacts addressed by cache key under one cache dir."""
 
@@ -183,10 +196,19 @@ class Store:
 
     def load(self, ref: ArtifactRef) -> Any:
         """The stored value; every file's sha256 is checked first (a damaged entry is discarded
-        and :class:`CorruptEntry` raised: the caller recomputes it)."""
+        and :class:`CorruptEntry` raised: the caller recomputes it).
+
+        As DVC's state database does, a file this process has already hashed is not hashed again
+        while its inode, size and modification time are unchanged (a sweep's branches load the
+        same large inputs, e.g. the samples' distance fields, dozens of times per worker)."""
         try:
-            self.verify(ref.path, ref.key)
+            meta = self.read_meta(ref.path, ref.key)
+            stamp = _stamp(ref.path, meta)
+            if _VERIFIED.get(ref.path) != stamp:
+                self.verify(ref.path, ref.key)
+                _VERIFIED[ref.path] = stamp
         except CorruptEntry:
+            _VERIFIED.pop(ref.path, None)
             self.discard(ref.path)
             raise
         return artifacts.decode(ref.path)

@@ -5,11 +5,13 @@ import dataclasses
 import json
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
 
 from retrotouch.graph.artifacts import ArtifactError
+from retrotouch.graph.hashing import file_sha256
 from retrotouch.graph.node import Files
 from retrotouch.graph.store import CorruptEntry, Store
 from retrotouch.nodes.data.types import CurveEnd, Mesh
@@ -99,6 +101,29 @@ def test_same_size_corruption_is_caught_on_load(tmp_path):
     with pytest.raises(CorruptEntry, match="sha256"):
         store.load(ref)
     assert store.lookup(KEY) is None  # and the entry is gone, so the node recomputes
+
+
+def test_a_file_is_hashed_once_per_process_until_it_changes(tmp_path, monkeypatch):
+    from retrotouch.graph import store as store_module
+
+    hashed = []
+    monkeypatch.setattr(store_module, "file_sha256", lambda path: hashed.append(path) or file_sha256(path))
+    store = Store(str(tmp_path))
+    ref = store.write(KEY, np.arange(1000, dtype=np.int64), info={})
+    files_per_load = len(entry_files(store, KEY)) - 1  # every file but meta.json
+    store.load(ref)
+    store.load(ref)
+    assert len(hashed) == 2 * files_per_load  # written once, checked on the first load only
+    array = next(p for n, p in entry_files(store, KEY).items() if n.endswith(".npy"))
+    stat = os.stat(array)
+    time.sleep(0.05)  # past the file system's timestamp granularity
+    with open(array, "r+b") as f:  # same size; the write moves the modification time
+        f.seek(-8, os.SEEK_END)
+        f.write(b"\xff" * 8)
+    assert os.stat(array).st_mtime_ns != stat.st_mtime_ns
+    with pytest.raises(CorruptEntry, match="sha256"):
+        store.load(ref)
+    assert store.lookup(KEY) is None
 
 
 def test_concurrent_writers_of_one_key_leave_one_sound_entry(tmp_path):
