@@ -11,6 +11,7 @@ Format (see README.md for the full reference)::
       pick:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, cache: recompute}
       both:   {type: some.reduce, inputs: {meshes: ["sweep[*]", "other[*]"]}}   # several fan-ins, in order
       slow:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, priority: 1}  # starts before ready priority-0 tasks
+      each:   {type: some.reduce, inputs: {meshes: "fine[*]"}, per: [sweep]}  # one reduce per branch of sweep
     fallback:                    # optional: run again with more overrides when a result falls short (.fallback)
       when: {value: pick.score, above: 0.2}
       set: {nodes.sweep.map.target_edge_mm: [1, 2, 3, 4]}
@@ -34,7 +35,7 @@ from .errors import UserError
 from .node import NodeSpec
 
 Path = tuple[str | int, ...]
-NODE_KEYS = ("type", "inputs", "params", "map", "cache", "priority")
+NODE_KEYS = ("type", "inputs", "params", "map", "cache", "priority", "per")
 TOP_KEYS = ("params", "nodes", "fallback")
 CACHE_MODES = ("default", "recompute", "disable")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
@@ -198,6 +199,7 @@ class NodeDecl:
     cache: str
     path: Path
     priority: int = 0  # among tasks ready at once, higher starts first (a scheduling hint: no cache key)
+    per: tuple[str, ...] = ()  # nodes whose branches this one follows without taking their data
 
 
 @dataclasses.dataclass
@@ -274,7 +276,11 @@ def _declare(doc: Document, name: str, body: Any, registry: dict[str, NodeSpec])
     if not isinstance(priority, int) or isinstance(priority, bool):
         raise doc.fail(path + ("priority",), f"node {name!r}: priority must be a whole number (higher starts first "
                                              f"among tasks ready at once; default 0), got {priority!r}")
-    return NodeDecl(name, spec, inputs, params, mapped, cache, path, priority)
+    per = body.get("per", [])
+    if not isinstance(per, list) or not all(isinstance(n, str) for n in per):
+        raise doc.fail(path + ("per",), f"node {name!r}: per must be a list of node names (one instance per "
+                                        f"branch of theirs), got {per!r}")
+    return NodeDecl(name, spec, inputs, params, mapped, cache, path, priority, tuple(per))
 
 
 def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[str, tuple[InputRef, ...]]:
@@ -356,6 +362,10 @@ def _resolve_references(doc: Document, decls: dict[str, NodeDecl]) -> None:
                                              f"write {ref.node}.<output>")
                 resolved.append(ref if ref.output else dataclasses.replace(ref, output=outputs[0]))
             decl.inputs[input_name] = tuple(resolved)
+        for i, other in enumerate(decl.per):
+            if other not in decls:
+                raise doc.fail(decl.path + ("per", i), f"node {decl.name!r}: per refers to unknown node {other!r}"
+                                                       f"{did_you_mean(other, decls)}")
 
 
 def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
@@ -366,12 +376,14 @@ def _toposort(doc: Document, decls: dict[str, NodeDecl]) -> dict[str, NodeDecl]:
         if state.get(name) == 2:
             return
         state[name] = 1
-        for ref in (r for refs in decls[name].inputs.values() for r in refs):
-            if state.get(ref.node) == 1:
+        decl = decls[name]
+        upstream = [(ref.node, ref.path) for refs in decl.inputs.values() for ref in refs]
+        for node, path in upstream + [(n, decl.path + ("per", i)) for i, n in enumerate(decl.per)]:
+            if state.get(node) == 1:
                 chain = trail + [name]
-                cycle = chain[chain.index(ref.node):] + [ref.node]
-                raise doc.fail(ref.path, f"cycle: {' -> '.join(cycle)}")
-            visit(ref.node, trail + [name])
+                cycle = chain[chain.index(node):] + [node]
+                raise doc.fail(path, f"cycle: {' -> '.join(cycle)}")
+            visit(node, trail + [name])
         state[name] = 2
         order[name] = decls[name]
 

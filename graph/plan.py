@@ -5,8 +5,10 @@ Branches: a node with ``map: {k: [...]}`` has one instance per value (several ke
 in the order written). Each mapped key is an *axis*. A node inherits the axes of its plain inputs
 (so downstream nodes are mapped branch-wise; inputs mapped over different axes combine as a
 product) and a fan-in input ``x[*]`` receives, as a list in branch order, every branch of ``x``
-along the axes the consuming node does not have itself. A map over ``[]`` makes no branch: its node
-and every node mapped with it drop out of the run, and a fan-in over them receives nothing from them.
+along the axes the consuming node does not have itself. ``per: [y]`` gives a node ``y``'s axes
+without its data (a fan-in then collects, per branch of ``y``, the branches that agree with it). A
+map over ``[]`` makes no branch: its node and every node mapped with it drop out of the run, and a
+fan-in over them receives nothing from them.
 """
 from __future__ import annotations
 
@@ -151,9 +153,9 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
     known = len(memo)
     for name, decl in pipeline.nodes.items():
         inherited: list[Axis] = []
-        for ref in (r for refs in decl.inputs.values() for r in refs):
-            if not ref.fan_in:
-                inherited += [a for a in axes[ref.node] if a not in inherited]
+        followed = [ref.node for refs in decl.inputs.values() for ref in refs if not ref.fan_in] + list(decl.per)
+        for upstream in followed:
+            inherited += [a for a in axes[upstream] if a not in inherited]
         for input_name, ref in ((n, r) for n, refs in decl.inputs.items() for r in refs):
             if ref.fan_in and not [a for a in axes[ref.node] if a not in inherited]:
                 raise doc.fail(ref.path, f"node {name!r}: input {input_name!r} fans in {ref.node}[*], but "

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from retrotouch.graph.errors import UserError
-from retrotouch.graph.runner import make_plan
+from retrotouch.graph.runner import make_plan, run_pipeline
 
 GOOD = """\
 params:
@@ -200,3 +200,44 @@ def test_a_list_of_inputs_must_fan_in_each(tmp_path, test_nodes):
     msg = error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', '["plus[*]", "tims[*]"]'))
     assert "input 'xs' refers to unknown node 'tims'; did you mean 'times'?" in msg
     assert "lists no node" in error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', "[]"))
+
+
+PER = GOOD.replace('''  tot:
+    type: t.sum
+    inputs: {xs: "plus[*]"}
+''', '''  fine:
+    type: t.add
+    inputs: {x: plus}
+    map: {delta: [10, 20, 30]}
+  tot:
+    type: t.sum
+    inputs: {xs: "fine[*]"}
+    per: [plus]
+''')
+
+
+def test_per_makes_one_reduce_per_branch_of_a_node_it_takes_no_data_from(tmp_path, test_nodes):
+    path = tmp_path / "p.yaml"
+    path.write_text(PER)
+    plan = make_plan(str(path), [], str(tmp_path / "cache"))
+    totals = [i for i in plan.instances if i.node == "tot"]
+    assert [i.id for i in totals] == ["tot[delta=1]", "tot[delta=2]"]
+    assert [[u.id for u, _ in t.inputs["xs"]] for t in totals] == [
+        [f"fine[plus.delta=1,fine.delta={d}]" for d in (10, 20, 30)],
+        [f"fine[plus.delta=2,fine.delta={d}]" for d in (10, 20, 30)]]
+    assert set(totals[0].inputs) == {"xs"}  # plus's output is not an input
+    wider = make_plan(str(path), ["deltas=[1, 2, 5]"], str(tmp_path / "cache"))
+    assert [i.key for i in wider.instances if i.node == "tot"][:2] == [t.key for t in totals]  # a new branch leaves the others' keys
+    run_pipeline(str(path), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"), scheduler="sync")
+    ran = make_plan(str(path), [], str(tmp_path / "cache"))
+    sums = [ran.store.load(i.cached) for i in ran.instances if i.node == "tot"]
+    # per plus branch, over fine's 3 branches: sum(src) + 3 plus's delta + 3 fine's delta, src = 0, 1, 2
+    assert sums == [3 * (3 + 3 * 1) + 3 * (10 + 20 + 30), 3 * (3 + 3 * 2) + 3 * (10 + 20 + 30)]
+
+
+def test_per_must_name_nodes_and_cannot_make_a_cycle(tmp_path, test_nodes):
+    assert error_of(tmp_path, PER.replace("per: [plus]", "per: [pluss]")).startswith(
+        "p.yaml:20:11: node 'tot': per refers to unknown node 'pluss'; did you mean 'plus'?")
+    assert "per must be a list of node names" in error_of(tmp_path, PER.replace("per: [plus]", "per: plus"))
+    assert "cycle: plus -> tot -> fine -> plus" in error_of(
+        tmp_path, PER.replace("inputs: {x: src}\n    map: {delta", "inputs: {x: src}\n    per: [tot]\n    map: {delta"))
