@@ -304,8 +304,9 @@ def test_a_cloud_denser_than_the_poisson_grid_is_thinned_first() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
     points = np.asarray(trimesh.sample.sample_surface_even(sphere, 60000, seed=0)[0])
     assert len(points) > POINTS_PER_DEPTH_CELL * 4**5
-    vertices, faces, stride, strays = reconstruct_from_points(points, 5, "cloud")
-    assert stride == -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**5)) > 1 and strays == 0
+    surface = reconstruct_from_points(points, 5, "cloud")
+    assert surface.stride == -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**5)) > 1 and surface.strays == 0
+    vertices, faces = surface.vertices, surface.faces
     report = topology_report(vertices, faces)
     assert (report["components"], report["genus"], report["boundary_edges"]) == (1, 0, 0)
     radius = np.linalg.norm(vertices, axis=1)
@@ -318,11 +319,11 @@ def test_a_stray_point_far_from_the_scan_is_dropped_before_the_reconstruction(tm
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
     points = np.asarray(trimesh.sample.sample_surface_even(sphere, 6000, seed=0)[0])
     strays = np.array([[500.0, 0.0, 0.0], [0.0, -300.0, 200.0]])  # a reflection, a point of the room
-    clean_vertices, clean_faces, _, none = reconstruct_from_points(points, 6, "cloud")
-    vertices, faces, _, dropped = reconstruct_from_points(np.vstack([points, strays]), 6, "cloud")
-    assert (none, dropped) == (0, 2)
-    np.testing.assert_array_equal(faces, clean_faces)  # the octree spans the object alone: same resolution
-    np.testing.assert_allclose(vertices, clean_vertices)
+    clean = reconstruct_from_points(points, 6, "cloud")
+    with_strays = reconstruct_from_points(np.vstack([points, strays]), 6, "cloud")
+    assert (clean.strays, with_strays.strays) == (0, 2)
+    np.testing.assert_array_equal(with_strays.faces, clean.faces)  # the octree spans the object alone: same resolution
+    np.testing.assert_allclose(with_strays.vertices, clean.vertices)
     path = tmp_path / "scan.xyz"
     np.savetxt(path, np.vstack([points, strays]))
     assert ", 2 stray point(s) far from the rest dropped" in load_mesh(LoadParams(path=str(path), poisson_depth=6)).repairs[0]
@@ -565,3 +566,29 @@ def test_a_flat_outline_closed_into_a_double_sheet_is_refused_as_no_solid() -> N
         check_topology(CheckTopologyParams(), sheet)
     solid = as_mesh(trimesh.creation.box(extents=(80.0, 80.0, 0.5)))  # a thin but real slab passes
     assert check_topology(CheckTopologyParams(), solid)["report"]["mean_thickness_mm"] > 0.2
+
+
+def test_a_noisy_cloud_is_reconstructed_coarser_until_it_has_no_spurious_handle(tmp_path: Path) -> None:
+    """A sphere sampled with strong radial noise (the normal estimate flips here and there): depth 7
+    closes handles through the surface, a coarser octree does not; a real handle stays and is refused
+    in one line that says the surface came from points."""
+    from retrotouch.nodes.mesh.reconstruct import reconstruct_from_points
+
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(20000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    noisy = directions * rng.normal(1.0, 0.04, size=(20000, 1)) * 50.0  # 50 mm sphere, 4 % radial noise (2 mm)
+    surface = reconstruct_from_points(noisy, 7, "cloud")
+    assert surface.handles and min(surface.handles.values()) > 0 and surface.depth < 7
+    assert topology_report(surface.vertices, surface.faces)["genus"] == 0
+    path = tmp_path / "noisy.xyz"
+    np.savetxt(path, noisy)
+    mesh = load_mesh(LoadParams(path=str(path)))
+    assert f"(screened Poisson, depth {surface.depth}; depth 7 gave" in mesh.repairs[0]
+    torus = trimesh.creation.torus(major_radius=40.0, minor_radius=15.0)
+    ring = tmp_path / "ring.xyz"
+    np.savetxt(ring, trimesh.sample.sample_surface_even(torus, 8000, seed=0)[0])
+    loaded = load_mesh(LoadParams(path=str(ring), poisson_depth=6))
+    assert "depth 5" in loaded.repairs[0]  # tried coarser: the handle is real
+    with pytest.raises(UserError, match=r"genus 1 as reconstructed from the scan's points at every octree depth tried"):
+        check_topology(CheckTopologyParams(), loaded)

@@ -29,6 +29,7 @@ from ...graph.node import NodeParams, node
 from ..data.builtin import builtin_mesh_path
 from ..data.types import Mesh
 from .reconstruct import reconstruct_from_points
+from .topology import RECONSTRUCTED
 
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "unitless": 1.0}
 """Millimetres per declared unit (``unitless`` keeps the numbers; scale afterwards)."""
@@ -116,12 +117,14 @@ def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.n
         if len(vertices) == 0:
             raise UserError(f"mesh file {path} contains no triangles: {fix}")
         point_count = len(vertices)
-        vertices, faces, stride, strays = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
-        thinned = f", one in {stride} kept" if stride > 1 else ""
-        dropped = f", {strays:,} stray point(s) far from the rest dropped" if strays else ""
+        surface = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
+        vertices, faces = surface.vertices, surface.faces
+        thinned = f", one in {surface.stride} kept" if surface.stride > 1 else ""
+        dropped = f", {surface.strays:,} stray point(s) far from the rest dropped" if surface.strays else ""
+        coarser = "".join(f"; depth {d} gave {g} handle(s)" for d, g in surface.handles.items())
         repairs = (
-            f"reconstructed a closed surface from {point_count:,} points{thinned}{dropped} "
-            f"(screened Poisson, depth {poisson_depth}): {len(faces):,} faces",
+            f"{RECONSTRUCTED} {point_count:,} points{thinned}{dropped} "
+            f"(screened Poisson, depth {surface.depth}{coarser}): {len(faces):,} faces",
         )
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces), repairs
 

@@ -1,13 +1,23 @@
 """Surface reconstruction of a scan that comes as a point cloud (no faces): pymeshlab's screened
 Poisson reconstruction, which returns a closed (watertight) surface and so also fills the scan's
-holes. Loose fragments become small separate components that ``mesh.repair`` drops."""
+holes. Loose fragments become small separate components that ``mesh.repair`` drops.
+
+Normals estimated from a noisy cloud flip here and there, and the octree's finest cells then close
+small spurious handles through the surface (a sphere sampled with 4 % radial noise comes out of
+depth 7 with 11 handles, of depth 6 as one sphere). When the surface has a handle, the
+reconstruction is tried again one depth coarser, down to ``MIN_DEPTH``, and the first genus-0 one
+kept; a real handle (a mug's) stays at every depth, and the last try goes on to the topology check,
+which refuses it in one line."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pymeshlab
 from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
+from .topology import topology_report
 
 MIN_POINTS = 100
 """Fewer points than this cannot describe a surface."""
@@ -17,6 +27,8 @@ STRAY_SPACING_FACTOR = 10.0
 """A point whose mean distance to its ``NORMAL_NEIGHBOURS`` nearest neighbours is more than this many
 times the cloud's median is a stray (a reflection, dust, a point of the room): dropped before the
 reconstruction, whose octree would otherwise span it and lose resolution on the object."""
+MIN_DEPTH = 5
+"""The coarsest octree depth a noisy cloud is reconstructed at (32 cells along the longest side)."""
 POINTS_PER_DEPTH_CELL = 24
 """A cloud keeps at most ``POINTS_PER_DEPTH_CELL * 4**depth`` points: about four per cell of the
 octree's finest level that a closed surface meets (some ``6 * 4**depth``). More points add nothing
@@ -32,9 +44,23 @@ def stray_points(points: np.ndarray) -> np.ndarray:
     return spacing > STRAY_SPACING_FACTOR * np.median(spacing)
 
 
-def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """``(vertices, faces, stride, strays)`` of the screened Poisson surface through ``points`` (n, 3)
-    read from the file ``name`` (for messages).
+@dataclasses.dataclass(frozen=True)
+class Reconstruction:
+    """A closed surface through a point cloud: ``vertices`` / ``faces``, the ``stride`` the cloud was
+    thinned by (1: every point used), the ``strays`` dropped, the octree ``depth`` kept and the
+    ``handles`` (genus) of the surface at each deeper depth tried first."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    stride: int
+    strays: int
+    depth: int
+    handles: dict[int, int]
+
+
+def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> Reconstruction:
+    """The screened Poisson surface through ``points`` (n, 3) read from the file ``name`` (for
+    messages), at octree ``depth`` or coarser (module docstring).
 
     A cloud denser than ``POINTS_PER_DEPTH_CELL * 4**depth`` is thinned to every ``stride``-th point
     (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Normals are estimated
@@ -50,16 +76,27 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> tuple[
     kept = points[::stride]
     stray = stray_points(kept)
     kept = kept[~stray]
+    handles: dict[int, int] = {}
+    tried = depth
+    while True:
+        vertices, faces = _screened_poisson(kept, tried)
+        if len(faces) == 0:
+            raise UserError(
+                f"screened Poisson found no surface in the {len(points)} points of {name}: the points do not "
+                "sample a closed object; export the scan as a mesh"
+            )
+        genus = int(topology_report(vertices, faces)["genus"])  # over every component; holes do not count
+        if genus == 0 or tried <= MIN_DEPTH:
+            return Reconstruction(vertices, faces, stride, int(np.count_nonzero(stray)), tried, handles)
+        handles[tried] = genus
+        tried -= 1
+
+
+def _screened_poisson(points: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray]:
     meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(kept, dtype=np.float64)))
+    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64)))
     meshset.compute_normal_for_point_clouds(k=NORMAL_NEIGHBOURS, smoothiter=2)
     meshset.generate_surface_reconstruction_screened_poisson(depth=depth, threads=1)
     current = meshset.current_mesh()
-    vertices = np.ascontiguousarray(current.vertex_matrix(), dtype=np.float64)
-    faces = np.ascontiguousarray(current.face_matrix(), dtype=np.int64)
-    if len(faces) == 0:
-        raise UserError(
-            f"screened Poisson found no surface in the {len(points)} points of {name}: the points do not sample a "
-            "closed object; export the scan as a mesh"
-        )
-    return vertices, faces, stride, int(np.count_nonzero(stray))
+    return (np.ascontiguousarray(current.vertex_matrix(), dtype=np.float64),
+            np.ascontiguousarray(current.face_matrix(), dtype=np.int64))

@@ -19,6 +19,8 @@ from ..data.types import Mesh
 from ..geometry.triangles import corners, cross_products, signed_volume, zero_area
 from .meshset import face_components, to_meshset
 
+RECONSTRUCTED = "reconstructed a closed surface from"
+"""How ``Mesh.repairs`` starts the entry of a surface reconstructed from a point cloud (``mesh.load``)."""
 MIN_MEAN_THICKNESS_MM = 0.01
 """A closed surface thinner than this on average (2 x volume / area), or an open one whose points all lie
 this close to one plane, is a flat sheet, not an object."""
@@ -94,8 +96,10 @@ def flat_extent(points: np.ndarray) -> float:
     return float(along.max() - along.min())
 
 
-def topology_problems(report: dict[str, int | float], expected_genus: int | None) -> list[str]:
-    """Operator-facing descriptions (what is wrong: what to do) of everything wrong in ``report``."""
+def topology_problems(report: dict[str, int | float], expected_genus: int | None,
+                      from_points: bool = False) -> list[str]:
+    """Operator-facing descriptions (what is wrong: what to do) of everything wrong in ``report``
+    (``from_points``: the surface was reconstructed from a point cloud)."""
     problems = []
     if report["non_manifold_edges"] or report["non_manifold_vertices"]:
         problems.append(
@@ -135,7 +139,14 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
             "flat sheet, not a solid object; give it its thickness in a mesh editor"
         )
     clean = not problems
-    if clean and expected_genus is not None and report["genus"] != expected_genus:
+    if clean and expected_genus is not None and report["genus"] != expected_genus and from_points:
+        problems.append(
+            f"genus {report['genus']} as reconstructed from the scan's points at every octree depth tried: "
+            "the object has handles, or the points are too noisy or hold several objects for their normals to "
+            f"be oriented; the layout method needs a genus-{expected_genus} surface, so export the scan as a mesh "
+            "(closing any handle in a mesh editor) or scan one object alone"
+        )
+    elif clean and expected_genus is not None and report["genus"] != expected_genus:
         problems.append(
             f"genus {report['genus']}: the layout method needs a genus-{expected_genus} surface; close "
             "the handle(s) in a mesh editor or pick another object"
@@ -173,7 +184,8 @@ def check_topology(params: CheckTopologyParams, mesh: Mesh) -> dict[str, object]
         raise UserError(f"{mesh.source_name} has vertices at NaN or infinite coordinates: "
                         "repair the file, or check the scale (units, diagonal_mm)")
     report = topology_report(mesh.vertices, mesh.faces)
-    problems = topology_problems(report, params.expected_genus)
+    from_points = any(repair.startswith(RECONSTRUCTED) for repair in mesh.repairs)
+    problems = topology_problems(report, params.expected_genus, from_points)
     if problems:
         raise UserError(f"{mesh.source_name}: " + "; ".join(problems))
     return {"mesh": mesh, "report": report}
