@@ -202,18 +202,9 @@ def test_a_list_of_inputs_must_fan_in_each(tmp_path, test_nodes):
     assert "lists no node" in error_of(tmp_path, SEVERAL.replace('["plus[*]", "times[*]"]', "[]"))
 
 
-PER = GOOD.replace('''  tot:
-    type: t.sum
-    inputs: {xs: "plus[*]"}
-''', '''  fine:
-    type: t.add
-    inputs: {x: plus}
-    map: {delta: [10, 20, 30]}
-  tot:
-    type: t.sum
-    inputs: {xs: "fine[*]"}
-    per: [plus]
-''')
+PER = SEVERAL.replace("inputs: {x: src}\n    map: {delta: [10, 20, 30]}", "inputs: {x: plus}\n    map: {delta: [10, 20, 30]}") \
+    .replace('inputs: {xs: ["plus[*]", "times[*]"]}', 'inputs: {xs: "times[*]"}\n    per: [plus]')
+"""Each ``tot`` sums the three ``times`` branches of one ``plus`` branch (``times`` follows ``plus``)."""
 
 
 def test_per_makes_one_reduce_per_branch_of_a_node_it_takes_no_data_from(tmp_path, test_nodes):
@@ -223,15 +214,15 @@ def test_per_makes_one_reduce_per_branch_of_a_node_it_takes_no_data_from(tmp_pat
     totals = [i for i in plan.instances if i.node == "tot"]
     assert [i.id for i in totals] == ["tot[delta=1]", "tot[delta=2]"]
     assert [[u.id for u, _ in t.inputs["xs"]] for t in totals] == [
-        [f"fine[plus.delta=1,fine.delta={d}]" for d in (10, 20, 30)],
-        [f"fine[plus.delta=2,fine.delta={d}]" for d in (10, 20, 30)]]
+        [f"times[plus.delta=1,times.delta={d}]" for d in (10, 20, 30)],
+        [f"times[plus.delta=2,times.delta={d}]" for d in (10, 20, 30)]]
     assert set(totals[0].inputs) == {"xs"}  # plus's output is not an input
     wider = make_plan(str(path), ["deltas=[1, 2, 5]"], str(tmp_path / "cache"))
     assert [i.key for i in wider.instances if i.node == "tot"][:2] == [t.key for t in totals]  # a new branch leaves the others' keys
     run_pipeline(str(path), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"), scheduler="sync")
     ran = make_plan(str(path), [], str(tmp_path / "cache"))
     sums = [ran.store.load(i.cached) for i in ran.instances if i.node == "tot"]
-    # per plus branch, over fine's 3 branches: sum(src) + 3 plus's delta + 3 fine's delta, src = 0, 1, 2
+    # per plus branch, over times's 3 branches: sum(src) + 3 plus's delta + 3 times's delta, src = 0, 1, 2
     assert sums == [3 * (3 + 3 * 1) + 3 * (10 + 20 + 30), 3 * (3 + 3 * 2) + 3 * (10 + 20 + 30)]
 
 
@@ -239,5 +230,5 @@ def test_per_must_name_nodes_and_cannot_make_a_cycle(tmp_path, test_nodes):
     assert error_of(tmp_path, PER.replace("per: [plus]", "per: [pluss]")).startswith(
         "p.yaml:20:11: node 'tot': per refers to unknown node 'pluss'; did you mean 'plus'?")
     assert "per must be a list of node names" in error_of(tmp_path, PER.replace("per: [plus]", "per: plus"))
-    assert "cycle: plus -> tot -> fine -> plus" in error_of(
+    assert "cycle: plus -> tot -> times -> plus" in error_of(
         tmp_path, PER.replace("inputs: {x: src}\n    map: {delta", "inputs: {x: src}\n    per: [tot]\n    map: {delta"))
