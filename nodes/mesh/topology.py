@@ -139,15 +139,13 @@ def topology_problems(report: dict[str, int | float], expected_genus: int | None
             "flat sheet, not a solid object; give it its thickness in a mesh editor"
         )
     clean = not problems
-    if clean and expected_genus is not None and report["genus"] != expected_genus and from_points:
+    if clean and expected_genus is not None and report["genus"] != expected_genus:
         problems.append(
             f"genus {report['genus']} as reconstructed from the scan's points at every octree depth tried: "
             "the object has handles, or the points are too noisy or hold several objects for their normals to "
             f"be oriented; the layout method needs a genus-{expected_genus} surface, so export the scan as a mesh "
             "(closing any handle in a mesh editor) or scan one object alone"
-        )
-    elif clean and expected_genus is not None and report["genus"] != expected_genus:
-        problems.append(
+            if from_points else
             f"genus {report['genus']}: the layout method needs a genus-{expected_genus} surface; close "
             "the handle(s) in a mesh editor or pick another object"
         )
