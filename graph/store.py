@@ -110,6 +110,12 @@ _VERIFIED: dict[str, tuple[Any, ...]] = {}
 process last checked their sha256."""
 
 
+def _check_hashes(folder: str, meta: dict[str, Any]) -> None:
+    for name, info in meta["files"].items():
+        if file_sha256(os.path.join(folder, name)) != info["sha256"]:
+            raise CorruptEntry(f"{folder}: {name} does not match its recorded sha256")
+
+
 def _stamp(folder: str, meta: dict[str, Any]) -> tuple[Any, ...]:
     try:
         stats = [os.stat(os.path.join(folder, name)) for name in sorted(meta["files"])]
@@ -189,9 +195,7 @@ class Store:
     def verify(self, folder: str, key: str) -> dict[str, Any]:
         """meta.json of an entry after the full check: :meth:`read_meta` and every file's sha256."""
         meta = self.read_meta(folder, key)
-        for name, info in meta["files"].items():
-            if file_sha256(os.path.join(folder, name)) != info["sha256"]:
-                raise CorruptEntry(f"{folder}: {name} does not match its recorded sha256")
+        _check_hashes(folder, meta)
         return meta
 
     def load(self, ref: ArtifactRef) -> Any:
@@ -205,7 +209,7 @@ class Store:
             meta = self.read_meta(ref.path, ref.key)
             stamp = _stamp(ref.path, meta)
             if _VERIFIED.get(ref.path) != stamp:
-                self.verify(ref.path, ref.key)
+                _check_hashes(ref.path, meta)
                 _VERIFIED[ref.path] = stamp
         except CorruptEntry:
             _VERIFIED.pop(ref.path, None)
