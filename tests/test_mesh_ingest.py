@@ -568,23 +568,29 @@ def test_a_flat_outline_closed_into_a_double_sheet_is_refused_as_no_solid() -> N
     assert check_topology(CheckTopologyParams(), solid)["report"]["mean_thickness_mm"] > 0.2
 
 
+def noisy_sphere() -> tuple[np.ndarray, np.ndarray]:
+    """20,000 points of a 50 mm sphere with 4 % (2 mm) radial noise, and their outward unit normals."""
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(20000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return directions * rng.normal(1.0, 0.04, size=(20000, 1)) * 50.0, directions
+
+
 def test_a_noisy_cloud_is_reconstructed_coarser_until_it_has_no_spurious_handle(tmp_path: Path) -> None:
     """A sphere sampled with strong radial noise (the normal estimate flips here and there): depth 7
     closes handles through the surface, a coarser octree does not; a real handle stays and is refused
     in one line that says the surface came from points."""
     from retrotouch.nodes.mesh.reconstruct import reconstruct_from_points
 
-    rng = np.random.default_rng(0)
-    directions = rng.normal(size=(20000, 3))
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    noisy = directions * rng.normal(1.0, 0.04, size=(20000, 1)) * 50.0  # 50 mm sphere, 4 % radial noise (2 mm)
+    noisy, _ = noisy_sphere()
     surface = reconstruct_from_points(noisy, 7, "cloud")
     assert surface.handles and min(surface.handles.values()) > 0 and surface.depth < 7
     assert topology_report(surface.vertices, surface.faces)["genus"] == 0
     path = tmp_path / "noisy.xyz"
     np.savetxt(path, noisy)
     mesh = load_mesh(LoadParams(path=str(path)))
-    assert f"(screened Poisson, depth {surface.depth}; depth 7 gave" in mesh.repairs[0]
+    assert f"(screened Poisson, depth {surface.depth}, estimated normals; depth 7 with estimated normals gave" \
+        in mesh.repairs[0]
     torus = trimesh.creation.torus(major_radius=40.0, minor_radius=15.0)
     ring = tmp_path / "ring.xyz"
     np.savetxt(ring, trimesh.sample.sample_surface_even(torus, 8000, seed=0)[0])
@@ -592,3 +598,24 @@ def test_a_noisy_cloud_is_reconstructed_coarser_until_it_has_no_spurious_handle(
     assert "depth 5" in loaded.repairs[0]  # tried coarser: the handle is real
     with pytest.raises(UserError, match=r"genus 1 as reconstructed from the scan's points at every octree depth tried"):
         check_topology(CheckTopologyParams(), loaded)
+
+
+def test_a_scan_s_own_normals_are_tried_when_estimated_ones_give_a_handle(tmp_path: Path) -> None:
+    """The noisy sphere, whose estimated normals give handles at depth 7, is reconstructed there with
+    the file's outward unit normals (PLY nx ny nz); normals a tool left unoriented (random signs)
+    give handles too, so the reconstruction goes coarser; an XYZ file's colour columns are not normals."""
+    points, normals = noisy_sphere()
+    oriented = tmp_path / "oriented.ply"
+    header = ("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\nproperty float z\n"
+              "property float nx\nproperty float ny\nproperty float nz\nend_header\n" % len(points))
+    oriented.write_text(header + "\n".join(" ".join(f"{v:.6f}" for v in row) for row in np.hstack([points, normals])))
+    assert "(screened Poisson, depth 7, the file's normals; depth 7 with estimated normals gave" \
+        in load_mesh(LoadParams(path=str(oriented))).repairs[0]
+    signs = np.where(np.random.default_rng(1).random(len(points)) < 0.5, -1.0, 1.0)[:, None]
+    unoriented = tmp_path / "unoriented.xyz"
+    np.savetxt(unoriented, np.hstack([points, normals * signs]))
+    repairs = load_mesh(LoadParams(path=str(unoriented))).repairs[0]
+    assert "estimated normals; depth 7 with estimated normals gave" in repairs and "depth 7 with the file's normals gave" in repairs
+    coloured = tmp_path / "coloured.xyz"
+    np.savetxt(coloured, np.hstack([points, np.full((len(points), 3), 200.0)]))
+    assert "the file's normals" not in load_mesh(LoadParams(path=str(coloured))).repairs[0]

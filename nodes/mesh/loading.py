@@ -90,6 +90,27 @@ def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64)
 
 
+def scan_normals(path: Path, point_count: int) -> np.ndarray | None:
+    """The unit normal of each of a point-cloud file's ``point_count`` points, when the file holds
+    one for every point (PLY ``nx ny nz``; XYZ columns 4 to 6); None otherwise (absent, zero, not of
+    unit length: an XYZ file's columns 4 to 6 may be a colour)."""
+    try:
+        if path.suffix.lower() == ".xyz":
+            table = np.loadtxt(path, ndmin=2, comments="#")
+            normals = table[:, 3:6] if table.shape[1] >= 6 else None
+        else:
+            vertex = trimesh.load(str(path), process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+            names = set(vertex) if isinstance(vertex, dict) else set(vertex.dtype.names or ()) if vertex is not None else set()
+            normals = np.column_stack([vertex[n] for n in ("nx", "ny", "nz")]) if {"nx", "ny", "nz"} <= names else None
+    except (ValueError, OSError):
+        return None
+    if normals is None or normals.shape != (point_count, 3):
+        return None
+    normals = normals.astype(np.float64)
+    length = np.linalg.norm(normals, axis=1)
+    return normals if np.isfinite(normals).all() and np.all(np.abs(length - 1.0) < 0.1) else None
+
+
 def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """``(vertices (n,3) float64, faces (m,3) int64, repairs)`` of a mesh or point-cloud file.
 
@@ -117,14 +138,15 @@ def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.n
         if len(vertices) == 0:
             raise UserError(f"mesh file {path} contains no triangles: {fix}")
         point_count = len(vertices)
-        surface = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}")
+        surface = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}",
+                                          scan_normals(path, point_count))
         vertices, faces = surface.vertices, surface.faces
         thinned = f", one in {surface.stride} kept" if surface.stride > 1 else ""
         dropped = f", {surface.strays:,} stray point(s) far from the rest dropped" if surface.strays else ""
-        coarser = "".join(f"; depth {d} gave {g} handle(s)" for d, g in surface.handles.items())
+        tries = "".join(f"; {tried} gave {genus} handle(s)" for tried, genus in surface.handles.items())
         repairs = (
             f"{RECONSTRUCTED} {point_count:,} points{thinned}{dropped} "
-            f"(screened Poisson, depth {surface.depth}{coarser}): {len(faces):,} faces",
+            f"(screened Poisson, depth {surface.depth}, {surface.normals}{tries}): {len(faces):,} faces",
         )
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces), repairs
 

@@ -5,9 +5,11 @@ holes. Loose fragments become small separate components that ``mesh.repair`` dro
 Normals estimated from a noisy cloud flip here and there, and the octree's finest cells then close
 small spurious handles through the surface (a sphere sampled with 4 % radial noise comes out of
 depth 7 with 11 handles, of depth 6 as one sphere). When the surface has a handle, the
-reconstruction is tried again one depth coarser, down to ``MIN_DEPTH``, and the first genus-0 one
-kept; a real handle (a mug's) stays at every depth, and the last try goes on to the topology check,
-which refuses it in one line."""
+reconstruction is tried again with the normals the file brings, if any (a scanner's, from its
+viewpoint: they made CGAL's cloud of several spheres reconstructable, but changed clouds that
+already were, not always for the better, so they come second), then with estimated normals one depth
+coarser at a time down to ``MIN_DEPTH``; the first genus-0 surface is kept. A real handle (a mug's)
+stays at every try, and the last goes on to the topology check, which refuses it in one line."""
 from __future__ import annotations
 
 import dataclasses
@@ -47,23 +49,27 @@ def stray_points(points: np.ndarray) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class Reconstruction:
     """A closed surface through a point cloud: ``vertices`` / ``faces``, the ``stride`` the cloud was
-    thinned by (1: every point used), the ``strays`` dropped, the octree ``depth`` kept and the
-    ``handles`` (genus) of the surface at each deeper depth tried first."""
+    thinned by (1: every point used), the ``strays`` dropped, the octree ``depth`` and the
+    ``normals`` ("the file's normals" or "estimated normals") kept, and the ``handles`` (genus) of
+    the surface of each try before (by its depth and normals)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     stride: int
     strays: int
     depth: int
-    handles: dict[int, int]
+    normals: str
+    handles: dict[str, int]
 
 
-def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> Reconstruction:
+def reconstruct_from_points(points: np.ndarray, depth: int, name: str,
+                            normals: np.ndarray | None = None) -> Reconstruction:
     """The screened Poisson surface through ``points`` (n, 3) read from the file ``name`` (for
-    messages), at octree ``depth`` or coarser (module docstring).
+    messages), with the file's unit ``normals`` (n, 3) if given, at octree ``depth`` or coarser
+    (module docstring).
 
     A cloud denser than ``POINTS_PER_DEPTH_CELL * 4**depth`` is thinned to every ``stride``-th point
-    (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Normals are estimated
+    (1: all of them), then its ``strays`` (:func:`stray_points`) are dropped. Estimated normals come
     from ``NORMAL_NEIGHBOURS`` neighbours; ``depth`` is the octree depth (grid of ``2**depth`` cells
     along the longest side). One thread: deterministic, and faster on a loaded machine than many.
     """
@@ -73,29 +79,36 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str) -> Recons
             f"least {MIN_POINTS} points to be reconstructed, export the scan with more points or as a mesh"
         )
     stride = -(-len(points) // (POINTS_PER_DEPTH_CELL * 4**depth))
-    kept = points[::stride]
-    stray = stray_points(kept)
-    kept = kept[~stray]
-    handles: dict[int, int] = {}
-    tried = depth
-    while True:
-        vertices, faces = _screened_poisson(kept, tried)
+    stray = stray_points(points[::stride])
+    kept = points[::stride][~stray]
+    given = None if normals is None else normals[::stride][~stray]
+    tries = [(depth, None)] + ([(depth, given)] if given is not None else [])
+    tries += [(d, None) for d in range(depth - 1, MIN_DEPTH - 1, -1)]
+    handles: dict[str, int] = {}
+    for tried, try_normals in tries:
+        vertices, faces = _screened_poisson(kept, tried, try_normals)
         if len(faces) == 0:
             raise UserError(
                 f"screened Poisson found no surface in the {len(points)} points of {name}: the points do not "
                 "sample a closed object; export the scan as a mesh"
             )
+        source = "estimated normals" if try_normals is None else "the file's normals"
         genus = int(topology_report(vertices, faces)["genus"])  # over every component; holes do not count
-        if genus == 0 or tried <= MIN_DEPTH:
-            return Reconstruction(vertices, faces, stride, int(np.count_nonzero(stray)), tried, handles)
-        handles[tried] = genus
-        tried -= 1
+        if genus == 0:
+            break
+        handles[f"depth {tried} with {source}"] = genus
+    handles.pop(f"depth {tried} with {source}", None)  # the try kept (the last one, if every try has a handle)
+    return Reconstruction(vertices, faces, stride, int(np.count_nonzero(stray)), tried, source, handles)
 
 
-def _screened_poisson(points: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray]:
+def _screened_poisson(points: np.ndarray, depth: int, normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64)))
-    meshset.compute_normal_for_point_clouds(k=NORMAL_NEIGHBOURS, smoothiter=2)
+    if normals is None:
+        meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64)))
+        meshset.compute_normal_for_point_clouds(k=NORMAL_NEIGHBOURS, smoothiter=2)
+    else:
+        meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(points, dtype=np.float64),
+                                        v_normals_matrix=np.ascontiguousarray(normals, dtype=np.float64)))
     meshset.generate_surface_reconstruction_screened_poisson(depth=depth, threads=1)
     current = meshset.current_mesh()
     return (np.ascontiguousarray(current.vertex_matrix(), dtype=np.float64),
