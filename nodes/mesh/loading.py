@@ -99,9 +99,8 @@ def scan_normals(path: Path, point_count: int) -> np.ndarray | None:
             table = np.loadtxt(path, ndmin=2, comments="#")
             normals = table[:, 3:6] if table.shape[1] >= 6 else None
         else:
-            vertex = trimesh.load(str(path), process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-            names = set(vertex) if isinstance(vertex, dict) else set(vertex.dtype.names or ()) if vertex is not None else set()
-            normals = np.column_stack([vertex[n] for n in ("nx", "ny", "nz")]) if {"nx", "ny", "nz"} <= names else None
+            fields = _ply_vertex_fields(path)
+            normals = np.column_stack([fields[n] for n in ("nx", "ny", "nz")]) if {"nx", "ny", "nz"} <= set(fields) else None
     except (ValueError, OSError):
         return None
     if normals is None or normals.shape != (point_count, 3):
@@ -109,6 +108,14 @@ def scan_normals(path: Path, point_count: int) -> np.ndarray | None:
     normals = normals.astype(np.float64)
     length = np.linalg.norm(normals, axis=1)
     return normals if np.isfinite(normals).all() and np.all(np.abs(length - 1.0) < 0.1) else None
+
+
+def _ply_vertex_fields(path: Path) -> dict[str, np.ndarray]:
+    """A PLY file's per-vertex properties by name (as trimesh's reader keeps them); {} for other files."""
+    vertex = trimesh.load(str(path), process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+    if isinstance(vertex, dict):  # an ASCII file
+        return vertex
+    return {} if vertex is None else {name: vertex[name] for name in vertex.dtype.names or ()}
 
 
 def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
