@@ -3,13 +3,12 @@ Poisson reconstruction, which returns a closed (watertight) surface and so also 
 holes. Loose fragments become small separate components that ``mesh.repair`` drops.
 
 Normals estimated from a noisy cloud flip here and there, and the octree's finest cells then close
-small spurious handles through the surface (a sphere sampled with 4 % radial noise comes out of
-depth 7 with 11 handles, of depth 6 as one sphere). When the surface has a handle, the
-reconstruction is tried again with the normals the file brings, if any (a scanner's, from its
-viewpoint: they made CGAL's cloud of several spheres reconstructable, but changed clouds that
-already were, not always for the better, so they come second), then with estimated normals one depth
-coarser at a time down to ``MIN_DEPTH``; the first genus-0 surface is kept. A real handle (a mug's)
-stays at every try, and the last goes on to the topology check, which refuses it in one line."""
+small spurious handles through the surface, which a coarser octree does not. When the surface has a
+handle, the reconstruction is tried again with the normals the file brings, if any (second, not
+first: a tool may have left them unoriented, and on clouds the estimate handles they give another
+surface), then with estimated normals one depth coarser at a time down to ``MIN_DEPTH``; the first
+genus-0 surface is kept. A real handle (a mug's) stays at every try, and the last goes on to the
+topology check, which refuses it in one line."""
 from __future__ import annotations
 
 import dataclasses
