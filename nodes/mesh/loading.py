@@ -64,12 +64,14 @@ class LoadParams(NodeParams):
         return [str(resolve_mesh_path(self.path))]
 
 
-def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(vertices, faces)`` as trimesh reads them (scenes flattened; a point cloud has no faces)."""
+def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(vertices, faces, normals)`` as trimesh reads them (scenes flattened; a point cloud has no
+    faces, and its :func:`scan_normals` or None; a mesh's normals are None)."""
     try:
         loaded = trimesh.load(str(path), process=False)
         if isinstance(loaded, trimesh.PointCloud):
-            return np.asarray(loaded.vertices, dtype=np.float64), np.zeros((0, 3), dtype=np.int64)
+            return (np.asarray(loaded.vertices, dtype=np.float64), np.zeros((0, 3), dtype=np.int64),
+                    scan_normals(path, loaded))
         if not isinstance(loaded, trimesh.Trimesh):
             loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for corrupt input
@@ -87,32 +89,34 @@ def read_geometry(path: Path, fix: str) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"mesh file {path} has NaN or infinite coordinates: {fix}")
     if len(faces):
         loaded.merge_vertices(merge_tex=True, merge_norm=True)
-    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64)
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64), None
 
 
-def scan_normals(path: Path, point_count: int) -> np.ndarray | None:
-    """The unit normal of each of a point-cloud file's ``point_count`` points, when the file holds
-    one for every point (PLY ``nx ny nz``; XYZ columns 4 to 6); None otherwise (absent, zero, not of
-    unit length: an XYZ file's columns 4 to 6 may be a colour)."""
+def scan_normals(path: Path, cloud: trimesh.PointCloud) -> np.ndarray | None:
+    """The unit normal of each point of the point cloud ``cloud`` read from ``path``, when the file
+    holds one for every point (PLY ``nx ny nz``, which trimesh's reader keeps in the cloud's
+    metadata; XYZ columns 4 to 6, which it drops); None otherwise (absent, zero, not of unit length:
+    an XYZ file's columns 4 to 6 may be a colour)."""
     try:
         if path.suffix.lower() == ".xyz":
             table = np.loadtxt(path, ndmin=2, comments="#")
             normals = table[:, 3:6] if table.shape[1] >= 6 else None
         else:
-            fields = _ply_vertex_fields(path)
-            normals = np.column_stack([fields[n] for n in ("nx", "ny", "nz")]) if {"nx", "ny", "nz"} <= set(fields) else None
+            fields = _ply_vertex_fields(cloud)
+            axes = ("nx", "ny", "nz")
+            normals = np.column_stack([fields[n] for n in axes]) if set(axes) <= set(fields) else None
     except (ValueError, OSError):
         return None
-    if normals is None or normals.shape != (point_count, 3):
+    if normals is None or normals.shape != (len(cloud.vertices), 3):
         return None
     normals = normals.astype(np.float64)
     length = np.linalg.norm(normals, axis=1)
     return normals if np.isfinite(normals).all() and np.all(np.abs(length - 1.0) < 0.1) else None
 
 
-def _ply_vertex_fields(path: Path) -> dict[str, np.ndarray]:
-    """A PLY file's per-vertex properties by name (as trimesh's reader keeps them); {} for other files."""
-    vertex = trimesh.load(str(path), process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+def _ply_vertex_fields(cloud: trimesh.PointCloud) -> dict[str, np.ndarray]:
+    """A PLY file's per-vertex properties by name, as trimesh's reader keeps them; {} for other files."""
+    vertex = cloud.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
     if isinstance(vertex, dict):  # an ASCII file
         return vertex
     return {} if vertex is None else {name: vertex[name] for name in vertex.dtype.names or ()}
@@ -137,7 +141,7 @@ def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.n
             f"mesh file {path} has an unsupported extension {path.suffix!r}: "
             f"use one of {', '.join(SUPPORTED_SUFFIXES)}"
         )
-    vertices, faces = read_geometry(path, fix)
+    vertices, faces, normals = read_geometry(path, fix)
     if not np.isfinite(vertices).all():  # a point cloud's points
         raise UserError(f"mesh file {path} has NaN or infinite coordinates: {fix}")
     repairs: tuple[str, ...] = ()
@@ -145,8 +149,7 @@ def read_mesh_file(path: Path, poisson_depth: int = 7) -> tuple[np.ndarray, np.n
         if len(vertices) == 0:
             raise UserError(f"mesh file {path} contains no triangles: {fix}")
         point_count = len(vertices)
-        surface = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}",
-                                          scan_normals(path, point_count))
+        surface = reconstruct_from_points(vertices, poisson_depth, f"mesh file {path}", normals)
         vertices, faces = surface.vertices, surface.faces
         thinned = f", one in {surface.stride} kept" if surface.stride > 1 else ""
         dropped = f", {surface.strays:,} stray point(s) far from the rest dropped" if surface.strays else ""

@@ -83,7 +83,7 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str,
     given = None if normals is None else normals[::stride][~stray]
     tries = [(depth, None)] + ([(depth, given)] if given is not None else [])
     tries += [(d, None) for d in range(depth - 1, MIN_DEPTH - 1, -1)]
-    handles: dict[str, int] = {}
+    attempts: list[tuple[str, int]] = []  # (depth and normals, genus) of each try so far
     for tried, try_normals in tries:
         vertices, faces = _screened_poisson(kept, tried, try_normals)
         if len(faces) == 0:
@@ -93,11 +93,10 @@ def reconstruct_from_points(points: np.ndarray, depth: int, name: str,
             )
         source = "estimated normals" if try_normals is None else "the file's normals"
         genus = int(topology_report(vertices, faces)["genus"])  # over every component; holes do not count
+        attempts.append((f"depth {tried} with {source}", genus))
         if genus == 0:
             break
-        handles[f"depth {tried} with {source}"] = genus
-    handles.pop(f"depth {tried} with {source}", None)  # the try kept (the last one, if every try has a handle)
-    return Reconstruction(vertices, faces, stride, int(np.count_nonzero(stray)), tried, source, handles)
+    return Reconstruction(vertices, faces, stride, int(np.count_nonzero(stray)), tried, source, dict(attempts[:-1]))
 
 
 def _screened_poisson(points: np.ndarray, depth: int, normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
