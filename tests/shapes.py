@@ -95,6 +95,27 @@ def four_legged_figurine(soles: bool = True) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, mesh.faces)
 
 
+def standing_figure() -> trimesh.Trimesh:
+    """A figure standing on two legs: an ellipsoid body (48 x 30 x 80 mm), a head on top, two legs
+    parted like a person's, each ending in a small flat sole (about 100 mm^2); 133 mm high. Lying
+    on its front or back it touches the table along a longer strip than its soles."""
+    axes = np.array([24.0, 15.0, 40.0])
+
+    def radius(d: np.ndarray) -> np.ndarray:
+        body = 1.0 / np.sqrt(((d / axes) ** 2).sum(axis=1))
+        legs = np.zeros(len(d))
+        for side in (-1, 1):
+            leg = np.array([0.35 * side, 0.0, -0.94]) / np.hypot(0.35, 0.94)
+            legs = np.maximum(legs, 45.0 * np.exp(-((np.arccos(np.clip(d @ leg, -1, 1)) / 0.13) ** 4)))
+        head = 22.0 * np.exp(-((np.arccos(np.clip(d[:, 2], -1, 1)) / 0.3) ** 2))
+        return body + legs + head
+
+    mesh = radial(radius)
+    vertices = mesh.vertices.copy()
+    vertices[:, 2] = np.maximum(vertices[:, 2], vertices[:, 2].min() + 8.0)
+    return trimesh.Trimesh(vertices, mesh.faces)
+
+
 def lying_spoon() -> trimesh.Trimesh:
     """A spoon-like solid lying on its curved back: an oval bowl (70 x 44 mm) and a 110 mm handle,
     along x, 14 mm high; nothing on it is flat."""
@@ -126,6 +147,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "plate": plate,
     "bowl_foot_ring": bowl_with_foot_ring,
     "four_legged_figurine": four_legged_figurine,
+    "standing_figure": standing_figure,
     "lying_spoon": lying_spoon,
     "bust_cut_base": bust_with_cut_base,
     "box": box,

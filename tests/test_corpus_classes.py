@@ -30,6 +30,7 @@ EXPECTED_POSE = {
     "plate": "thin",
     "bowl_foot_ring": "foot_ring",
     "four_legged_figurine": "patches",
+    "standing_figure": "patches",
     "lying_spoon": "round",
     "bust_cut_base": "flat",
     "box": "flat",

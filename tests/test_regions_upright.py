@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import ConvexHull
 
 import shapes
 from retrotouch.nodes.geometry.triangles import corners, normals
+from retrotouch.nodes.regions import pose
 from retrotouch.nodes.regions.detect import RegionParams, resting_base
+from retrotouch.nodes.regions.pose import candidate_floors
 from retrotouch.nodes.regions.faces import FaceGraph
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -52,6 +55,7 @@ GENERATED_UPRIGHT = {
     "plate": (Z,),
     "bowl_foot_ring": (Z,),
     "four_legged_figurine": (Z,),
+    "standing_figure": (Z,),
     "lying_spoon": (Z, NEG_Z),
     "bust_cut_base": (Z,),
     "box": (Z, NEG_Z),
@@ -112,3 +116,35 @@ def test_shared_mesh_rests_upright(stem: str) -> None:
     up = chosen_up(vertices, np.asarray(mesh.faces, dtype=np.int64))
     expected, reason = SHARED_UPRIGHT[stem]
     assert angle_to_nearest_deg(up, expected) <= TOLERANCE_DEG, f"{stem} ({reason}): up {np.round(up, 2)}"
+
+
+def test_two_feet_count_on_a_figure_standing_tall_only() -> None:
+    """A figure on two small soles stands on them: its upright floor's contact is the polygon the
+    soles span, larger than the strip it lies on; without the two-feet rule its soles alone are
+    smaller than that strip. The lying spoon's two ends are no feet: it is not tall."""
+    figure = shapes.standing_figure()
+    vertices, faces = np.asarray(figure.vertices, dtype=np.float64), np.asarray(figure.faces, dtype=np.int64)
+    params = RegionParams()
+
+    def floors() -> list:
+        return candidate_floors(vertices, faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm)
+
+    def upright_and_lying(found: list) -> tuple:
+        upright = max(found, key=lambda floor: -floor.down[2])
+        return upright, max(floor.contact_mm2 for floor in found if floor is not upright and floor.tipping_deg > 0)
+
+    upright, lying = upright_and_lying(floors())
+    soles = vertices[vertices[:, 2] <= vertices[:, 2].min() + params.plane_tolerance_mm]
+    assert upright.feet == 2
+    assert upright.contact_mm2 >= 0.95 * ConvexHull(soles[:, :2]).volume
+    assert upright.contact_mm2 > lying
+    assert angle_to_nearest_deg(chosen_up(vertices, faces), (Z,)) <= TOLERANCE_DEG
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pose, "STRIDE_SHARE", 10.0)  # feet never apart that high: the rule off
+        upright, lying = upright_and_lying(floors())
+        assert upright.feet == 0 and upright.contact_mm2 < lying
+
+    spoon = shapes.lying_spoon()
+    found = candidate_floors(np.asarray(spoon.vertices, dtype=np.float64), np.asarray(spoon.faces, dtype=np.int64),
+                             params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm)
+    assert all(floor.feet == 0 for floor in found)

@@ -12,7 +12,10 @@ hull triangle). Each candidate gets
   at the ends of legs (still apart ``LEG_SHARE`` of the diagonal above the floor), are what it was
   made to stand on (an animal or a figurine on its legs), and the load is carried over the whole
   polygon between them however small each rounded foot's own contact is (a flat face larger than
-  that polygon still wins: a stool with a broad flat seat is set on its seat); and
+  that polygon still wins: a stool with a broad flat seat is set on its seat). Two feet count the
+  same way on a figure that stands tall on them (a person, a bird: at least as tall as wide in that
+  pose, the feet apart up to ``STRIDE_SHARE`` of its height): small soles with the body's weight
+  above them, which a person sets upright rather than on its front; and
 * its **tipping angle** (degrees): the support polygon is the convex hull of the hull vertices
   within ``plane_tolerance_mm`` of the floor; the angle is ``atan(margin / height)``, where
   ``margin`` is the distance from the centre of mass's projection to the polygon's nearest edge
@@ -64,6 +67,10 @@ FEET_SHARE = 0.25
 LEG_SHARE = 0.05
 """Feet stand on legs: they stay separate up to this share of the object's bounding-box diagonal
 above the floor (bumps of one face, or a body lying on its side, merge well below it)."""
+STRIDE_SHARE = 0.2
+"""A figure stands on two feet (a person, a bird) when it is at least as tall as it is wide in that
+pose and its feet stay separate up to this share of its height (a person's legs part at about half
+of it, a short-legged cartoon figure's at a quarter; a lying object is not tall)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,10 +177,11 @@ def feet_support_mm2(
     vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, planes: np.ndarray, tolerance_mm: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per plane (rows: outward normal, offset), ``(area mm^2 of the polygon its feet span, number of
-    feet)``, both 0 where it has fewer than ``FEET_MIN``: faces within ``FEET_ANGLE_DEG`` of the plane and
+    feet)``, both 0 where it has no feet: faces within ``FEET_ANGLE_DEG`` of the plane and
     ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
-    plane's largest patch's area, and still apart on the surface up to ``LEG_SHARE`` of the object's
-    diagonal above the floor (legs)."""
+    plane's largest patch's area; ``FEET_MIN`` or more of them still apart on the surface up to
+    ``LEG_SHARE`` of the object's diagonal above the floor (legs), or two of them apart up to
+    ``STRIDE_SHARE`` of the object's height in that pose when it is at least as tall as wide."""
     from .faces import FaceGraph
 
     face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
@@ -197,13 +205,21 @@ def feet_support_mm2(
     largest = np.zeros(len(planes))
     np.maximum.at(largest, label_plane, area)
     foot = area >= FEET_SHARE * largest[label_plane]
-    for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= FEET_MIN):
+    for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= 2):
         feet = (plane == index) & foot[label]
         depth = -(vertices @ planes[index, :3] + planes[index, 3])
-        legs = graph.components((depth[faces] <= max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)).all(axis=1))
-        if len(np.unique(legs[face[feet]])) >= FEET_MIN:
-            points = vertices[np.unique(faces[face[feet]])] @ plane_basis(planes[index, :3])
-            support[index], count[index] = ConvexHull(points).volume, len(np.unique(label[feet]))
+        basis = plane_basis(planes[index, :3])
+        patches = len(np.unique(label[feet]))
+        if patches >= FEET_MIN:
+            apart, needed = max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm), FEET_MIN
+        elif patches == 2 and depth.max() >= np.ptp(vertices @ basis, axis=0).max():
+            apart, needed = STRIDE_SHARE * depth.max(), patches
+        else:
+            continue
+        legs = graph.components((depth[faces] <= apart).all(axis=1))
+        if len(np.unique(legs[face[feet]])) >= needed:
+            points = vertices[np.unique(faces[face[feet]])] @ basis
+            support[index], count[index] = ConvexHull(points).volume, patches
     return support, count
 
 
