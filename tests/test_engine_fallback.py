@@ -104,6 +104,15 @@ def test_the_command_line_says_what_the_fallback_did_in_its_table_json_and_manif
     assert summary["fallback"] == manifest["fallback"] and manifest["fallback"]["ran_again"] and summary["ran"] == 0
 
 
+def test_the_two_schemas_describe_the_fallback_outcome_alike() -> None:
+    """``run --json`` and ``manifest.json`` carry one outcome object; its definition is written in both
+    schema files (each validates on its own, without a resolver), so they must not drift apart."""
+    schemas = Path(__file__).resolve().parents[1] / "graph" / "schemas"
+    summary, manifest = (json.loads((schemas / name).read_text())["properties"]["fallback"]
+                         for name in ("run-summary.schema.json", "manifest.schema.json"))
+    assert summary == manifest
+
+
 def test_watch_says_when_the_fallback_ran_again(tmp_path, test_nodes):
     from retrotouch.graph.watch import WatchState, run_once
 
