@@ -36,6 +36,7 @@ encloses a deep cavity (a bowl or a cup upside down on its rim) is passed over f
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import trimesh
@@ -173,6 +174,12 @@ def touching_faces(
     return np.concatenate([f for f, _ in found]), np.concatenate([p for _, p in found])
 
 
+def groups_apart(graph, face_depths: np.ndarray, contact_faces: np.ndarray, height_mm: float) -> int:
+    """How many groups ``contact_faces`` fall into on the surface below ``height_mm`` above the floor
+    (``face_depths``: (m, 3) corner heights, mm; ``graph``: the mesh's FaceGraph)."""
+    return len(np.unique(graph.components((face_depths <= height_mm).all(axis=1))[contact_faces]))
+
+
 def feet_support_mm2(
     vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, planes: np.ndarray, tolerance_mm: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -180,8 +187,9 @@ def feet_support_mm2(
     feet)``, both 0 where it has no feet: faces within ``FEET_ANGLE_DEG`` of the plane and
     ``FEET_DEPTH * tolerance_mm`` of it, in edge-connected patches of at least ``FEET_SHARE`` of the
     plane's largest patch's area; ``FEET_MIN`` or more of them still apart on the surface up to
-    ``LEG_SHARE`` of the object's diagonal above the floor (legs), or two of them apart up to
-    ``STRIDE_SHARE`` of the object's height in that pose when it is at least as tall as wide."""
+    ``LEG_SHARE`` of the object's diagonal above the floor (legs), or, when the object is at least as
+    tall as wide in that pose, two legs: the patches (a sole may split into heel and toe) fall into
+    exactly two groups still apart up to ``STRIDE_SHARE`` of its height."""
     from .faces import FaceGraph
 
     face, plane = touching_faces(vertices, faces, face_normals, planes, FEET_ANGLE_DEG, FEET_DEPTH * tolerance_mm)
@@ -210,16 +218,15 @@ def feet_support_mm2(
         depth = -(vertices @ planes[index, :3] + planes[index, 3])
         basis = plane_basis(planes[index, :3])
         patches = len(np.unique(label[feet]))
-        if patches >= FEET_MIN:
-            apart, needed = max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm), FEET_MIN
-        elif patches == 2 and depth.max() >= np.ptp(vertices @ basis, axis=0).max():
-            apart, needed = STRIDE_SHARE * depth.max(), patches
+        apart = functools.partial(groups_apart, graph, depth[faces], face[feet])
+        if patches >= FEET_MIN and apart(max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)) >= FEET_MIN:
+            feet_count = patches
+        elif depth.max() >= np.ptp(vertices @ basis, axis=0).max() and apart(STRIDE_SHARE * depth.max()) == 2:
+            feet_count = 2
         else:
             continue
-        legs = graph.components((depth[faces] <= apart).all(axis=1))
-        if len(np.unique(legs[face[feet]])) >= needed:
-            points = vertices[np.unique(faces[face[feet]])] @ basis
-            support[index], count[index] = ConvexHull(points).volume, patches
+        points = vertices[np.unique(faces[face[feet]])] @ basis
+        support[index], count[index] = ConvexHull(points).volume, feet_count
     return support, count
 
 
