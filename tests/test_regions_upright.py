@@ -121,7 +121,8 @@ def test_shared_mesh_rests_upright(stem: str) -> None:
 def test_two_feet_count_on_a_figure_standing_tall_only() -> None:
     """A figure on two small soles stands on them: its upright floor's contact is the polygon the
     soles span, larger than the strip it lies on; without the two-feet rule its soles alone are
-    smaller than that strip. The lying spoon's two ends are no feet: it is not tall."""
+    smaller than that strip. A sole split in two by a groove is still one foot. The lying spoon's two
+    ends are no feet: it is not tall."""
     figure = shapes.standing_figure()
     vertices, faces = np.asarray(figure.vertices, dtype=np.float64), np.asarray(figure.faces, dtype=np.int64)
     params = RegionParams()
@@ -143,6 +144,12 @@ def test_two_feet_count_on_a_figure_standing_tall_only() -> None:
         patch.setattr(pose, "STRIDE_SHARE", 10.0)  # feet never apart that high: the rule off
         upright, lying = upright_and_lying(floors())
         assert upright.feet == 0 and upright.contact_mm2 < lying
+
+    lowest = vertices[:, 2].min()  # a groove across one sole splits it into heel and toe: still one foot
+    grooved = vertices.copy()
+    grooved[(vertices[:, 0] > 0) & (np.abs(vertices[:, 1]) < 1.5) & (vertices[:, 2] < lowest + 0.5), 2] += 3.0
+    found = candidate_floors(grooved, faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm)
+    assert max(found, key=lambda floor: -floor.down[2]).feet == 2
 
     spoon = shapes.lying_spoon()
     found = candidate_floors(np.asarray(spoon.vertices, dtype=np.float64), np.asarray(spoon.faces, dtype=np.int64),
