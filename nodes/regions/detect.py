@@ -54,7 +54,7 @@ from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
 from .faces import FaceGraph
 from .poles import farthest_pole, geodesic_centre
-from .pose import candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
+from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 from .touch import clear_of_table, pocket_of, touch_summary, touchable_faces_of
 
 CANDIDATE_POSES = 6
@@ -147,10 +147,11 @@ def automatic_pose(
 ) -> tuple[Base, np.ndarray, str]:
     """``(base, down, why)`` of the pose a person would set the object down in (:mod:`.pose`):
     the best ranked floor whose base does not enclose a downward cavity (else the best)."""
+    shape = at_pose_size(vertices)
     floors = candidate_floors(
-        vertices, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
+        shape, graph.faces, params.direction_cells, params.angle_threshold_deg, params.plane_tolerance_mm
     )
-    mirrors = mirror_planes(vertices, graph.faces)
+    mirrors = mirror_planes(shape, graph.faces)
     ranked = ranked_floors(floors, mirrors, params.min_tipping_deg, params.angle_threshold_deg, CANDIDATE_POSES)
     stable = sum(f.tipping_deg >= params.min_tipping_deg for f in floors)
     why = f"the stable pose with the most flat contact of {stable} stable hull planes"
@@ -186,7 +187,8 @@ def resting_base(
         else:
             down, why = face_normals[seed].copy(), f"seed face {seed} given"
         base = find_base(vertices, graph, face_normals, areas, down, params, seed)
-    tipping = tipping_angle_deg(vertices, down, centre_of_mass(vertices, graph.faces), params.plane_tolerance_mm)
+    shape = at_pose_size(vertices)
+    tipping = tipping_angle_deg(shape, down, centre_of_mass(shape, graph.faces), params.plane_tolerance_mm)
     return base, down, tipping, why
 
 

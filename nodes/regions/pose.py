@@ -1,4 +1,5 @@
-"""Resting pose: the floor plane an object is set down on, by quasi-static analysis of its hull.
+"""Resting pose: the floor plane an object is set down on, by quasi-static analysis of its hull, on
+the shape scaled to ``POSE_DIAGONAL_MM`` (:func:`at_pose_size`: the pose is the shape's, whatever its size).
 
 A rigid object on a table rests on a plane of its convex hull. Candidate floors are convex-hull
 triangle planes, one per cell of ``direction_cells`` evenly spread directions (the cell's largest
@@ -72,6 +73,17 @@ STRIDE_SHARE = 0.2
 """A figure stands on two feet (a person, a bird) when it is at least as tall as it is wide in that
 pose and its feet stay separate up to this share of its height (a person's legs part at about half
 of it, a short-legged cartoon figure's at a quarter; a lying object is not tall)."""
+
+
+POSE_DIAGONAL_MM = 170.0
+"""The pose is found on the shape scaled to this bounding-box diagonal (the default object size), so
+that it is a property of the shape: the contact band and the tipping polygon's tolerance
+(``plane_tolerance_mm``) are judged at this size, whatever the object's own."""
+
+
+def at_pose_size(vertices: np.ndarray) -> np.ndarray:
+    """``vertices`` (mm) scaled about the origin to a ``POSE_DIAGONAL_MM`` bounding-box diagonal."""
+    return vertices * (POSE_DIAGONAL_MM / float(np.linalg.norm(np.ptp(vertices, axis=0))))
 
 
 @dataclasses.dataclass(frozen=True)
