@@ -37,7 +37,6 @@ encloses a deep cavity (a bowl or a cup upside down on its rim) is passed over f
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import trimesh
@@ -186,10 +185,10 @@ def touching_faces(
     return np.concatenate([f for f, _ in found]), np.concatenate([p for _, p in found])
 
 
-def groups_apart(graph, face_depths: np.ndarray, contact_faces: np.ndarray, height_mm: float) -> int:
+def groups_apart(graph, depth: np.ndarray, contact_faces: np.ndarray, height_mm: float) -> int:
     """How many groups ``contact_faces`` fall into on the surface below ``height_mm`` above the floor
-    (``face_depths``: (m, 3) corner heights, mm; ``graph``: the mesh's FaceGraph)."""
-    return len(np.unique(graph.components((face_depths <= height_mm).all(axis=1))[contact_faces]))
+    (``depth``: each vertex's height above it, mm; ``graph``: the mesh's FaceGraph)."""
+    return len(np.unique(graph.components((depth[graph.faces] <= height_mm).all(axis=1))[contact_faces]))
 
 
 def feet_support_mm2(
@@ -225,15 +224,16 @@ def feet_support_mm2(
     largest = np.zeros(len(planes))
     np.maximum.at(largest, label_plane, area)
     foot = area >= FEET_SHARE * largest[label_plane]
+    legs_mm = max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)  # four feet stay apart up to this height
     for index in np.flatnonzero(np.bincount(label_plane[foot], minlength=len(planes)) >= 2):
         feet = (plane == index) & foot[label]
         depth = -(vertices @ planes[index, :3] + planes[index, 3])
         basis = plane_basis(planes[index, :3])
         patches = len(np.unique(label[feet]))
-        apart = functools.partial(groups_apart, graph, depth[faces], face[feet])
-        if patches >= FEET_MIN and apart(max(LEG_SHARE * size, FEET_DEPTH * tolerance_mm)) >= FEET_MIN:
+        if patches >= FEET_MIN and groups_apart(graph, depth, face[feet], legs_mm) >= FEET_MIN:
             feet_count = patches
-        elif depth.max() >= np.ptp(vertices @ basis, axis=0).max() and apart(STRIDE_SHARE * depth.max()) == 2:
+        elif (depth.max() >= np.ptp(vertices @ basis, axis=0).max()
+              and groups_apart(graph, depth, face[feet], STRIDE_SHARE * depth.max()) == 2):
             feet_count = 2
         else:
             continue
