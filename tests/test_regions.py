@@ -16,6 +16,7 @@ from retrotouch.nodes.data.types import Mesh, SurfaceRegions
 from retrotouch.nodes.geometry.triangles import corners, normals
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, remesh
+from retrotouch.nodes.regions.base import is_sheet
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions, parse_axis
 from retrotouch.nodes.regions.faces import FaceGraph
 
@@ -302,21 +303,51 @@ def test_narrow_lying_blade_keeps_its_top_sensing() -> None:
 
 
 @pytest.mark.skipif(not (SHARED_MESHES / "spoon_pfc.ply").exists(), reason=f"no spoon_pfc.ply in {SHARED_MESHES}")
-def test_spoon_base_moves_to_the_bowl_where_the_wiring_has_room() -> None:
-    """The lying spoon touches the table at the handle's end (the larger contact) and under the bowl;
-    from the handle's end every trace would squeeze along the handle (under 30 mm round), so the base
-    starts under the bowl, and the Tx pole is at the handle's end."""
+def test_lying_spoon_is_a_sheet_with_its_bottom_side_as_base() -> None:
+    """The spoon is a sheet (its wall 1.5 mm thick) lying on its bowl's curved back: a thin object
+    although its bowl makes it 20 mm tall. The base is its whole bottom side, the top senses, and the
+    Tx pole sits at the handle's end."""
     spoon = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(SHARED_MESHES / "spoon_pfc.ply"))))
     r = detect_regions(RegionParams(), spoon, touch_of(spoon))
-    assert "contact patch 2 by size" in r.pose_reason
+    assert "thin object" in r.pose_reason
+    face_normals, areas = normals(corners(spoon.vertices, spoon.faces))
+    down = face_normals @ -np.asarray(r.up) > np.cos(np.radians(45.0))
+    up = face_normals @ np.asarray(r.up) > np.cos(np.radians(45.0))
+    assert areas[down & r.base_faces].sum() > 0.9 * areas[down].sum()
+    assert areas[up & r.sensing_faces].sum() > 0.8 * areas[up].sum()
     centre = spoon.vertices.mean(axis=0)
     axis = np.linalg.svd(spoon.vertices - centre)[2][0]
     along = (spoon.vertices - centre) @ axis
     across = (spoon.vertices - centre) @ np.linalg.svd(spoon.vertices - centre)[2][1]
     ends = [along < np.quantile(along, 0.3), along > np.quantile(along, 0.7)]
-    bowl = int(np.argmax([np.ptp(across[end]) for end in ends]))  # the wider end
-    assert ends[bowl][r.base_centre] and ends[1 - bowl][r.far_vertex]
+    handle = int(np.argmin([np.ptp(across[end]) for end in ends]))  # the narrower end
+    assert ends[handle][r.far_vertex]
     assert_valid_regions(spoon, r)
+
+
+def dish(outer_radius: float, rim_radius: float, wall_mm: float) -> trimesh.Trimesh:
+    """A round-bottomed shell of revolution: a sphere's cap (``outer_radius``, out to ``rim_radius``)
+    with a wall ``wall_mm`` thick (mm)."""
+    inner_radius = outer_radius - wall_mm
+    outer = [(r, outer_radius - np.sqrt(outer_radius**2 - r * r)) for r in np.linspace(0.0, rim_radius, 25)]
+    inner = [(r, outer_radius - np.sqrt(inner_radius**2 - r * r)) for r in np.linspace(rim_radius, 0.0, 25)]
+    return shapes.revolved(outer + inner)
+
+
+@pytest.mark.parametrize("wall_mm, kind", [(2.5, "thin"), (12.0, "round")])
+def test_a_sheet_resting_on_a_curved_bottom_is_thin_a_solid_is_round(wall_mm: float, kind: str) -> None:
+    """The same round-bottomed dish (94 mm across, 27-50 mm tall: too tall to be thin by its height) is a
+    sheet with a 2.5 mm wall, whose whole bottom side is the base, and with a 12 mm wall a solid
+    resting on a contact cap."""
+    mesh = remeshed(dish(60.0, 47.0, wall_mm), 4000)
+    face_normals, areas = normals(corners(mesh.vertices, mesh.faces))
+    assert is_sheet(mesh.vertices, mesh.faces, face_normals, areas) == (kind == "thin")
+    r = detect_regions(RegionParams(), mesh, touch_of(mesh))
+    assert r.pose_kind == kind
+    down = face_normals @ np.array([0.0, 0.0, -1.0]) > np.cos(np.radians(45.0))
+    base_share_of_bottom = areas[down & r.base_faces].sum() / areas[down].sum()
+    assert base_share_of_bottom > 0.9 if kind == "thin" else base_share_of_bottom < 0.5
+    assert_valid_regions(mesh, r)
 
 
 @pytest.mark.skipif(not (SHARED_MESHES / "scorpion_lowres_oded.ply").exists(),

@@ -15,6 +15,7 @@ from scipy.spatial import ConvexHull
 import shapes
 from retrotouch.nodes.geometry.triangles import corners, normals
 from retrotouch.nodes.regions import pose
+from retrotouch.nodes.regions.base import is_sheet
 from retrotouch.nodes.regions.detect import RegionParams, resting_base
 from retrotouch.nodes.regions.pose import candidate_floors
 from retrotouch.nodes.regions.faces import FaceGraph
@@ -69,7 +70,7 @@ def chosen_up(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """The up direction ``regions.detect`` picks with no overrides."""
     graph = FaceGraph(faces, len(vertices))
     face_normals, areas = normals(corners(vertices, faces))
-    down = resting_base(vertices, graph, face_normals, areas, RegionParams())[1]
+    down = resting_base(vertices, graph, face_normals, areas, RegionParams(), is_sheet(vertices, faces, face_normals, areas))[1]
     return -down
 
 

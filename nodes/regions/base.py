@@ -13,11 +13,12 @@
    flat foot a disc around it. A patch whose vertices lie on average more than ``CURVED_DEPTH`` of
    the plane tolerance above the plane is a round bottom's contact cap.
 4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
-   plates, dishes, lids, a lying blade): before step 3, the patch takes the whole bottom side, the
-   faces connected to it whose normal is within ``THIN_SIDE_ANGLE_DEG`` of ``down``, so the dipole
-   goes where the bottom side is widest, and it grows only for an interior edge if the bottom side
-   is narrower than ``min_base_radius_mm`` (a band over the rim would cut the top in two); top and
-   rim stay sensing.
+   plates, dishes, lids, a lying blade; or a sheet, :func:`is_sheet`, resting on a curved bottom or
+   on several patches: a lying spoon, whose bowl makes it tall): before step 3, the patch takes the
+   whole bottom side, the faces connected to it whose normal is within ``THIN_SIDE_ANGLE_DEG`` of
+   ``down``, so the dipole goes where the bottom side is widest, and it grows only for an interior
+   edge if the bottom side is narrower than ``min_base_radius_mm`` (a band over the rim would cut
+   the top in two); top and rim stay sensing.
 5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
    one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
    of the object's height are a cavity opening downward.
@@ -38,6 +39,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry.triangles import corners
 from .faces import FaceGraph
 from .pose import plane_basis
 
@@ -45,6 +47,12 @@ PATCH_SHARE = 0.25
 """A contact patch with at least this share of the largest patch's area counts as another one."""
 THIN_RATIO = 0.25
 """Height / narrowest horizontal extent below which an object is thin (a plate, a lid)."""
+SHEET_SHARE = 0.03
+"""A sheet: three quarters of its surface lie on walls thinner than this share of its bounding-box diagonal
+(sheets measured 0.5-2.9 %: a spoon, a blade, plates, a bowl, a vase, a tray, a tube; solids 6.5 % and
+more, thin limbs and wings included)."""
+SHEET_SAMPLES = 400
+"""Surface points whose wall thickness :func:`is_sheet` measures."""
 THIN_SIDE_ANGLE_DEG = 60.0
 """On a thin object, the bottom side: faces whose normal is within this angle of ``down``."""
 CAVITY_SHARE = 0.25
@@ -122,6 +130,44 @@ def is_thin(vertices: np.ndarray, down: np.ndarray) -> bool:
     return float(np.ptp(vertices @ down)) < THIN_RATIO * narrowest
 
 
+def wall_thickness(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray,
+                   reach: float, samples: int = SHEET_SAMPLES) -> np.ndarray:
+    """Wall thickness (mm) at ``samples`` face centroids spread by area (deterministic): the distance
+    from each, inward along its face's outward normal, to the first face it meets, or ``inf`` when no
+    face lies within ``reach`` (mm) of it (only the faces near a point are tested)."""
+    cumulative = np.cumsum(areas)
+    picked = np.searchsorted(cumulative, (np.arange(samples) + 0.5) / samples * cumulative[-1])
+    triangles = corners(vertices, faces)
+    centroids = triangles.mean(axis=1)
+    origin, direction = centroids[picked], -face_normals[picked]
+    spread = float(np.linalg.norm(triangles - centroids[:, None, :], axis=2).max())
+    near = cKDTree(centroids).query_ball_point(origin, reach + spread)
+    ray = np.repeat(np.arange(samples), [len(n) for n in near])
+    face = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    # Moller-Trumbore on every (ray, nearby face) pair
+    a, b, c = triangles[face, 0], triangles[face, 1] - triangles[face, 0], triangles[face, 2] - triangles[face, 0]
+    p = np.cross(direction[ray], c)
+    det = np.einsum("ij,ij->i", b, p)
+    ok = (np.abs(det) > 1e-12) & (face != picked[ray])
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    t_vec = origin[ray] - a
+    u = np.einsum("ij,ij->i", t_vec, p) * inv
+    q = np.cross(t_vec, b)
+    v = np.einsum("ij,ij->i", direction[ray], q) * inv
+    t = np.einsum("ij,ij->i", c, q) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    thickness = np.full(samples, np.inf)
+    np.minimum.at(thickness, ray[hit], t[hit])
+    return thickness
+
+
+def is_sheet(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> bool:
+    """Whether the object is a sheet (a spoon, a plate, a lid, a leaf; not a solid with thin limbs):
+    three quarters of :func:`wall_thickness` below ``SHEET_SHARE`` of the bounding-box diagonal."""
+    limit = SHEET_SHARE * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    return bool(np.mean(wall_thickness(vertices, faces, face_normals, areas, limit) < limit) >= 0.75)
+
+
 def absorb_islands(graph: FaceGraph, base: np.ndarray, areas: np.ndarray) -> np.ndarray:
     """Base plus every non-base component except the largest (by area), so the rest is one piece."""
     labels = graph.components(~base)
@@ -140,10 +186,11 @@ def find_base(
     down: np.ndarray,
     params,
     seed: int | None,
+    sheet: bool,
     rank: int = 0,
 ) -> Base:
     """The base for resting direction ``down`` (module docstring) on the seed's contact patch, else on
-    the ``rank``-th largest; ``params`` is a ``RegionParams``."""
+    the ``rank``-th largest; ``params`` is a ``RegionParams``, ``sheet`` :func:`is_sheet` of the object."""
     labels = contact_patches(
         vertices, graph, face_normals, down, params.angle_threshold_deg, params.plane_tolerance_mm, seed
     )
@@ -160,7 +207,7 @@ def find_base(
     height = vertices @ down
     depth = height.max() - height[np.unique(graph.faces[patch])]
     curved = depth.mean() > CURVED_DEPTH * params.plane_tolerance_mm
-    thin = is_thin(vertices, down)
+    thin = is_thin(vertices, down) or (sheet and (curved or patches > 1))
     if thin:
         side = face_normals @ down >= np.cos(np.radians(THIN_SIDE_ANGLE_DEG))
         side_labels = graph.components(side | patch)

@@ -51,7 +51,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
-from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks
+from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks, is_sheet
 from .faces import FaceGraph
 from .poles import farthest_pole, geodesic_centre
 from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
@@ -143,7 +143,8 @@ def nearest_face(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> 
 
 
 def automatic_pose(
-    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams
+    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams,
+    sheet: bool,
 ) -> tuple[Base, np.ndarray, str]:
     """``(base, down, why)`` of the pose a person would set the object down in (:mod:`.pose`):
     the best ranked floor whose base does not enclose a downward cavity (else the best)."""
@@ -159,7 +160,7 @@ def automatic_pose(
         why += f", keeping the most of its {len(mirrors)} mirror plane(s) upright"
     first = None
     for rank, floor in enumerate(ranked):
-        base = find_base(vertices, graph, face_normals, areas, floor.down, params, None)
+        base = find_base(vertices, graph, face_normals, areas, floor.down, params, None, sheet)
         if not base.cavity:
             skipped = f", {rank} upside-down pose(s) passed over" if rank else ""
             if floor.feet and base.kind in ("flat", "round"):  # one foot is the base, the others sense
@@ -171,22 +172,24 @@ def automatic_pose(
 
 
 def resting_base(
-    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams
+    vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, params: RegionParams,
+    sheet: bool,
 ) -> tuple[Base, np.ndarray, float, str]:
-    """``(base, down, tipping angle deg, why this pose)``: steps 1 and 2 of the module docstring."""
+    """``(base, down, tipping angle deg, why this pose)``: steps 1 and 2 of the module docstring; ``sheet``
+    is :func:`.base.is_sheet` of the object."""
     seed = params.seed_face
     if seed is not None and seed >= len(graph.faces):
         raise UserError(f"seed_face {seed} does not exist: the mesh has {len(graph.faces)} faces")
     if params.seed_point is not None:
         seed = nearest_face(vertices, graph.faces, np.asarray(params.seed_point, dtype=np.float64))
     if params.up_axis is None and seed is None:
-        base, down, why = automatic_pose(vertices, graph, face_normals, areas, params)
+        base, down, why = automatic_pose(vertices, graph, face_normals, areas, params, sheet)
     else:
         if params.up_axis is not None:
             down, why = -parse_axis(params.up_axis), f"up_axis {params.up_axis} given"
         else:
             down, why = face_normals[seed].copy(), f"seed face {seed} given"
-        base = find_base(vertices, graph, face_normals, areas, down, params, seed)
+        base = find_base(vertices, graph, face_normals, areas, down, params, seed, sheet)
     shape = at_pose_size(vertices)
     tipping = tipping_angle_deg(shape, down, centre_of_mass(shape, graph.faces), params.plane_tolerance_mm)
     return base, down, tipping, why
@@ -210,7 +213,7 @@ share of the free surface (a neck it cannot grow through)."""
 
 def room_for_wiring(
     vertices: np.ndarray, graph: FaceGraph, face_normals: np.ndarray, areas: np.ndarray, down: np.ndarray,
-    base: Base, from_base: np.ndarray, solver, params: RegionParams, seeded: bool,
+    base: Base, from_base: np.ndarray, solver, params: RegionParams, seeded: bool, sheet: bool,
 ) -> tuple[Base, np.ndarray, float | None, int]:
     """``(base, distance mm from its contact patch, rim mm or None if it did not grow, the patch's rank
     by size)``: the base grown through the necks next to it (:func:`.base.grow_through_necks`), started
@@ -220,7 +223,7 @@ def room_for_wiring(
     ranks = range(1 if seeded or base.kind == "thin" else min(base.contacts, WIRING_CONTACTS))
     best = None
     for rank in ranks:
-        start = base if rank == 0 else find_base(vertices, graph, face_normals, areas, down, params, None, rank)
+        start = base if rank == 0 else find_base(vertices, graph, face_normals, areas, down, params, None, sheet, rank)
         if rank and (start.cavity or start.faces.all()):
             continue
         distance = from_base if rank == 0 else base_distance(solver, graph, start.faces)[1]
@@ -318,7 +321,8 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
             "put mesh.check_topology before regions.detect"
         )
     face_normals, areas = normals(corners(vertices, faces))
-    base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params)
+    sheet = is_sheet(vertices, faces, face_normals, areas)
+    base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params, sheet)
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
     solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
@@ -328,7 +332,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
         seeded = params.seed_face is not None or params.seed_point is not None
         contact = base.faces
         base, from_contact, rim_mm, rank = room_for_wiring(
-            vertices, graph, face_normals, areas, down, base, from_base, solver, params, seeded
+            vertices, graph, face_normals, areas, down, base, from_base, solver, params, seeded, sheet
         )
         if not np.array_equal(base.faces, contact):
             from_boundary, from_base = base_distance(solver, graph, base.faces)
@@ -362,7 +366,6 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
     cut_share = float(areas[cut_off].sum() / areas.sum())
     if cut_share >= CUT_OFF_NOTE_SHARE:
         reason += f"; {100 * cut_share:.1f}% of the surface is cut off from the Tx pole by the base and is not sensing"
-
     return SurfaceRegions(
         base_faces=base.faces,
         exclusion_base=exclusion_base,
