@@ -127,6 +127,40 @@ def lying_spoon() -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, mesh.faces[:, [0, 1, 2]])
 
 
+def metal_spoon() -> trimesh.Trimesh:
+    """A metal spoon: a 1.6 mm sheet, an oval bowl (70 x 44 mm, 10 mm deep, its tip and neck curving up
+    4 mm) and a handle (8-14 mm wide) rising 8 mm more to its end, 182 mm long along x, bowl up."""
+    x = np.linspace(0.0, 182.0, 183)
+    bowl = 22.0 * np.sqrt(np.clip(1.0 - ((x - 35.0) / 35.0) ** 2, 0.0, None))
+    handle = np.where(x >= 55.0, np.interp(x, [55.0, 150.0, 176.0, 182.0], [4.0, 5.0, 7.0, 1.0]), 0.0)
+    half_width = np.maximum(np.maximum(bowl, handle), 1.0)
+    across = np.linspace(-1.0, 1.0, 31)
+    rings = []  # one closed cross-section per x: the top side across, then the bottom side back
+    for xi, w in zip(x, half_width):
+        y = across * w
+        depth = -10.0 * np.clip(1.0 - ((xi - 35.0) / 35.0) ** 2 - (y / 22.0) ** 2, 0.0, None)
+        bend = 4.0 * min((xi - 35.0) / 35.0, 1.0) ** 2  # the bowl's tip and neck curve up
+        lift = 8.0 * np.clip((xi - 70.0) / 112.0, 0.0, 1.0) ** 1.5
+        mid = depth + bend + lift
+        top = np.column_stack([np.full_like(y, xi), y, mid + 0.8])
+        bottom = np.column_stack([np.full_like(y, xi), y, mid - 0.8])[::-1]
+        rings.append(np.vstack([top, bottom]))
+    n, k = len(rings), len(rings[0])  # consecutive sections joined by quads, the two ends closed by fans
+    vertices = np.vstack(rings + [rings[0].mean(axis=0, keepdims=True), rings[-1].mean(axis=0, keepdims=True)])
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(k), indexing="ij")
+    a, b = i * k + j, i * k + (j + 1) % k
+    c, d = a + k, b + k
+    faces = np.vstack([np.column_stack([a.ravel(), b.ravel(), d.ravel()]), np.column_stack([a.ravel(), d.ravel(), c.ravel()])])
+    first, last = n * k, n * k + 1
+    j = np.arange(k)
+    caps = np.vstack([np.column_stack([np.full(k, first), (j + 1) % k, j]),
+                      np.column_stack([np.full(k, last), (n - 1) * k + j, (n - 1) * k + (j + 1) % k])])
+    mesh = trimesh.Trimesh(vertices, np.vstack([faces, caps]))
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
 def point_cloud_scan(seed: int = 0) -> np.ndarray:
     """``(n, 3)`` points (mm) of a scanned bust: about 60,000 surface samples with 0.3 mm noise,
     two holes (no samples within 12 mm of two surface points) and three loose fragments (small
@@ -149,6 +183,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "four_legged_figurine": four_legged_figurine,
     "standing_figure": standing_figure,
     "lying_spoon": lying_spoon,
+    "metal_spoon": metal_spoon,
     "bust_cut_base": bust_with_cut_base,
     "box": box,
     "vase": vase,

@@ -32,6 +32,7 @@ EXPECTED_POSE = {
     "four_legged_figurine": "patches",
     "standing_figure": "patches",
     "lying_spoon": "round",
+    "metal_spoon": "thin",
     "bust_cut_base": "flat",
     "box": "flat",
     "vase": "flat",
