@@ -17,6 +17,7 @@ from retrotouch.nodes.geometry.triangles import corners, normals
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, remesh
 from retrotouch.nodes.regions.base import is_sheet
+from retrotouch.nodes.regions import detect
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions, parse_axis
 from retrotouch.nodes.regions.faces import FaceGraph
 
@@ -302,6 +303,17 @@ def test_narrow_lying_blade_keeps_its_top_sensing() -> None:
     assert_valid_regions(blade, r)
 
 
+def spoon_ends(spoon: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex masks of a spoon's handle end and bowl end: the outer 30 % of its length each, the
+    narrower one the handle's."""
+    centre = spoon.vertices.mean(axis=0)
+    axes = np.linalg.svd(spoon.vertices - centre)[2]
+    along, across = (spoon.vertices - centre) @ axes[0], (spoon.vertices - centre) @ axes[1]
+    ends = [along < np.quantile(along, 0.3), along > np.quantile(along, 0.7)]
+    handle = int(np.argmin([np.ptp(across[end]) for end in ends]))
+    return ends[handle], ends[1 - handle]
+
+
 @pytest.mark.skipif(not (SHARED_MESHES / "spoon_pfc.ply").exists(), reason=f"no spoon_pfc.ply in {SHARED_MESHES}")
 def test_lying_spoon_is_a_sheet_with_its_bottom_side_as_base() -> None:
     """The spoon is a sheet (its wall 1.5 mm thick) lying on its bowl's curved back: a thin object
@@ -315,13 +327,21 @@ def test_lying_spoon_is_a_sheet_with_its_bottom_side_as_base() -> None:
     up = face_normals @ np.asarray(r.up) > np.cos(np.radians(45.0))
     assert areas[down & r.base_faces].sum() > 0.9 * areas[down].sum()
     assert areas[up & r.sensing_faces].sum() > 0.8 * areas[up].sum()
-    centre = spoon.vertices.mean(axis=0)
-    axis = np.linalg.svd(spoon.vertices - centre)[2][0]
-    along = (spoon.vertices - centre) @ axis
-    across = (spoon.vertices - centre) @ np.linalg.svd(spoon.vertices - centre)[2][1]
-    ends = [along < np.quantile(along, 0.3), along > np.quantile(along, 0.7)]
-    handle = int(np.argmin([np.ptp(across[end]) for end in ends]))  # the narrower end
-    assert ends[handle][r.far_vertex]
+    assert spoon_ends(spoon)[0][r.far_vertex]
+    assert_valid_regions(spoon, r)
+
+
+@pytest.mark.skipif(not (SHARED_MESHES / "spoon_pfc.ply").exists(), reason=f"no spoon_pfc.ply in {SHARED_MESHES}")
+def test_a_base_behind_a_neck_moves_to_the_contact_where_the_wiring_has_room(monkeypatch) -> None:
+    """Were the spoon a solid (the sheet rule off), it would touch the table at the handle's end (the
+    larger contact) and under the bowl; from the handle's end every trace would squeeze along the
+    handle (under 30 mm round), so the base starts under the bowl, and the Tx pole is at the handle's end."""
+    monkeypatch.setattr(detect, "is_sheet", lambda *mesh: False)
+    spoon = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(SHARED_MESHES / "spoon_pfc.ply"))))
+    r = detect_regions(RegionParams(), spoon, touch_of(spoon))
+    assert "contact patch 2 by size" in r.pose_reason
+    handle, bowl = spoon_ends(spoon)
+    assert bowl[r.base_centre] and handle[r.far_vertex]
     assert_valid_regions(spoon, r)
 
 
