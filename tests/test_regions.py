@@ -354,6 +354,41 @@ def dish(outer_radius: float, rim_radius: float, wall_mm: float) -> trimesh.Trim
     return shapes.revolved(outer + inner)
 
 
+def arch(radius: float, wall_mm: float, length: float) -> trimesh.Trimesh:
+    """A sheet bent into an arch: half a cylindrical shell along y, standing on its two edges (mm)."""
+    turn = np.linspace(0.0, np.pi, 49)
+    outer = np.column_stack([radius * np.cos(turn), radius * np.sin(turn)])
+    inner = np.column_stack([(radius - wall_mm) * np.cos(turn), (radius - wall_mm) * np.sin(turn)])[::-1]
+    section = np.vstack([outer, inner])  # closed outline in (x, z)
+    k = len(section)
+    ys = np.linspace(0.0, length, 51)
+    vertices = np.vstack([np.column_stack([section[:, 0], np.full(k, y), section[:, 1]]) for y in ys])
+    i, j = np.meshgrid(np.arange(len(ys) - 1), np.arange(k), indexing="ij")
+    a, b = i * k + j, i * k + (j + 1) % k
+    faces = [np.column_stack([a.ravel(), b.ravel(), (b + k).ravel()]), np.column_stack([a.ravel(), (b + k).ravel(), (a + k).ravel()])]
+    m = len(turn)
+    for offset, flip in ((0, False), ((len(ys) - 1) * k, True)):  # the two end faces: strips between the arcs
+        o, n = offset + np.arange(m - 1), offset + k - 1 - np.arange(m - 1)
+        cap = np.vstack([np.column_stack([o, n, o + 1]), np.column_stack([o + 1, n, n - 1])])
+        faces.append(cap[:, ::-1] if flip else cap)
+    mesh = trimesh.Trimesh(vertices, np.vstack(faces))
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def test_a_sheet_standing_on_its_edges_is_not_thin() -> None:
+    """An arch of a 2 mm sheet set on its two edges rests on two strips, not on a side: its base is a
+    contact cap grown for the dipole and the wiring, as a solid's (a thin object's base would be one
+    edge strip)."""
+    mesh = remeshed(arch(40.0, 2.0, 100.0), 4000)
+    face_normals, areas = normals(corners(mesh.vertices, mesh.faces))
+    assert is_sheet(mesh.vertices, mesh.faces, face_normals, areas)
+    r = detect_regions(RegionParams(up_axis=(0.0, 0.0, 1.0)), mesh, touch_of(mesh))
+    assert r.pose_kind != "thin"
+    assert_valid_regions(mesh, r)
+
+
 @pytest.mark.parametrize("wall_mm, kind", [(2.5, "thin"), (12.0, "round")])
 def test_a_sheet_resting_on_a_curved_bottom_is_thin_a_solid_is_round(wall_mm: float, kind: str) -> None:
     """The same round-bottomed dish (94 mm across, 27-50 mm tall: too tall to be thin by its height) is a

@@ -14,11 +14,12 @@
    the plane tolerance above the plane is a round bottom's contact cap.
 4. **Thin objects** (height along ``up`` below ``THIN_RATIO`` of the narrowest horizontal extent:
    plates, dishes, lids, a lying blade; or a sheet, :func:`is_sheet`, resting on a curved bottom or
-   on several patches: a lying spoon, whose bowl makes it tall): before step 3, the patch takes the
-   whole bottom side, the faces connected to it whose normal is within ``THIN_SIDE_ANGLE_DEG`` of
-   ``down``, so the dipole goes where the bottom side is widest, and it grows only for an interior
-   edge if the bottom side is narrower than ``min_base_radius_mm`` (a band over the rim would cut
-   the top in two); top and rim stay sensing.
+   on several patches with at least ``SHEET_BOTTOM_SHARE`` of its surface on its bottom side: a lying
+   spoon, whose bowl makes it tall): before step 3, the patch takes the whole bottom side, the faces
+   connected to it whose normal is within ``THIN_SIDE_ANGLE_DEG`` of ``down``, so the dipole goes
+   where the bottom side is widest, and it grows only for an interior edge if the bottom side is
+   narrower than ``min_base_radius_mm`` (a band over the rim would cut the top in two); top and rim
+   stay sensing.
 5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
    one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
    of the object's height are a cavity opening downward.
@@ -51,6 +52,9 @@ SHEET_SHARE = 0.03
 """A sheet: three quarters of its surface lie on walls thinner than this share of its bounding-box diagonal
 (sheets measured 0.5-2.9 %: a spoon, a blade, plates, a bowl, a vase, a tray, a tube; solids 6.5 % and
 more, thin limbs and wings included)."""
+SHEET_BOTTOM_SHARE = 0.25
+"""A sheet lies on its bottom side (a thin object) when that side holds at least this share of its surface
+(about half when it lies flat; a sheet standing on an edge rests on a strip)."""
 SHEET_SAMPLES = 400
 """Surface points whose wall thickness :func:`is_sheet` measures."""
 THIN_SIDE_ANGLE_DEG = 60.0
@@ -207,11 +211,13 @@ def find_base(
     height = vertices @ down
     depth = height.max() - height[np.unique(graph.faces[patch])]
     curved = depth.mean() > CURVED_DEPTH * params.plane_tolerance_mm
-    thin = is_thin(vertices, down) or (sheet and (curved or patches > 1))
-    if thin:
+    thin = is_thin(vertices, down)
+    if thin or (sheet and (curved or patches > 1)):
         side = face_normals @ down >= np.cos(np.radians(THIN_SIDE_ANGLE_DEG))
         side_labels = graph.components(side | patch)
-        patch = patch | np.isin(side_labels, np.unique(side_labels[patch]))
+        bottom = patch | np.isin(side_labels, np.unique(side_labels[patch]))
+        if thin or areas[bottom].sum() >= SHEET_BOTTOM_SHARE * areas.sum():
+            patch, thin = bottom, True
     radius = params.min_base_radius_mm
     if thin:  # a band over the rim would cut the top in two: the bottom side's own room is enough
         radius = min(radius, inradius_mm(vertices, graph, patch))
