@@ -50,8 +50,8 @@ THIN_RATIO = 0.25
 """Height / narrowest horizontal extent below which an object is thin (a plate, a lid)."""
 SHEET_SHARE = 0.03
 """A sheet: three quarters of its surface lie on walls thinner than this share of its bounding-box diagonal
-(sheets measured 0.5-2.9 %: a spoon, a blade, plates, a bowl, a vase, a tray, a tube; solids 6.5 % and
-more, thin limbs and wings included)."""
+(measured: 0.5-2.9 % for a spoon, a blade, plates, a bowl, a vase, a tray, a tube; 3.5-3.9 % for CAD parts,
+a plate with holes, pins, a turbine; 6.5 % and more for figures, animals and an airplane)."""
 SHEET_BOTTOM_SHARE = 0.25
 """A sheet lies on its bottom side (a thin object) when that side holds at least this share of its surface
 (about half when it lies flat; a sheet standing on an edge rests on a strip)."""
