@@ -16,8 +16,8 @@ from retrotouch.nodes.data.types import Mesh, SurfaceRegions
 from retrotouch.nodes.geometry.triangles import corners, normals
 from retrotouch.nodes.mesh.loading import LoadParams, ScaleParams, load_mesh, scale_mesh
 from retrotouch.nodes.mesh.repair import RemeshParams, remesh
-from retrotouch.nodes.regions.base import is_sheet
 from retrotouch.nodes.regions import detect
+from retrotouch.nodes.regions.base import is_sheet
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions, parse_axis
 from retrotouch.nodes.regions.faces import FaceGraph
 
