@@ -345,6 +345,24 @@ def test_a_base_behind_a_neck_moves_to_the_contact_where_the_wiring_has_room(mon
     assert_valid_regions(spoon, r)
 
 
+@pytest.mark.parametrize("name", ["metal_spoon", "sword_oded"])
+def test_a_thin_object_senses_only_where_a_finger_reaches(name: str) -> None:
+    """A thin object's base takes the underside beside its bottom side that a fingertip cannot reach
+    above the table (a spoon's rounded edge, a sword's grip and guard: 5 % and 29 % of what sensed
+    before), so its whole sensing region can be touched."""
+    if name in shapes.CLASSES:
+        mesh = remeshed(shapes.CLASSES[name](), 4000)
+    elif (SHARED_MESHES / f"{name}.ply").exists():
+        mesh = scale_mesh(ScaleParams(diagonal_mm=170.0), load_mesh(LoadParams(path=str(SHARED_MESHES / f"{name}.ply"))))
+    else:
+        pytest.skip(f"no {name}.ply in {SHARED_MESHES}")
+    r = detect_regions(RegionParams(), mesh, touch_of(mesh))
+    assert r.pose_kind == "thin"
+    _, areas = normals(corners(mesh.vertices, mesh.faces))
+    assert areas[r.sensing_faces & ~r.touch_faces].sum() < 0.005 * areas[r.sensing_faces].sum()
+    assert_valid_regions(mesh, r)
+
+
 def dish(outer_radius: float, rim_radius: float, wall_mm: float) -> trimesh.Trimesh:
     """A round-bottomed shell of revolution: a sphere's cap (``outer_radius``, out to ``rim_radius``)
     with a wall ``wall_mm`` thick (mm)."""

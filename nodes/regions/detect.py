@@ -9,8 +9,9 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    ``down`` is the seed face's outward normal; otherwise the pose a person would set the object
    down in, from a quasi-static analysis of its convex hull.
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
-   until it gives the Rx dipole room, the whole bottom side of a thin object, plus the faces it
-   encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
+   until it gives the Rx dipole room, the whole bottom side of a thin object (with the underside
+   beside it that a fingertip cannot reach above the table, :func:`with_the_table_side`), plus the
+   faces it encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
    foot), so every trace has room to reach it, or, where a neck it cannot grow through blocks the
    wiring (a lying spoon's handle), started on another contact patch (:func:`room_for_wiring`).
 
@@ -51,7 +52,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
-from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks, is_sheet
+from .base import MIN_NECK_GAIN, Base, absorb_islands, find_base, grow_through_necks, is_sheet
 from .faces import FaceGraph
 from .poles import farthest_pole, geodesic_centre
 from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
@@ -204,6 +205,14 @@ def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarra
     return from_boundary, np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
 
 
+def with_the_table_side(graph: FaceGraph, base: Base, below_reach: np.ndarray, areas: np.ndarray) -> Base:
+    """A thin object's base with the faces joined to it that a fingertip cannot reach above the table
+    (``below_reach``: a rounded underside, a sword's grip) and the islands they cut off. Others unchanged."""
+    labels = graph.components(below_reach | base.faces)
+    joined = absorb_islands(graph, base.faces | np.isin(labels, np.unique(labels[base.faces])), areas)
+    return dataclasses.replace(base, faces=joined) if base.kind == "thin" else base
+
+
 WIRING_CONTACTS = 4
 """Room for the wiring: how many of the largest contact patches are tried as the base's start."""
 WIRING_REACH = 0.8
@@ -316,13 +325,13 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     graph = FaceGraph(faces, len(vertices))
     if (graph.opposite < 0).any():
-        raise UserError(
-            f"regions.detect needs a closed mesh, {int((graph.opposite < 0).sum())} edges are open: "
-            "put mesh.check_topology before regions.detect"
-        )
+        raise UserError(f"regions.detect needs a closed mesh, {int((graph.opposite < 0).sum())} edges are open: "
+                        "put mesh.check_topology before regions.detect")
     face_normals, areas = normals(corners(vertices, faces))
     sheet = is_sheet(vertices, faces, face_normals, areas)
     base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params, sheet)
+    above_table = clear_of_table(vertices, faces, face_normals, down, touchable.finger_radius_mm)
+    base = with_the_table_side(graph, base, ~above_table, areas)
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
     solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
@@ -356,7 +365,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
     exclusion_far &= ~blocked
     within_reach = touchable_faces_of(touchable, vertices, faces)
     exclusion_far |= pocket_of(graph, exclusion_far, ~within_reach & ~blocked, blocked)
-    touch = within_reach & clear_of_table(vertices, faces, face_normals, down, touchable.finger_radius_mm)
+    touch = within_reach & above_table
     cut_off = unreachable_faces(graph, ~(blocked | exclusion_far), blocked, exclusion_far)
     exclusion_base |= cut_off
     blocked |= cut_off
