@@ -205,7 +205,9 @@ def test_shared_meshes_rest_without_overrides(path: Path) -> None:
     r = detect_regions(params, mesh, touch_of(mesh))
     assert_valid_regions(mesh, r)
     assert r.tipping_angle_deg >= params.min_tipping_deg  # a stable pose
-    assert r.sensing_faces.mean() > 0.45
+    # most of the surface senses; on a thin object its top (the bottom side and the rounded underside
+    # beside it that no finger reaches above the table are the base: a sword's grip and guard)
+    assert r.sensing_faces.mean() > (0.3 if r.pose_kind == "thin" else 0.45)
     if r.pose_kind == "thin":  # the Tx pole at the other end from the base centre (a lying blade's tip)
         span = np.linalg.norm(mesh.vertices[r.far_vertex] - mesh.vertices[r.base_centre])
         assert span > 0.5 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)), span
