@@ -39,15 +39,6 @@ EXPECTED_POSE = {
     "point_cloud_scan": "flat",
 }
 
-FEW_CELLS = {
-    "lying_spoon": "a long thin object: the rings' 16 legs do not fit around the handle, side by side (6 x 5 "
-                   "channels, 14 cells, coverage radius 28.6 mm) or on Tx lines (7 x 2, 11 cells, 37 mm), and the "
-                   "dipole loops leave the bowl uncovered (27 cells, 87 mm); the side-by-side rings win on coverage",
-}
-"""Classes whose layout may have fewer than 10 pads or 20 cells at this size: the lying spoon sits at
-the threshold (11 pads and 14 cells here, 14 and 20 on CI's clean install of the same commit), so
-reaching it passes and missing it is an expected failure."""
-
 
 def trimmed_pipeline(folder: Path) -> Path:
     """The default pipeline cut after ``KEEP_UP_TO``, without its fallback (the second sweep with the
@@ -100,10 +91,7 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
         assert metrics["pose"]["sensing_area_fraction"] < 0.7 and metrics["touch"]["share"] < 0.7
     if name == "point_cloud_scan":
         assert abs(np.ptp(mesh.vertices, axis=0)[2] - 160.0) < 10.0  # fragments dropped: only the bust's height
-    enough = metrics["pads"] >= 10 and metrics["cells"] >= 20
-    if name in FEW_CELLS and not enough:
-        pytest.xfail(FEW_CELLS[name])
-    assert enough, (metrics["pads"], metrics["cells"])
+    assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
 
 
 def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions(tmp_path: Path) -> None:

@@ -48,6 +48,8 @@ PATCH_SHARE = 0.25
 """A contact patch with at least this share of the largest patch's area counts as another one."""
 THIN_RATIO = 0.25
 """Height / narrowest horizontal extent below which an object is thin (a plate, a lid)."""
+LYING_RATIO = 0.5
+"""Height / longest horizontal extent below which an object lies (a spoon, an airplane, a bone, a boat on its keel)."""
 SHEET_SHARE = 0.03
 """A sheet: three quarters of its surface lie on walls thinner than this share of its bounding-box diagonal
 (measured: 0.5-2.9 % for a spoon, a blade, plates, a bowl, a vase, a tray, a tube; 3.5-3.9 % for CAD parts,
@@ -125,13 +127,23 @@ def grow_for_dipole(vertices: np.ndarray, graph: FaceGraph, base: np.ndarray, ra
     return base
 
 
-def is_thin(vertices: np.ndarray, down: np.ndarray) -> bool:
-    """Whether the height along ``down`` is below ``THIN_RATIO`` of the narrowest horizontal extent."""
+def horizontal_extents(vertices: np.ndarray, down: np.ndarray) -> tuple[float, float]:
+    """``(longest, narrowest)`` extent (mm) across ``down``: along the principal axes of the vertices
+    projected onto the horizontal plane."""
     flat = vertices @ plane_basis(down)
     flat = flat - flat.mean(axis=0)
     axes = np.linalg.svd(flat, full_matrices=False)[2]
-    narrowest = float(np.ptp(flat @ axes[-1]))
-    return float(np.ptp(vertices @ down)) < THIN_RATIO * narrowest
+    return float(np.ptp(flat @ axes[0])), float(np.ptp(flat @ axes[-1]))
+
+
+def is_thin(vertices: np.ndarray, down: np.ndarray) -> bool:
+    """Whether the height along ``down`` is below ``THIN_RATIO`` of the narrowest horizontal extent."""
+    return float(np.ptp(vertices @ down)) < THIN_RATIO * horizontal_extents(vertices, down)[1]
+
+
+def is_lying(vertices: np.ndarray, down: np.ndarray) -> bool:
+    """Whether the height along ``down`` is below ``LYING_RATIO`` of the longest horizontal extent."""
+    return float(np.ptp(vertices @ down)) < LYING_RATIO * horizontal_extents(vertices, down)[0]
 
 
 def wall_thickness(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray,

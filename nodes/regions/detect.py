@@ -9,9 +9,9 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    ``down`` is the seed face's outward normal; otherwise the pose a person would set the object
    down in, from a quasi-static analysis of its convex hull.
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
-   until it gives the Rx dipole room, the whole bottom side of a thin object (with the underside
-   beside it that a fingertip cannot reach above the table, :func:`with_the_table_side`), plus the
-   faces it encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
+   until it gives the Rx dipole room, or the whole bottom side of a thin object; on a thin or lying
+   object with the underside beside it that a fingertip cannot reach above the table
+   (:func:`with_the_table_side`); plus the faces it encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
    foot), so every trace has room to reach it, or, where a neck it cannot grow through blocks the
    wiring (a lying spoon's handle), started on another contact patch (:func:`room_for_wiring`).
 
@@ -52,7 +52,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
-from .base import MIN_NECK_GAIN, Base, absorb_islands, find_base, grow_through_necks, is_sheet
+from .base import MIN_NECK_GAIN, Base, absorb_islands, find_base, grow_through_necks, is_lying, is_sheet
 from .faces import FaceGraph
 from .poles import farthest_pole, geodesic_centre
 from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
@@ -205,12 +205,12 @@ def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarra
     return from_boundary, np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
 
 
-def with_the_table_side(graph: FaceGraph, base: Base, below_reach: np.ndarray, areas: np.ndarray) -> Base:
-    """A thin object's base with the faces joined to it that a fingertip cannot reach above the table
-    (``below_reach``: a rounded underside, a sword's grip) and the islands they cut off. Others unchanged."""
+def with_the_table_side(graph: FaceGraph, base: Base, below_reach: np.ndarray, areas: np.ndarray, lying: bool) -> Base:
+    """A thin or ``lying`` object's base with the faces joined to it that a fingertip cannot reach above the
+    table (``below_reach``: a rounded underside, a sword's grip) and the islands they cut off. Others unchanged."""
     labels = graph.components(below_reach | base.faces)
     joined = absorb_islands(graph, base.faces | np.isin(labels, np.unique(labels[base.faces])), areas)
-    return dataclasses.replace(base, faces=joined) if base.kind == "thin" else base
+    return dataclasses.replace(base, faces=joined) if base.kind == "thin" or lying else base
 
 
 WIRING_CONTACTS = 4
@@ -331,7 +331,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
     sheet = is_sheet(vertices, faces, face_normals, areas)
     base, down, tipping, why = resting_base(vertices, graph, face_normals, areas, params, sheet)
     above_table = clear_of_table(vertices, faces, face_normals, down, touchable.finger_radius_mm)
-    base = with_the_table_side(graph, base, ~above_table, areas)
+    base = with_the_table_side(graph, base, ~above_table, areas, is_lying(vertices, down))
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
     solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
