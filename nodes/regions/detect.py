@@ -9,11 +9,11 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    ``down`` is the seed face's outward normal; otherwise the pose a person would set the object
    down in, from a quasi-static analysis of its convex hull.
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
-   until it gives the Rx dipole room, or the whole bottom side of a thin object; on a thin or lying
-   object with the underside beside it that a fingertip cannot reach above the table
-   (:func:`with_the_table_side`); plus the faces it encloses, so the rest is one piece; then grown through a narrow neck next to it (a leg above a
-   foot), so every trace has room to reach it, or, where a neck it cannot grow through blocks the
-   wiring (a lying spoon's handle), started on another contact patch (:func:`room_for_wiring`).
+   until it gives the Rx dipole room, or a thin object's whole bottom side; a thin or lying object's
+   with the underside beside it no fingertip reaches above the table (:func:`with_the_table_side`);
+   plus the faces it encloses, so the rest is one piece; then grown through a narrow neck next to it
+   (a leg above a foot) so every trace has room to reach it, or, where a neck blocks the wiring (a
+   contact at the end of a thin handle), started on another contact patch (:func:`room_for_wiring`).
 
 Then, with heat-method geodesic distances (potpourri3d):
 
