@@ -35,9 +35,14 @@ class Bounds:
 # 24-34 / 63-84.5, radius 50.5-57.6 / 33.8-41.6 mm; worst radius 116.0 / 157.2 mm, worst CV 2.58 / 1.89.
 # One object's layout varies that much between remeshes, so the bounds are the worst remesh's with a
 # 15 % margin.
+# 2026-12-06, the table side of thin objects (their base takes the underside no fingertip reaches above
+# the table): the human figure lies flat as a thin object at this size (the pipeline's 20k-vertex remesh
+# stands it up), and on the remesh the whole suite's order gives it (this fixture's remesh depends on what
+# pymeshlab ran before in the process) its rings at turn 0 go from 18 to 8 cells, Voronoi CV over all
+# crossings 1.29 -> 2.41, radius 71 -> 111 mm: the rings' CV bound is 2.41 with the same margin.
 FAMILIES = {
     "dipole": Bounds({"rx_angle_deg": 0.0}, 1, 2.95, 133.0, 20, 72.0),
-    "rings": Bounds({"ring_turn": 0.0}, 1, 2.2, 181.0, 54, 48.0),
+    "rings": Bounds({"ring_turn": 0.0}, 1, 2.8, 181.0, 54, 48.0),
 }
 
 
