@@ -19,7 +19,8 @@
    connected to it whose normal is within ``THIN_SIDE_ANGLE_DEG`` of ``down``, so the dipole goes
    where the bottom side is widest, and it grows only for an interior edge if the bottom side is
    narrower than ``min_base_radius_mm`` (a band over the rim would cut the top in two); top and rim
-   stay sensing.
+   stay sensing. A thin or lying object's base (under ``LYING_RATIO`` as high as long) also takes the
+   underside beside it that no fingertip reaches above the table (:func:`with_the_table_side`).
 5. **Enclosed islands**: non-base components other than the largest join the base, so the rest is
    one piece: a foot ring takes the faces it encloses. Enclosed faces deeper than ``CAVITY_SHARE``
    of the object's height are a cavity opening downward.
@@ -85,6 +86,7 @@ class Base:
     patches: int
     cavity: bool
     contacts: int = 1  # contact patches on the support plane, of any size
+    table_side: bool = False  # it took the underside beside it that no fingertip reaches (:func:`with_the_table_side`)
 
 
 def contact_patches(
@@ -192,6 +194,16 @@ def absorb_islands(graph: FaceGraph, base: np.ndarray, areas: np.ndarray) -> np.
         return base
     largest = int(np.argmax(np.bincount(labels[rest], weights=areas[rest])))
     return base | (rest & (labels != largest))
+
+
+def with_the_table_side(graph: FaceGraph, base: Base, below_reach: np.ndarray, areas: np.ndarray, lying: bool) -> Base:
+    """A thin or ``lying`` object's base with the faces joined to it that a fingertip cannot reach above the
+    table (``below_reach``: a rounded underside, a sword's grip) and the islands they cut off. Others unchanged."""
+    if base.kind != "thin" and not lying:
+        return base
+    labels = graph.components(below_reach | base.faces)
+    joined = absorb_islands(graph, base.faces | np.isin(labels, np.unique(labels[base.faces])), areas)
+    return dataclasses.replace(base, faces=joined, table_side=bool((joined & ~base.faces).any()))
 
 
 def find_base(

@@ -10,7 +10,7 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    down in, from a quasi-static analysis of its convex hull.
 2. Base (:mod:`.base`): the contact patch on the support plane (the seed's, or the largest), grown
    until it gives the Rx dipole room, or a thin object's whole bottom side; a thin or lying object's
-   with the underside beside it no fingertip reaches above the table (:func:`with_the_table_side`);
+   with the underside beside it no fingertip reaches above the table (:func:`.base.with_the_table_side`);
    plus the faces it encloses, so the rest is one piece; then grown through a narrow neck next to it
    (a leg above a foot) so every trace has room to reach it, or, where a neck blocks the wiring (a
    contact at the end of a thin handle), started on another contact patch (:func:`room_for_wiring`).
@@ -52,7 +52,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
-from .base import MIN_NECK_GAIN, Base, absorb_islands, find_base, grow_through_necks, is_lying, is_sheet
+from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks, is_lying, is_sheet, with_the_table_side
 from .faces import FaceGraph
 from .poles import farthest_pole, geodesic_centre
 from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
@@ -205,14 +205,6 @@ def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarra
     return from_boundary, np.where(on_base, 0.0, np.maximum(from_boundary, 0.0))
 
 
-def with_the_table_side(graph: FaceGraph, base: Base, below_reach: np.ndarray, areas: np.ndarray, lying: bool) -> Base:
-    """A thin or ``lying`` object's base with the faces joined to it that a fingertip cannot reach above the
-    table (``below_reach``: a rounded underside, a sword's grip) and the islands they cut off. Others unchanged."""
-    labels = graph.components(below_reach | base.faces)
-    joined = absorb_islands(graph, base.faces | np.isin(labels, np.unique(labels[base.faces])), areas)
-    return dataclasses.replace(base, faces=joined) if base.kind == "thin" or lying else base
-
-
 WIRING_CONTACTS = 4
 """Room for the wiring: how many of the largest contact patches are tried as the base's start."""
 WIRING_REACH = 0.8
@@ -254,6 +246,8 @@ def reason_text(base: Base, share: float, tipping: float, why: str, rim_mm: floa
     words = KIND_WORDS[base.kind].format(patches=base.patches, which="one" if rank else "the largest")
     if rank:
         words += f" (contact patch {rank + 1} by size: the wiring reaches more)"
+    if base.table_side:
+        words += " and the underside beside it that no fingertip reaches above the table"
     grown = f", grown until its rim has room for the wiring ({rim_mm:.0f} mm)" if rim_mm is not None else ""
     return (
         f"rests on {words}{grown} ({100 * share:.1f}% of the surface), "
