@@ -220,8 +220,8 @@ def room_for_wiring(
     by size)``: the base grown through the necks next to it (:func:`.base.grow_through_necks`), started
     on the largest contact patch or, if a neck blocks the wiring there (``WIRING_REACH``), on whichever
     of the ``WIRING_CONTACTS`` largest lets it reach the most (the seed's if one is given; a thin
-    object's whole bottom side)."""
-    ranks = range(1 if seeded or base.kind == "thin" else min(base.contacts, WIRING_CONTACTS))
+    object's whole bottom side; a base that took the table side, which joins the contacts beneath)."""
+    ranks = range(1 if seeded or base.kind == "thin" or base.table_side else min(base.contacts, WIRING_CONTACTS))
     best = None
     for rank in ranks:
         start = base if rank == 0 else find_base(vertices, graph, face_normals, areas, down, params, None, sheet, rank)
