@@ -17,6 +17,9 @@ the reverse:
   times the geodesic on an isotropic remesh (``tests/test_thin_walls.py`` measures it): a pair is apart
   when that path is longer than ``GRAPH_STRETCH * (radius + 2 reach)``.
 
+:func:`wall_thickness` measures a wall the other way: along a point's inward normal to the first face
+behind it.
+
 Units: mm.
 """
 from __future__ import annotations
@@ -26,6 +29,7 @@ import heapq
 
 import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .triangles import corners, vertex_normals
 
@@ -70,8 +74,6 @@ def corner_reach(vertices: np.ndarray, faces: np.ndarray) -> float:
 def thin_walls(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> ThinWalls:
     """The vertex pairs apart along the surface of a closed mesh for point pairs ``radius_mm`` apart in
     space (module docstring)."""
-    from scipy.spatial import cKDTree
-
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
     near_mm = radius_mm + 2.0 * corner_reach(V, F)
@@ -138,3 +140,34 @@ def _farther_than(start, neighbour, length, sources, first, targets, limit):
         for t in range(count):
             distance[touched[t]] = np.inf
     return far
+
+
+def wall_thickness(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray,
+                   reach: float, samples: int) -> np.ndarray:
+    """Wall thickness (mm) at ``samples`` face centroids spread by area (deterministic): the distance
+    from each, inward along its face's outward normal, to the first face it meets, or ``inf`` when no
+    face lies within ``reach`` (mm) of it (only the faces near a point are tested)."""
+    cumulative = np.cumsum(areas)
+    picked = np.searchsorted(cumulative, (np.arange(samples) + 0.5) / samples * cumulative[-1])
+    triangles = corners(vertices, faces)
+    centroids = triangles.mean(axis=1)
+    origin, direction = centroids[picked], -face_normals[picked]
+    spread = float(np.linalg.norm(triangles - centroids[:, None, :], axis=2).max())
+    near = cKDTree(centroids).query_ball_point(origin, reach + spread)
+    ray = np.repeat(np.arange(samples), [len(n) for n in near])
+    face = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    # Moller-Trumbore on every (ray, nearby face) pair
+    a, b, c = triangles[face, 0], triangles[face, 1] - triangles[face, 0], triangles[face, 2] - triangles[face, 0]
+    p = np.cross(direction[ray], c)
+    det = np.einsum("ij,ij->i", b, p)
+    ok = (np.abs(det) > 1e-12) & (face != picked[ray])
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    t_vec = origin[ray] - a
+    u = np.einsum("ij,ij->i", t_vec, p) * inv
+    q = np.cross(t_vec, b)
+    v = np.einsum("ij,ij->i", direction[ray], q) * inv
+    t = np.einsum("ij,ij->i", c, q) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    thickness = np.full(samples, np.inf)
+    np.minimum.at(thickness, ray[hit], t[hit])
+    return thickness

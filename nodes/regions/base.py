@@ -41,7 +41,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry.triangles import corners
+from ..geometry.thin_walls import wall_thickness
 from .faces import FaceGraph
 from .pose import plane_basis
 
@@ -148,42 +148,11 @@ def is_lying(vertices: np.ndarray, down: np.ndarray) -> bool:
     return float(np.ptp(vertices @ down)) < LYING_RATIO * horizontal_extents(vertices, down)[0]
 
 
-def wall_thickness(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray,
-                   reach: float, samples: int = SHEET_SAMPLES) -> np.ndarray:
-    """Wall thickness (mm) at ``samples`` face centroids spread by area (deterministic): the distance
-    from each, inward along its face's outward normal, to the first face it meets, or ``inf`` when no
-    face lies within ``reach`` (mm) of it (only the faces near a point are tested)."""
-    cumulative = np.cumsum(areas)
-    picked = np.searchsorted(cumulative, (np.arange(samples) + 0.5) / samples * cumulative[-1])
-    triangles = corners(vertices, faces)
-    centroids = triangles.mean(axis=1)
-    origin, direction = centroids[picked], -face_normals[picked]
-    spread = float(np.linalg.norm(triangles - centroids[:, None, :], axis=2).max())
-    near = cKDTree(centroids).query_ball_point(origin, reach + spread)
-    ray = np.repeat(np.arange(samples), [len(n) for n in near])
-    face = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
-    # Moller-Trumbore on every (ray, nearby face) pair
-    a, b, c = triangles[face, 0], triangles[face, 1] - triangles[face, 0], triangles[face, 2] - triangles[face, 0]
-    p = np.cross(direction[ray], c)
-    det = np.einsum("ij,ij->i", b, p)
-    ok = (np.abs(det) > 1e-12) & (face != picked[ray])
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    t_vec = origin[ray] - a
-    u = np.einsum("ij,ij->i", t_vec, p) * inv
-    q = np.cross(t_vec, b)
-    v = np.einsum("ij,ij->i", direction[ray], q) * inv
-    t = np.einsum("ij,ij->i", c, q) * inv
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-    thickness = np.full(samples, np.inf)
-    np.minimum.at(thickness, ray[hit], t[hit])
-    return thickness
-
-
 def is_sheet(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, areas: np.ndarray) -> bool:
     """Whether the object is a sheet (a spoon, a plate, a lid, a leaf; not a solid with thin limbs):
     three quarters of :func:`wall_thickness` below ``SHEET_SHARE`` of the bounding-box diagonal."""
     limit = SHEET_SHARE * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    return bool(np.mean(wall_thickness(vertices, faces, face_normals, areas, limit) < limit) >= 0.75)
+    return bool(np.mean(wall_thickness(vertices, faces, face_normals, areas, limit, SHEET_SAMPLES) < limit) >= 0.75)
 
 
 def absorb_islands(graph: FaceGraph, base: np.ndarray, areas: np.ndarray) -> np.ndarray:
