@@ -145,17 +145,24 @@ def metal_spoon() -> trimesh.Trimesh:
         top = np.column_stack([np.full_like(y, xi), y, mid + 0.8])
         bottom = np.column_stack([np.full_like(y, xi), y, mid - 0.8])[::-1]
         rings.append(np.vstack([top, bottom]))
-    n, k = len(rings), len(rings[0])  # consecutive sections joined by quads, the two ends closed by fans
+    n, k = len(rings), len(rings[0])  # the two ends closed by fans around their centres
     vertices = np.vstack(rings + [rings[0].mean(axis=0, keepdims=True), rings[-1].mean(axis=0, keepdims=True)])
-    i, j = np.meshgrid(np.arange(n - 1), np.arange(k), indexing="ij")
-    a, b = i * k + j, i * k + (j + 1) % k
-    c, d = a + k, b + k
-    faces = np.vstack([np.column_stack([a.ravel(), b.ravel(), d.ravel()]), np.column_stack([a.ravel(), d.ravel(), c.ravel()])])
     first, last = n * k, n * k + 1
     j = np.arange(k)
     caps = np.vstack([np.column_stack([np.full(k, first), (j + 1) % k, j]),
                       np.column_stack([np.full(k, last), (n - 1) * k + j, (n - 1) * k + (j + 1) % k])])
-    mesh = trimesh.Trimesh(vertices, np.vstack([faces, caps]))
+    return swept(vertices, n, k, caps)
+
+
+def swept(vertices: np.ndarray, sections: int, size: int, caps: np.ndarray) -> trimesh.Trimesh:
+    """A closed mesh from ``sections`` closed cross-sections of ``size`` points each (the first
+    ``sections * size`` rows of ``vertices``, section by section), consecutive ones joined by quads
+    split in two, and the ``caps`` faces closing the two ends; faces turned outward."""
+    i, j = np.meshgrid(np.arange(sections - 1), np.arange(size), indexing="ij")
+    a, b = i * size + j, i * size + (j + 1) % size
+    c, d = a + size, b + size
+    sides = np.vstack([np.column_stack([a.ravel(), b.ravel(), d.ravel()]), np.column_stack([a.ravel(), d.ravel(), c.ravel()])])
+    mesh = trimesh.Trimesh(vertices, np.vstack([sides, caps]))
     if mesh.volume < 0:
         mesh.invert()
     return mesh

@@ -388,18 +388,13 @@ def arch(radius: float, wall_mm: float, length: float) -> trimesh.Trimesh:
     k = len(section)
     ys = np.linspace(0.0, length, 51)
     vertices = np.vstack([np.column_stack([section[:, 0], np.full(k, y), section[:, 1]]) for y in ys])
-    i, j = np.meshgrid(np.arange(len(ys) - 1), np.arange(k), indexing="ij")
-    a, b = i * k + j, i * k + (j + 1) % k
-    faces = [np.column_stack([a.ravel(), b.ravel(), (b + k).ravel()]), np.column_stack([a.ravel(), (b + k).ravel(), (a + k).ravel()])]
     m = len(turn)
+    caps = []
     for offset, flip in ((0, False), ((len(ys) - 1) * k, True)):  # the two end faces: strips between the arcs
         o, n = offset + np.arange(m - 1), offset + k - 1 - np.arange(m - 1)
         cap = np.vstack([np.column_stack([o, n, o + 1]), np.column_stack([o + 1, n, n - 1])])
-        faces.append(cap[:, ::-1] if flip else cap)
-    mesh = trimesh.Trimesh(vertices, np.vstack(faces))
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
+        caps.append(cap[:, ::-1] if flip else cap)
+    return shapes.swept(vertices, len(ys), k, np.vstack(caps))
 
 
 def test_a_sheet_standing_on_its_edges_is_not_thin() -> None:
