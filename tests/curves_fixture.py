@@ -23,6 +23,8 @@ from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.connection import compute_field
 from retrotouch.nodes.data.types import Mesh
 from retrotouch.nodes.geometry.mesh_tables import build_tables
+from retrotouch.nodes.geometry.triangles import areas, corners
+from retrotouch.nodes.mesh.repair import edge_length_for_vertices, isotropic_remesh
 from retrotouch.nodes.regions.detect import RegionParams, detect_regions
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -46,23 +48,17 @@ def load_scaled(path: Path, diagonal_mm: float = 170.0, target_vertices: int | N
     _, labels = connected_components(incidence @ incidence.T, directed=False)
     f = f[labels == np.argmax(np.bincount(labels))]
     used, f = np.unique(f, return_inverse=True)
+    f = f.reshape(-1, 3)
     v = v[used] * (diagonal_mm / np.linalg.norm(v[used].max(axis=0) - v[used].min(axis=0)))
     if os.environ.get("RETROTOUCH_TEST_JITTER"):
         relative, seed = os.environ["RETROTOUCH_TEST_JITTER"].split(":")
         v = v * (1.0 + float(relative) * np.random.default_rng(int(seed)).standard_normal(v.shape))
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.reshape(-1, 3).astype(np.int32)))
     if target_vertices:
-        m = ms.current_mesh()
-        v = np.asarray(m.vertex_matrix())
-        f = np.asarray(m.face_matrix())
-        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
-        edge = np.sqrt(4.0 * area / (np.sqrt(3.0) * 2.0 * target_vertices))
-        ms.meshing_isotropic_explicit_remeshing(iterations=6, targetlen=pymeshlab.PureValue(edge))
-    m = ms.current_mesh()
+        area = areas(corners(v, f)).sum()
+        v, f = isotropic_remesh(v, f, edge_length_for_vertices(area, target_vertices), iterations=6, feature_angle_deg=30.0)
     return Mesh(
-        vertices=np.ascontiguousarray(m.vertex_matrix(), dtype=np.float64),
-        faces=np.ascontiguousarray(m.face_matrix(), dtype=np.int64),
+        vertices=np.ascontiguousarray(v, dtype=np.float64),
+        faces=np.ascontiguousarray(f, dtype=np.int64),
         source=str(path),
     )
 
