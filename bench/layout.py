@@ -119,7 +119,7 @@ def sweep(params: OptimizeParams, mesh, regions, tx, branches, jobs: int, screen
         for rx, tx_rx, tx_tx, rx_rx in branches
     )
     rule = ScreenParams(margin_mm=ScreenParams().margin_mm if screened else None)
-    kept = prescreen(rule, bounds)
+    kept = prescreen(rule, bounds, [])
     starts = Parallel(n_jobs=jobs)(
         delayed(coverage)(NodeParams(), mesh, samples, tx, rx, tx_rx, tx_tx, rx_rx, branch_bound, kept)
         for (rx, tx_rx, tx_tx, rx_rx), branch_bound in zip(branches, bounds)

@@ -2,8 +2,8 @@
 
 One box per pipeline node (name, node type, and ``× N`` with the mapped params for a node with
 branches), sinks drawn as documents, one edge per input labelled with its name (``[*]`` for a
-fan-in). ``states`` (node -> ``cached`` | ``ran`` | ``running`` | ``would run`` | ``failed`` ...)
-colours the boxes and adds the state to the label.
+fan-in, ``[<]`` for one over the earlier branches). ``states`` (node -> ``cached`` | ``ran`` |
+``running`` | ``would run`` | ``failed`` ...) colours the boxes and adds the state to the label.
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def _label(pipeline: Pipeline, name: str, states: dict[str, str]) -> list[str]:
 
 
 def _edges(pipeline: Pipeline) -> list[tuple[str, str, str]]:
-    return [(ref.node, name, input_name + ("[*]" if ref.fan_in else ""))
+    return [(ref.node, name, input_name + ("[<]" if ref.earlier else "[*]" if ref.fan_in else ""))
             for name, decl in pipeline.nodes.items() for input_name, refs in decl.inputs.items() for ref in refs]
 
 

@@ -12,6 +12,7 @@ Format (see README.md for the full reference)::
       both:   {type: some.reduce, inputs: {meshes: ["sweep[*]", "other[*]"]}}   # several fan-ins, in order
       slow:   {type: some.reduce, inputs: {meshes: "sweep[*]"}, priority: 1}  # starts before ready priority-0 tasks
       each:   {type: some.reduce, inputs: {meshes: "fine[*]"}, per: [sweep]}  # one reduce per branch of sweep
+      vs:     {type: some.reduce, inputs: {meshes: "fine[*]", before: "fine[<]"}, per: [sweep]}  # and the earlier branches'
     fallback:                    # optional: run again with more overrides when a result falls short (.fallback)
       when: {value: pick.score, above: 0.2}
       set: {nodes.sweep.map.target_edge_mm: [1, 2, 3, 4]}
@@ -39,7 +40,7 @@ NODE_KEYS = ("type", "inputs", "params", "map", "cache", "priority", "per")
 TOP_KEYS = ("params", "nodes", "fallback")
 CACHE_MODES = ("default", "recompute", "disable")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
-_REF = re.compile(r"^([A-Za-z_][A-Za-z0-9_\-]*)(?:\.([A-Za-z_][A-Za-z0-9_]*))?(\[\*\])?$")
+_REF = re.compile(r"^([A-Za-z_][A-Za-z0-9_\-]*)(?:\.([A-Za-z_][A-Za-z0-9_]*))?(\[\*\]|\[<\])?$")
 _INTERP = re.compile(r"\$\{([^}]*)\}")
 
 
@@ -179,11 +180,13 @@ def interpolate(doc: Document, value: Any, path: Path) -> Any:
 # -- declarations ------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class InputRef:
-    """``node``, ``node.output`` or either with ``[*]`` (fan-in over the node's branches)."""
+    """``node``, ``node.output`` or either with ``[*]`` (fan-in over the node's branches) or ``[<]``
+    (fan-in over the branches that ``[*]`` hands to the consuming node's earlier branches)."""
 
     node: str
     output: str
     fan_in: bool
+    earlier: bool  # ``[<]``
     path: Path  # where it is written, for messages
 
 
@@ -300,7 +303,7 @@ def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[
             m = _REF.match(ref_text) if isinstance(ref_text, str) else None
             if not m:
                 raise doc.fail(rpath, f"node {name!r}: input {input_name!r} must be 'node', 'node.output', "
-                                      f"either with [*], or a list of fan-ins, got {ref_text!r}")
+                                      f"either with [*] or [<], or a list of fan-ins, got {ref_text!r}")
             if several and not m.group(3):
                 raise doc.fail(rpath, f"node {name!r}: input {input_name!r} lists several nodes, so each must "
                                       f"fan in: write {ref_text}[*]")
@@ -308,7 +311,7 @@ def _declare_inputs(doc: Document, name: str, spec: NodeSpec, raw: Any) -> dict[
                 raise doc.fail(rpath, f"node {name!r} ({spec.name}): input {input_name!r} takes one value, but "
                                       f"{ref_text} hands it a list of every branch: write {ref_text[:-3]} (the node "
                                       "then runs once per branch), or feed the list to a node that takes one")
-            refs.append(InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), rpath))
+            refs.append(InputRef(m.group(1), m.group(2) or "", bool(m.group(3)), m.group(3) == "[<]", rpath))
         if not refs:
             raise doc.fail(ipath, f"node {name!r}: input {input_name!r} lists no node")
         inputs[input_name] = tuple(refs)

@@ -6,7 +6,10 @@ in the order written). Each mapped key is an *axis*. A node inherits the axes of
 (so downstream nodes are mapped branch-wise; inputs mapped over different axes combine as a
 product) and a fan-in input ``x[*]`` receives, as a list in branch order, every branch of ``x``
 along the axes the consuming node does not have itself. ``per: [y]`` gives a node ``y``'s axes
-without its data (a fan-in then collects, per branch of ``y``, the branches that agree with it). A
+without its data (a fan-in then collects, per branch of ``y``, the branches that agree with it).
+``x[<]`` receives what ``x[*]`` hands to the node's earlier branches (in branch order, each once):
+nothing on the first branch, so a comparison running over a sweep (a second Tx pole's branches
+against the first's) leaves the first branch's key as it was without the later ones. A
 map over ``[]`` makes no branch: its node and every node mapped with it drop out of the run, and a
 fan-in over them receives nothing from them.
 """
@@ -157,7 +160,10 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
         for upstream in followed:
             inherited += [a for a in axes[upstream] if a not in inherited]
         for input_name, ref in ((n, r) for n, refs in decl.inputs.items() for r in refs):
-            if ref.fan_in and not [a for a in axes[ref.node] if a not in inherited]:
+            if ref.earlier and not inherited + list(decl.map):
+                raise doc.fail(ref.path, f"node {name!r}: input {input_name!r} fans in {ref.node}[<], the branches "
+                                         "before this node's own, but this node has no branches; write [*]")
+            if ref.fan_in and not ref.earlier and not [a for a in axes[ref.node] if a not in inherited]:
                 raise doc.fail(ref.path, f"node {name!r}: input {input_name!r} fans in {ref.node}[*], but "
                                          f"{ref.node!r} has no branches beyond this node's own; drop [*]")
         own = [Axis(name, k, tuple(v)) for k, v in decl.map.items()]
@@ -170,6 +176,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             except (OSError, ValueError, SyntaxError) as exc:
                 raise UserError(f"cannot compute the code version of node type {decl.spec.name}: {exc}") from None
         by_branch[name] = {}
+        handed: dict[tuple[str, int], list[tuple[Instance, str]]] = {}  # what [*] gave the earlier branches, per [<] ref
         for idx in itertools.product(*(range(len(a.values)) for a in node_axes)):
             branch = {a.id: a.values[i] for a, i in zip(node_axes, idx)}
             raw = dict(decl.params)
@@ -177,7 +184,16 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
             params = _validate(pipeline, decl, raw, {a.param: i for a, i in zip(node_axes, idx) if a.owner == name})
             inputs: dict[str, list[tuple[Instance, str]]] = {}
             for input_name, refs in decl.inputs.items():
-                inputs[input_name] = [up for ref in refs for up in _upstream(ref, axes, node_axes, idx, by_branch)]
+                inputs[input_name] = []
+                for i, ref in enumerate(refs):
+                    if ref.earlier:
+                        before = handed.setdefault((input_name, i), [])
+                        inputs[input_name] += before
+                        seen = {(id(u), out) for u, out in before}
+                        before += [(u, out) for u, out in _upstream(ref, axes, node_axes, idx, by_branch)
+                                   if (id(u), out) not in seen]
+                    else:
+                        inputs[input_name] += _upstream(ref, axes, node_axes, idx, by_branch)
             label = ",".join(f"{short[a.id]}={_format_value(v)}" for a, v in zip(node_axes, branch.values()))
             files = _file_hashes(params, decl, pipeline)
             key = instance_key(
@@ -197,7 +213,8 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
 def _upstream(ref, axes: dict[str, list[Axis]], node_axes: list[Axis], idx: tuple[int, ...],
               by_branch: dict[str, dict[tuple[int, ...], Instance]]) -> list[tuple[Instance, str]]:
     """The ``(instance, output)`` pairs ``ref`` hands to the branch ``idx`` of a node with ``node_axes``:
-    the upstream branch on the same axes values, or with ``[*]`` every branch that agrees on the shared axes."""
+    the upstream branch on the same axes values, or with ``[*]`` (and ``[<]``) every branch that agrees on
+    the shared axes."""
     up_axes = axes[ref.node]
     if not ref.fan_in:
         return [(by_branch[ref.node][tuple(idx[node_axes.index(a)] for a in up_axes)], ref.output)]

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from retrotouch.graph.dag import to_mermaid
 from retrotouch.graph.errors import UserError
 from retrotouch.graph.runner import make_plan, run_pipeline
 
@@ -224,6 +225,34 @@ def test_per_makes_one_reduce_per_branch_of_a_node_it_takes_no_data_from(tmp_pat
     sums = [ran.store.load(i.cached) for i in ran.instances if i.node == "tot"]
     # per plus branch, over times's 3 branches: sum(src) + 3 plus's delta + 3 times's delta, src = 0, 1, 2
     assert sums == [3 * (3 + 3 * 1) + 3 * (10 + 20 + 30), 3 * (3 + 3 * 2) + 3 * (10 + 20 + 30)]
+
+
+def test_earlier_branches_fan_in_what_the_fan_in_handed_the_branches_before(tmp_path, test_nodes):
+    path = tmp_path / "p.yaml"
+    path.write_text(PER.replace('inputs: {xs: "times[*]"}', 'inputs: {xs: ["times[<]", "times[*]"]}'))
+    plan = make_plan(str(path), [], str(tmp_path / "cache"))
+    totals = [i for i in plan.instances if i.node == "tot"]
+    first, second = ([f"times[plus.delta={p},times.delta={d}]" for d in (10, 20, 30)] for p in (1, 2))
+    assert [[u.id for u, _ in t.inputs["xs"]] for t in totals] == [first, first + second]
+    wider = make_plan(str(path), ["deltas=[1, 2, 5]"], str(tmp_path / "cache"))
+    assert [i.key for i in wider.instances if i.node == "tot"][:2] == [t.key for t in totals]  # a later branch changes no key
+    assert len([i for i in wider.instances if i.node == "tot"][2].inputs["xs"]) == 9
+    alone = make_plan(str(path), ["deltas=[2]"], str(tmp_path / "cache"))
+    assert [i.key for i in alone.instances if i.node == "tot"] != [totals[1].key]  # nothing before it now
+    run_pipeline(str(path), out_dir=str(tmp_path / "out"), cache_dir=str(tmp_path / "cache"), scheduler="sync")
+    ran = make_plan(str(path), [], str(tmp_path / "cache"))
+    sums = [ran.store.load(i.cached) for i in ran.instances if i.node == "tot"]
+    one = [3 * (3 + 3 * p) + 3 * (10 + 20 + 30) for p in (1, 2)]  # as in the per test above
+    assert sums == [one[0], one[0] + one[1]]
+    assert "[<]" in to_mermaid(ran.pipeline)
+
+
+def test_earlier_branches_need_a_node_with_branches(tmp_path, test_nodes):
+    msg = error_of(tmp_path, GOOD.replace('inputs: {xs: "plus[*]"}', 'inputs: {xs: "plus[<]"}'))
+    assert msg.endswith("node 'tot': input 'xs' fans in plus[<], the branches before this node's own, but this node "
+                        "has no branches; write [*]")
+    msg = error_of(tmp_path, GOOD.replace('inputs: {xs: "plus[*]"}', 'inputs: {xs: "plus[>]"}'))
+    assert "must be 'node', 'node.output', either with [*] or [<]" in msg
 
 
 def test_per_must_name_nodes_and_cannot_make_a_cycle(tmp_path, test_nodes):

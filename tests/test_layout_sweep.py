@@ -95,13 +95,30 @@ def bounded(start, lower_bound):
 
 def test_the_prescreen_solves_what_can_still_tie_the_best_start_and_at_least_two():
     bounds = [bounded(20.0, 12.0), bounded(25.0, 21.5), bounded(23.0, 22.5), bounded(40.0, 39.5), bounded(None, None)]
-    cut = prescreen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=2), bounds)
+    cut = prescreen(ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=2), bounds, [])
     assert cut.threshold_mm == pytest.approx(22.0) and cut.sure_mm == 23.0  # 20 + 1 + 1; the second start
     assert [cut.keeps(b) for b in bounds] == [True, True, True, False, True]  # 23.0 kept as a best start; no bound: coverage says why
     assert cut.summary.startswith("3 of 4 branches solved")
     assert ScreenParams.model_validate(cut.settings).keep_at_least == 2  # layout.screen applies the same
-    every = prescreen(ScreenParams(margin_mm=None), bounds)
+    every = prescreen(ScreenParams(margin_mm=None), bounds, [])
     assert all(every.keeps(b) for b in bounds) and every.summary == "all 5 branches solved"
+
+
+def test_a_second_poles_branches_are_screened_against_the_first_poles():
+    first = [bounded(20.0, 12.0), bounded(21.0, 15.0)]
+    second = [bounded(23.5, 21.0), bounded(30.0, 22.5), bounded(35.0, 35.0)]
+    rule = ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=2)
+    alone, against = prescreen(rule, second, []), prescreen(rule, second, first)
+    assert [alone.keeps(b) for b in second] == [True, True, False]  # its own best start 23.5 + 2; the 2 best in any case
+    assert against.threshold_mm == pytest.approx(22.0) and against.sure_mm == 21.0  # the first pole's starts
+    assert [against.keeps(b) for b in second] == [True, False, False]  # 22.5 can no longer tie 20 within 1 + 1 mm
+    assert against.summary.startswith("1 of 3 branches solved") and "an earlier Tx pole's" in against.summary
+    assert "earlier" not in alone.summary
+    assert not prescreen(rule, [bounded(40.0, 30.0)], first).keeps(bounded(40.0, 30.0))  # alone it would be solved
+    staged = [started(24.0, 21.5), started(26.0, 23.0)]
+    cut = screen_branches(rule, staged, [started(20.0, 19.0), started(20.5, 19.5)])
+    assert [cut.keeps(b) for b in staged] == [True, False] and cut.summary.startswith("1 of 2 solved branches kept")
+    assert [screen_branches(rule, staged).keeps(b) for b in staged] == [True, True]  # alone: its 2 best in any case
 
 
 def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(caplog):

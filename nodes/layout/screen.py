@@ -17,14 +17,18 @@ the ``keep_at_least`` branches with the smallest radii go on in any case. The ru
   bound is not (a trust region's bound is weak) is first put to the proof in ``layout.finish``: the
   model with every sample's cap at the threshold, proven infeasible, screens it out too.
 
-The branch with the smallest stage-1 radius always passes the prescreen (its bound is below that
-radius, which is below every start's). ``layout.pick_best`` checks afterwards that no screened branch
+Both compare a branch also with the ``earlier`` branches, those of the Tx poles swept before its own
+(the fallback's second pole against the first): the radii another pole reaches count as reached, and
+the ``keep_at_least`` smallest are taken over both, so a second pole whose branches cannot beat the
+first's solves none of them. The branch with the smallest stage-1 radius always passes the prescreen
+(its bound is below that radius, which is below every start's). ``layout.pick_best`` checks afterwards that no screened branch
 could have tied the chosen one, and says so when one could. Units: mm.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from pydantic import Field
@@ -127,37 +131,48 @@ def _summary(value: Screen | PreScreen) -> str:
     return value.summary
 
 
-@node("layout.prescreen", params=ScreenParams, inputs=("bounds",), outputs=("prescreen",), note=_summary)
-def prescreen(params: ScreenParams, bounds: list[BranchBound]) -> PreScreen:
-    """The threshold on the branches' lower bounds up to which ``layout.coverage`` solves their radius stage."""
+def _best_text(what: str, own: list[float], earlier: list[float]) -> str:
+    """``"best <what> R mm"``, saying when an earlier Tx pole's branch reaches it."""
+    best = min(own + earlier)
+    return f"best {what} {best:.1f} mm" + (", an earlier Tx pole's" if best not in own else "")
+
+
+@node("layout.prescreen", params=ScreenParams, inputs=("bounds", "earlier"), outputs=("prescreen",), note=_summary)
+def prescreen(params: ScreenParams, bounds: list[BranchBound], earlier: list[BranchBound]) -> PreScreen:
+    """The threshold on the branches' lower bounds up to which ``layout.coverage`` solves their radius
+    stage; ``earlier``: the branches of the Tx poles swept before (module docstring)."""
     bounded = [b for b in bounds if b.lower_bound_mm is not None]
-    cut = _cut(params, [b.start_radius_mm for b in bounded])
+    own = [b.start_radius_mm for b in bounded]
+    others = [b.start_radius_mm for b in earlier if b.lower_bound_mm is not None]
+    cut = _cut(params, own + others)
     if cut is None:
         return PreScreen(math.inf, math.inf, params.model_dump(), f"all {len(bounds)} branches solved")
     threshold, sure = cut
     kept = sum(PreScreen(threshold, sure, {}, "").keeps(b) for b in bounded)
-    best = min(b.start_radius_mm for b in bounded)
     return PreScreen(threshold, sure, params.model_dump(), (
         f"{kept} of {len(bounded)} branches solved: the others' coverage radius is proven above {threshold:.1f} mm "
-        f"(best heuristic start {best:.1f} mm + tolerance + margin; the {params.keep_at_least} best starts solved in any "
-        f"case)"))
+        f"({_best_text('heuristic start', own, others)} + tolerance + margin; the {params.keep_at_least} best starts "
+        "solved in any case)"))
 
 
-def screen_branches(params: ScreenParams, branches: list[BranchStart]) -> Screen:
-    """The threshold on the branches' stage-1 lower bounds up to which ``layout.finish`` completes them."""
+def screen_branches(params: ScreenParams, branches: list[BranchStart], earlier: Sequence[BranchStart] = ()) -> Screen:
+    """The threshold on the branches' stage-1 lower bounds up to which ``layout.finish`` completes them;
+    ``earlier``: the branches of the Tx poles swept before (module docstring)."""
     staged = [b.stage for b in branches if b.stage is not None]
-    cut = _cut(params, [s.radius_mm for s in staged])
+    own = [s.radius_mm for s in staged]
+    others = [b.stage.radius_mm for b in earlier if b.stage is not None]
+    cut = _cut(params, own + others)
     if cut is None:
         return Screen(math.inf, math.inf, f"all {len(staged)} solved branches kept")
     threshold, sure = cut
     kept = sum(Screen(threshold, sure, "").keeps(b) for b in branches if b.stage is not None)
-    best = min(s.radius_mm for s in staged)
     return Screen(threshold, sure, (
         f"{kept} of {len(staged)} solved branches kept: the others' coverage radius is proven above {threshold:.1f} mm "
-        f"(best stage-1 radius {best:.1f} mm + tolerance + margin; the {params.keep_at_least} best kept in any case)"))
+        f"({_best_text('stage-1 radius', own, others)} + tolerance + margin; the {params.keep_at_least} best kept in "
+        "any case)"))
 
 
-@node("layout.screen", inputs=("branches", "prescreen"), outputs=("screen",), note=_summary)
-def screen(params: NodeParams, branches: list[BranchStart], prescreen: PreScreen) -> Screen:
+@node("layout.screen", inputs=("branches", "prescreen", "earlier"), outputs=("screen",), note=_summary)
+def screen(params: NodeParams, branches: list[BranchStart], prescreen: PreScreen, earlier: list[BranchStart]) -> Screen:
     """:func:`screen_branches` with the prescreen's parameters."""
-    return screen_branches(ScreenParams.model_validate(prescreen.settings), branches)
+    return screen_branches(ScreenParams.model_validate(prescreen.settings), branches, earlier)
