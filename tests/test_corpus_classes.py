@@ -91,6 +91,9 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
         assert metrics["pose"]["sensing_area_fraction"] < 0.7 and metrics["touch"]["share"] < 0.7
     if name == "point_cloud_scan":
         assert abs(np.ptp(mesh.vertices, axis=0)[2] - 160.0) < 10.0  # fragments dropped: only the bust's height
+    if name == "four_legged_figurine":  # standing on one leg's foot, the other three legs are limbs (about 35 mm deep)
+        legs = [limb for limb in metrics["limbs"] if limb["depth_mm"] > 25.0]
+        assert len(legs) >= 3 and all(0 < limb["area_mm2"] and limb["cells"] <= metrics["cells"] for limb in legs)
     assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
 
 

@@ -37,11 +37,14 @@ def sensing_mask(mesh: Mesh) -> np.ndarray:
 
 class Regions:
     """Stand-in for the regions node output: the layout nodes read ``sensing_faces`` and ``touch_faces``,
-    the sensing map sink ``up``, the pose and the finger model (the base is the cap below BASE_THETA, so the sphere rests on -z)."""
+    the sensing map sink ``up``, the pose, the finger model and the distance from the base (the base is the
+    cap below BASE_THETA, so the sphere rests on -z)."""
 
     def __init__(self, mesh: Mesh):
         self.sensing_faces = sensing_mask(mesh)
         self.up = np.array([0.0, 0.0, 1.0])
+        theta = np.arccos(np.clip(mesh.vertices[:, 2] / np.linalg.norm(mesh.vertices, axis=1), -1, 1))
+        self.base_distance_mm = RADIUS_MM * np.maximum(BASE_THETA - theta, 0.0)  # along the meridians
         self.pose_kind = "round"
         self.pose_reason = "stand-in: a sphere resting on -z"
         self.tipping_angle_deg = 0.0

@@ -9,13 +9,16 @@ centroid value of the P1-interpolated heat-method distance field of each pad); t
 pad is the summed area of its faces; CV = population std / mean of the cell areas (0 for a perfectly
 regular layout). Uncovered spots: the connected pieces of the sensing region whose vertices lie
 farther than ``UNCOVERED_MM`` (geodesic) from every cell, where a touch reaches few crossings and its
-position is poorly determined. Distances and lengths in mm, areas in mm^2.
+position is poorly determined. Limbs: the dead ends of the geodesic distance from the base deeper than
+``UNCOVERED_MM`` (:mod:`retrotouch.nodes.geometry.dead_ends`: legs, arms, ears, horns, a tail), each with
+the cells on it. Distances and lengths in mm, areas in mm^2.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..data.types import Layout, Mesh
+from ..geometry.dead_ends import dead_end_vertices, dead_ends, mesh_edges
 from ..geometry.triangles import areas, corners, vertex_areas
 from .clearance import clearance_profile, walls_for
 from .problem import SelectionProblem
@@ -83,6 +86,19 @@ def uncovered_spots(nearest_mm: np.ndarray, vertices: np.ndarray, faces: np.ndar
                       "point": [float(x) for x in vertices[far]]})
     return {"uncovered_threshold_mm": float(threshold_mm),
             "uncovered_share": float(vertex_area[members].sum() / vertex_area.sum()), "uncovered_spots": spots}
+
+
+def limbs(vertices: np.ndarray, faces: np.ndarray, base_distance_mm: np.ndarray, cell_faces: np.ndarray) -> list[dict]:
+    """The object's limbs (module docstring), deepest first: tip point, depth, area (a limb's own limbs
+    included) and how many of the cells (on ``cell_faces``) lie on it."""
+    edges = mesh_edges(faces)
+    face_area = areas(corners(vertices, faces))
+    out = []
+    for end in dead_ends(base_distance_mm, edges, UNCOVERED_MM):
+        on_limb = dead_end_vertices(base_distance_mm, edges, end)[faces].all(axis=1)
+        out.append({"tip": [float(x) for x in vertices[end.tip]], "depth_mm": end.depth,
+                    "area_mm2": float(face_area[on_limb].sum()), "cells": int(on_limb[cell_faces].sum())})
+    return out
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:
