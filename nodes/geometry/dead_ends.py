@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -32,7 +31,6 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
-@numba.njit(cache=True)
 def _merge(values: np.ndarray, edges: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kruskal over ``edges`` in ``order`` (their lower ends' values, descending): per vertex, the
     value at which the branch whose maximum it is ends (nan: it is no maximum, or the highest)."""
