@@ -31,7 +31,7 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
-def _merge(values: np.ndarray, edges: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _merge(values: np.ndarray, edges: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Kruskal over ``edges`` in ``order`` (their lower ends' values, descending): per vertex, the
     value at which the branch whose maximum it is ends (nan: it is no maximum, or the highest)."""
     n = len(values)
@@ -51,14 +51,14 @@ def _merge(values: np.ndarray, edges: np.ndarray, order: np.ndarray) -> tuple[np
         low, high = (a, b) if values[top[a]] < values[top[b]] else (b, a)
         ends[top[low]] = min(values[edges[k, 0]], values[edges[k, 1]])
         parent[low] = high
-    return ends, top
+    return ends
 
 
 def dead_ends(values: np.ndarray, edges: np.ndarray, min_depth: float) -> list[DeadEnd]:
     """The dead ends of vertex ``values`` deeper than ``min_depth``, deepest first; ``edges`` from
     :func:`mesh_edges`."""
     order = np.argsort(-np.minimum(values[edges[:, 0]], values[edges[:, 1]]), kind="stable")
-    ends, _ = _merge(np.asarray(values, dtype=np.float64), edges, order)
+    ends = _merge(np.asarray(values, dtype=np.float64), edges, order)
     tips = np.flatnonzero(np.isfinite(ends) & (values - np.nan_to_num(ends, nan=np.inf) > min_depth))
     found = [DeadEnd(int(t), float(ends[t]), float(values[t] - ends[t])) for t in tips]
     return sorted(found, key=lambda end: -end.depth)
