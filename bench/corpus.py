@@ -13,9 +13,11 @@ surface, the % of the sensing area a finger can touch, cells, pads, Voronoi CV o
 all crossings, coverage radius mm, the % of the touchable sensing area farther than 10 mm from every
 cell (``uncovered_share`` of metrics.json) and the same over the whole sensing region, touchable or
 not (``sensing_region``), phase 1's gap, the chosen Rx family and Tx pole, whether the pipeline's
-fallback ran its second sweep (``manifest.json``), sheets, joints, seconds) and, as the LAST line,
+fallback ran its second sweep (``manifest.json``), sheets, joints, the limbs (``limbs`` of metrics.json) and how
+many of them hold no cell, seconds) and, as the LAST line,
 one JSON object with ``meshes``, ``succeeded``, ``failures`` (list of ``{mesh, node, message}``),
-``median_voronoi_cv``, ``median_cells``, the worst cases, ``fallback_runs``, ``chosen_tx_poles``
+``median_voronoi_cv``, ``median_cells``, the worst cases, ``fallback_runs``, ``chosen_tx_poles``,
+``limbs`` and ``limbs_without_cells`` (totals)
 and per-row details. Usage::
 
     python bench/corpus.py [--meshes DIR] [--sizes FILE.json] [--vertices N] [--angles -20,0,20]
@@ -106,6 +108,8 @@ def measured(stem: str, out: Path) -> dict[str, object]:
         "phase1_gap": metrics.get("phase1_gap"),
         "sheets": sheet_count,
         "joints": report.get("joints"),
+        "limbs": len(metrics["limbs"]),
+        "limbs_without_cells": sum(limb["cells"] == 0 for limb in metrics["limbs"]),
     }
 
 
@@ -151,7 +155,7 @@ def main() -> None:
         print(
             f"{'mesh':32s} {'ok':3s} {'pose':10s} {'tip':>5s} {'base%':>6s} {'sens%':>6s} {'touch%':>6s} {'cells':>6s} {'pads':>5s} "
             f"{'CV':>6s} {'CV all':>6s} {'cov mm':>7s} {'unc%':>5s} {'all%':>5s} {'gap':>6s} {'Rx family':16s} {'Tx':6s} "
-            f"{'fallback':8s} {'sheets':>6s} {'joints':>6s} {'s':>7s}",
+            f"{'fallback':8s} {'sheets':>6s} {'joints':>6s} {'limbs':>5s} {'bare':>4s} {'s':>7s}",
             flush=True,
         )
         for stem, path, diagonal in corpus(args, work):
@@ -178,7 +182,8 @@ def main() -> None:
                 f"{fmt(row.get('phase1_gap'), '6.3f')} "
                 f"{row.get('rx_family') or '-':16s} {row.get('tx_pole') or '-':6s} "
                 f"{'yes' if row.get('fallback_ran') else 'no':8s} "
-                f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {seconds:7.1f}",
+                f"{fmt(row.get('sheets'), '6d')} {fmt(row.get('joints'), '6d')} {fmt(row.get('limbs'), '5d')} "
+                f"{fmt(row.get('limbs_without_cells'), '4d')} {seconds:7.1f}",
                 flush=True,
             )
             if code != 0:
@@ -206,6 +211,8 @@ def main() -> None:
         "slowest_seconds": max((r["seconds"] for r in rows), default=None),
         "fallback_runs": sum(bool(r.get("fallback_ran")) for r in good),
         "chosen_tx_poles": {pole: sum(r.get("tx_pole") == pole for r in good) for pole in sorted({r.get("tx_pole") for r in good})},
+        "limbs": sum(r["limbs"] for r in good),
+        "limbs_without_cells": sum(r["limbs_without_cells"] for r in good),
         "vertices": args.vertices,
         "rows": rows,
     }
