@@ -21,8 +21,8 @@ Both compare a branch also with the ``earlier`` branches, those of the Tx poles 
 (the fallback's second pole against the first): the radii another pole reaches count as reached, and
 the ``keep_at_least`` smallest are taken over both, so a second pole whose branches cannot beat the
 first's solves none of them. The branch with the smallest stage-1 radius always passes the prescreen
-(its bound is below that radius, which is below every start's). ``layout.pick_best`` checks afterwards that no screened branch
-could have tied the chosen one, and says so when one could. Units: mm.
+(its bound is below that radius, which is below every start's). ``layout.pick_best`` checks afterwards
+that no screened branch could have tied the chosen one, and says so when one could. Units: mm.
 """
 from __future__ import annotations
 
