@@ -160,7 +160,7 @@ def expand(pipeline: Pipeline, store: Store) -> Plan:
         for upstream in followed:
             inherited += [a for a in axes[upstream] if a not in inherited]
         for input_name, ref in ((n, r) for n, refs in decl.inputs.items() for r in refs):
-            if ref.earlier and not inherited + list(decl.map):
+            if ref.earlier and not (inherited or decl.map):
                 raise doc.fail(ref.path, f"node {name!r}: input {input_name!r} fans in {ref.node}[<], the branches "
                                          "before this node's own, but this node has no branches; write [*]")
             if ref.fan_in and not ref.earlier and not [a for a in axes[ref.node] if a not in inherited]:
