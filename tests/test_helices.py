@@ -74,7 +74,7 @@ def test_helices_start_on_the_base_climb_and_never_meet(family, theta, winding, 
     assert helices.layer == "rx" and helices.family == ("helices" if climb == "median" else "helices_per_line")
     assert params.n_helices - params.n_reseeded <= helices.count <= params.n_helices
     assert np.all(helices.end_reason == int(CurveEnd.BASE))
-    rho, _, _ = helix_function(tables, levels, theta, tx, winding, climb)
+    rho = helix_function(tables, levels, theta, tx, winding, climb).rho
     sense = 1 if winding == "left" else -1
     turns = []
     for c in range(helices.count):
@@ -107,8 +107,8 @@ def test_per_line_climb_is_each_tx_lines_share_of_its_length(family, theta):
     # The median climb is one function of u for all lines; lines of other lengths (a detour through
     # the second ear) climb at another rate. The per-line climb follows each line's own length.
     mesh, regions, tx, tx_field, _, levels, tables = family
-    per_line = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "per_line")[0])
-    median = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "median")[0])
+    per_line = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "per_line").rho)
+    median = arc_deviation(tables, tx, levels.values, helix_function(tables, levels, theta, tx, "left", "median").rho)
     assert len(per_line) > 0.5 * tx.count  # most lines start at the pole
     assert np.percentile(per_line, 90) < 0.1
     assert np.percentile(per_line, 90) < 0.5 * np.percentile(median, 90)
@@ -135,7 +135,7 @@ def test_a_helix_stops_where_it_would_run_along_the_tx_lines(family, theta, min_
     limit = np.cos(np.radians(min_angle_deg))
     cut = trace_helices(TraceHelicesParams(min_crossing_angle_deg=min_angle_deg), mesh, regions, levels, theta, tx, tx_field)["curves"]
     whole = trace_helices(TraceHelicesParams(min_crossing_angle_deg=0.0), mesh, regions, levels, theta, tx, tx_field)["curves"]
-    rho, _, _ = helix_function(tables, levels, theta, tx, "left", "median")
+    rho = helix_function(tables, levels, theta, tx, "left", "median").rho
     assert cut.count == whole.count
     shortened = 0
     for c in range(cut.count):

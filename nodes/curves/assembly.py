@@ -95,6 +95,18 @@ def packed_rows(tables: MeshTables, rows: list[tuple[np.ndarray, np.ndarray]]) -
             "lengths_mm": curve_lengths(points, offsets)}
 
 
+def joined(own: CurveSet, extra: CurveSet, extra_limb: np.ndarray) -> CurveSet:
+    """``own``'s curves, then ``extra``'s (one layer), with ``limb`` (-1 for ``own``'s curves that had
+    none, ``extra_limb`` for the others); ``own``'s Tx lanes keep their parents, the extra curves are none."""
+    lane_parent = None if own.lane_parent is None else np.r_[own.lane_parent, np.full(extra.count, -1, dtype=np.int64)]
+    limb = np.full(own.count, -1, dtype=np.int64) if own.limb is None else own.limb
+    return dataclasses.replace(
+        own, points=np.vstack([own.points, extra.points]), faces=np.r_[own.faces, extra.faces],
+        bary=np.vstack([own.bary, extra.bary]), offsets=np.r_[own.offsets[:-1], extra.offsets + len(own.points)],
+        lengths_mm=np.r_[own.lengths_mm, extra.lengths_mm], end_reason=np.r_[own.end_reason, extra.end_reason],
+        lane_parent=lane_parent, limb=np.r_[limb, extra_limb].astype(np.int64))
+
+
 def reversed_walk(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A polyline on the mesh (points, and the face of the segment leaving each; the last point its
     segment's face) walked backwards, in the same convention."""

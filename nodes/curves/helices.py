@@ -35,6 +35,7 @@ unless named in degrees.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import numpy as np
@@ -211,11 +212,20 @@ def winding_angle_node(params: NodeParams, mesh: Mesh, levels: RingLevels, field
     return winding_angle(build_tables(mesh.vertices, mesh.faces), levels.values, field.face_direction)
 
 
+@dataclasses.dataclass(frozen=True)
+class HelixChart:
+    """The helices' coordinates (module docstring): ``rho`` (n_vertices,) the climb in [0, 1], ``psi``
+    (n_vertices,) the circle-valued helix function (NaN where the winding angle is), ``period`` its period."""
+
+    rho: np.ndarray
+    psi: np.ndarray
+    period: float
+
+
 def helix_function(tables: MeshTables, levels: RingLevels, theta: np.ndarray, tx: CurveSet, winding: str,
-                   climb: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """(``rho``, ``psi`` per vertex, ``psi``'s period) of the module docstring from the winding angle
-    ``theta`` (:func:`winding_angle`); ``psi`` is NaN where ``theta`` is (:class:`HelixSets` leaves those
-    faces out)."""
+                   climb: str) -> HelixChart:
+    """:class:`HelixChart` of the module docstring from the winding angle ``theta`` (:func:`winding_angle`);
+    ``psi`` is NaN where ``theta`` is (:class:`HelixSets` leaves those faces out)."""
     u = levels.values
     if climb == "per_line":
         rho = levels.climb
@@ -225,18 +235,19 @@ def helix_function(tables: MeshTables, levels: RingLevels, theta: np.ndarray, tx
     period = 1.0 - RHO_MIN
     sense = 1.0 if winding == "left" else -1.0
     psi = np.mod(rho + sense * period * theta, period)  # NaN off the faces between the pole's exclusion and the base
-    return rho, psi, period
+    return HelixChart(rho, psi, period)
 
 
 @node("curves.trace_helices", params=TraceHelicesParams, inputs=("mesh", "regions", "levels", "winding", "tx", "tx_field"),
-      outputs=("curves", "stats"))
+      outputs=("curves", "stats", "chart"))
 def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingLevels, winding: np.ndarray, tx: CurveSet,
                   tx_field: DirectionField) -> dict[str, object]:
     """Rx helices around the Tx pole (see the module docstring); ``levels`` gives the radial functions,
     ``winding`` the angle around the pole (``curves.winding_angle``)."""
     tables = build_tables(mesh.vertices, mesh.faces)
     direction = tx_field.face_direction
-    rho, psi, period = helix_function(tables, levels, winding, tx, params.winding, params.climb)
+    chart = helix_function(tables, levels, winding, tx, params.winding, params.climb)
+    rho, psi, period = chart.rho, chart.psi, chart.period
     sensing = np.asarray(regions.sensing_faces, dtype=bool) & (rho[tables.faces].min(axis=1) >= RHO_MIN)
     sets = HelixSets(tables, psi, period, sensing)
     n_even = max(params.n_helices - params.n_reseeded, 1)
@@ -257,4 +268,4 @@ def trace_helices(params: TraceHelicesParams, mesh: Mesh, regions, levels: RingL
         ends.append(int(CurveEnd.BASE))
     curves = pack(tables, rows, np.asarray(ends, dtype=np.int8), 0.0 if params.winding == "left" else np.pi,
                   "helices" if params.climb == "median" else "helices_per_line")
-    return {"curves": curves, "stats": packed_stats(curves, params.n_helices)}
+    return {"curves": curves, "stats": packed_stats(curves, params.n_helices), "chart": chart}

@@ -65,6 +65,9 @@ class CurveSet:
     # Tx: (C,) int64, the field line each lane copies up to where it turns beside another line
     # (``curves.tx_lanes``), -1 for the field lines themselves; None when the family has no lanes
     lane_parent: np.ndarray | None = None
+    # (C,) int64, the limb each curve of ``curves.trace_limbs`` serves (its rank among the base distance's dead
+    # ends), -1 for the family's own curves; None when no limb curves were added
+    limb: np.ndarray | None = None
 
     @property
     def count(self) -> int:

@@ -61,4 +61,5 @@ def selection_problem(
         rx_conflicts=rx_conflicts,
         clearance_pairs=clearance_pairs,
         tx_lanes=None if tx.lane_parent is None else tx.lane_parent >= 0,
+        limb_curves=None if tx.limb is None or rx.limb is None else (tx.limb >= 0, rx.limb >= 0),
     )

@@ -1,12 +1,18 @@
 """Heuristic phase-1 selections: a greedy construction, an even pick over the candidate order, a
-C1/C2 repair and a best-improvement swap local search on (radius, sum of distance**power). They give
-the CP-SAT model its caps and hints. Units: mm."""
+C1/C2 repair, a best-improvement swap local search on (radius, sum of distance**power) and moves that
+bring in both curves of a crossing at once. They give the CP-SAT model its caps and hints. Units: mm."""
 from __future__ import annotations
 
 import numpy as np
 
 from ...graph.errors import UserError
 from .problem import PHASE1_POWER, SelectionProblem, evaluate_selection
+
+PAIR_MOVE_TRIES = 24
+"""Crossings near the farthest sample that :func:`pair_move` tries, nearest first."""
+
+PAIR_MOVE_ROUNDS = 8
+"""Most pair moves :func:`heuristic_selection` makes, each followed by :func:`local_search`."""
 
 
 def _adjacency(pairs: np.ndarray, count_a: int, count_b: int) -> tuple[list[set], list[set]]:
@@ -87,6 +93,27 @@ def _layer_nearest(Dpad: np.ndarray, pair: np.ndarray, layer: str, other: list) 
     return Dpad[:, cols].min(axis=2)
 
 
+def _move_tables(problem: SelectionProblem):
+    """(``pair`` (Ntx, Nrx) the column of each pair's crossing in ``Dpad``, ``Dpad`` (K, C + 1) the sample
+    distances of the usable crossings (inf for the others and in the padding column C, the column of a pair
+    that does not cross once), Tx x Tx and Rx x Rx conflict matrices, the C2 matrix (Ntx, Nrx)), bool."""
+    ntx, nrx = len(problem.tx_usable), len(problem.rx_usable)
+    C = len(problem.cross_tx)
+    pair = np.full((ntx, nrx), C, dtype=np.int64)
+    pair[problem.cross_tx, problem.cross_rx] = np.arange(C)
+    usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
+    Dpad = np.hstack([np.where(usable_c[None, :], problem.distance, np.inf), np.full((len(problem.distance), 1), np.inf)])
+    tx_conf = np.zeros((ntx, ntx), dtype=bool)
+    tx_conf[problem.tx_conflicts[:, 0], problem.tx_conflicts[:, 1]] = True
+    tx_conf |= tx_conf.T
+    rx_conf = np.zeros((nrx, nrx), dtype=bool)
+    rx_conf[problem.rx_conflicts[:, 0], problem.rx_conflicts[:, 1]] = True
+    rx_conf |= rx_conf.T
+    multi = np.zeros((ntx, nrx), dtype=bool)
+    multi[problem.multi_pairs[:, 0], problem.multi_pairs[:, 1]] = True
+    return pair, Dpad, tx_conf, rx_conf, multi
+
+
 def local_search(
     problem: SelectionProblem,
     tx: np.ndarray,
@@ -104,21 +131,7 @@ def local_search(
     keeps C1/C2; moves are scored lexicographically by (radius at ``resolution_mm``, summed sample
     distance when ``secondary``). Returns (tx, rx, moves made).
     """
-    ntx, nrx = len(problem.tx_usable), len(problem.rx_usable)
-    C = len(problem.cross_tx)
-    pair = np.full((ntx, nrx), C, dtype=np.int64)  # C = the +inf padding column
-    pair[problem.cross_tx, problem.cross_rx] = np.arange(C)
-    usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
-    Dpad = np.hstack([np.where(usable_c[None, :], problem.distance, np.inf), np.full((len(problem.distance), 1), np.inf)])
-    tx_conf = np.zeros((ntx, ntx), dtype=bool)
-    tx_conf[problem.tx_conflicts[:, 0], problem.tx_conflicts[:, 1]] = True
-    tx_conf |= tx_conf.T
-    rx_conf = np.zeros((nrx, nrx), dtype=bool)
-    rx_conf[problem.rx_conflicts[:, 0], problem.rx_conflicts[:, 1]] = True
-    rx_conf |= rx_conf.T
-    multi = np.zeros((ntx, nrx), dtype=bool)
-    multi[problem.multi_pairs[:, 0], problem.multi_pairs[:, 1]] = True
-
+    pair, Dpad, tx_conf, rx_conf, multi = _move_tables(problem)
     T, R = list(tx), list(rx)
     start = _layer_nearest(Dpad, pair, "tx", R)[:, T].min(axis=1) if T else np.full(len(Dpad), np.inf)
     current = _score(start[:, None], resolution_mm, secondary, power)
@@ -162,6 +175,71 @@ def local_search(
     return np.array(sorted(T), dtype=np.int64), np.array(sorted(R), dtype=np.int64), moves
 
 
+def pair_move(
+    problem: SelectionProblem,
+    tx: np.ndarray,
+    rx: np.ndarray,
+    n_drive: int,
+    n_sense: int,
+    secondary: bool,
+    resolution_mm: float,
+    power: int = PHASE1_POWER,
+    tries: int = PAIR_MOVE_TRIES,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The best move that brings in both curves of a crossing near the sample farthest from the
+    selection, or None if none improves (radius at ``resolution_mm``, then summed ``distance**power``
+    when ``secondary``).
+
+    A swap of :func:`local_search` changes one curve, so it never reaches a crossing neither of whose
+    curves is selected: alone, either curve adds no crossing there (a limb that only its own Tx and Rx
+    candidates reach). For each of the ``tries`` usable crossings nearest that sample, the move adds
+    its Tx and Rx curves, drops the selected curves they conflict with (C1, C2) and then, above a
+    channel limit, the curve of that layer whose loss costs least.
+    """
+    pair, Dpad, tx_conf, rx_conf, multi = _move_tables(problem)
+
+    def score(T: list, R: list) -> tuple:
+        if not T or not R:
+            return (np.inf, np.inf)
+        radius, total = _score(Dpad[:, pair[np.ix_(T, R)].ravel()].min(axis=1)[:, None], resolution_mm, secondary, power)
+        return radius[0], total[0]
+
+    def cheapest_drop(own: list, keep: int, layer: str, other: list) -> list:
+        reach = _layer_nearest(Dpad, pair, layer, other)[:, own]  # (K, len(own))
+        losses = []
+        for i, curve in enumerate(own):
+            if curve == keep:
+                continue
+            radius, total = _score(np.delete(reach, i, axis=1).min(axis=1)[:, None], resolution_mm, secondary, power)
+            losses.append(((radius[0], total[0]), curve))
+        return [c for c in own if c != min(losses)[1]]
+
+    T0, R0 = [int(a) for a in tx], [int(b) for b in rx]
+    current = score(T0, R0)
+    nearest = Dpad[:, pair[np.ix_(T0, R0)].ravel()].min(axis=1) if T0 and R0 else np.full(len(Dpad), np.inf)
+    far = int(np.argmax(nearest))
+    selected_t = np.isin(np.arange(pair.shape[0]), T0)
+    selected_r = np.isin(np.arange(pair.shape[1]), R0)
+    columns = np.flatnonzero(np.isfinite(Dpad[far, :-1]) & (Dpad[far, :-1] < nearest[far])
+                             & ~(selected_t[problem.cross_tx] & selected_r[problem.cross_rx]))
+    best = (current, None)
+    for column in columns[np.argsort(Dpad[far, columns], kind="stable")[:tries]]:
+        t, r = int(problem.cross_tx[column]), int(problem.cross_rx[column])
+        T = [a for a in T0 if a == t or not (tx_conf[t, a] or multi[a, r])] + ([] if t in T0 else [t])
+        R = [b for b in R0 if b == r or not (rx_conf[r, b] or multi[t, b])] + ([] if r in R0 else [r])
+        if len(T) > n_drive:
+            T = cheapest_drop(T, t, "tx", R)
+        if len(R) > n_sense:
+            R = cheapest_drop(R, r, "rx", T)
+        key = score(T, R)
+        if key < best[0]:
+            best = (key, (T, R))
+    if best[1] is None:
+        return None
+    T, R = best[1]
+    return np.array(sorted(T), dtype=np.int64), np.array(sorted(R), dtype=np.int64)
+
+
 def _repair(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Drop curves until C1/C2 hold: repeatedly remove the curve in the most violated constraints."""
     T, R = set(int(a) for a in tx), set(int(b) for b in rx)
@@ -188,12 +266,15 @@ def heuristic_selection(
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The better of two starts, improved by :func:`local_search`: the greedy construction and an evenly
     spread pick over the candidate order (curves are traced in angular order, so evenly spaced indices
-    spread over the surface; Tx lanes, each listed after its field line, are left out of it), repaired for
-    C1/C2. Without the secondary objective only the even pick is used, since the greedy construction
-    optimises the summed distance."""
+    spread over the surface; Tx lanes, each listed after its field line, and the limbs' curves, listed
+    after the family's, are left out of it), repaired for C1/C2; then, in turns, a move that brings in
+    both curves of a crossing (:func:`pair_move`) and the local search again. Without the secondary
+    objective only the even pick is used, since the greedy construction optimises the summed distance."""
     usable_t, usable_r = np.flatnonzero(problem.tx_usable), np.flatnonzero(problem.rx_usable)
     if problem.tx_lanes is not None:
         usable_t = usable_t[~problem.tx_lanes[usable_t]]
+    if problem.limb_curves is not None:
+        usable_t, usable_r = usable_t[~problem.limb_curves[0][usable_t]], usable_r[~problem.limb_curves[1][usable_r]]
     starts = {"greedy": greedy_selection(problem, n_drive, n_sense)}
     if len(usable_t) and len(usable_r):
         even_t = usable_t[np.unique(np.floor(np.arange(min(n_drive, len(usable_t))) * len(usable_t) / min(n_drive, len(usable_t))).astype(int))]
@@ -210,7 +291,14 @@ def heuristic_selection(
         scored.append(((radius[0], total[0]), name))
     name = min(scored)[1]
     tx, rx, moves = local_search(problem, *starts[name], n_drive, n_sense, secondary, resolution_mm, power=power)
+    pair_moves = 0
+    while pair_moves < PAIR_MOVE_ROUNDS:
+        moved = pair_move(problem, tx, rx, n_drive, n_sense, secondary, resolution_mm, power)
+        if moved is None:
+            break
+        tx, rx, more = local_search(problem, *moved, n_drive, n_sense, secondary, resolution_mm, power=power)
+        pair_moves, moves = pair_moves + 1, moves + more
     _, nearest = evaluate_selection(problem, tx, rx)
-    report["local_search"] = {"start": name, "moves": moves, "radius_mm": float(nearest.max()),
+    report["local_search"] = {"start": name, "moves": moves, "pair_moves": pair_moves, "radius_mm": float(nearest.max()),
                               "mean_mm": float(nearest.mean())}
     return tx, rx, report

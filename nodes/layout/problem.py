@@ -63,6 +63,7 @@ class SelectionProblem:
     rx_conflicts: np.ndarray  # (R, 2) int64, crossing Rx pairs (C1)
     clearance_pairs: tuple[int, int] = (0, 0)  # (Tx, Rx) pairs in the conflicts for clearance alone
     tx_lanes: np.ndarray | None = None  # (Ntx,) bool, Tx candidates that are lanes (curves.tx_lanes), or None
+    limb_curves: tuple[np.ndarray, np.ndarray] | None = None  # (Ntx,), (Nrx,) bool, the curves.trace_limbs candidates, or None
 
 
 def merge_pairs(*pairs: np.ndarray) -> np.ndarray:
@@ -98,3 +99,16 @@ def evaluate_selection(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray
     if len(active) == 0:
         return active, np.full(problem.distance.shape[0], np.inf)
     return active, problem.distance[:, active].min(axis=1)
+
+
+def without_added(problem: SelectionProblem) -> tuple[str, SelectionProblem] | None:
+    """The problem without the candidates added beside the family, the outermost first, and its name in
+    the report: without the limbs' curves (``"without_limbs"``) if it has any, else without the Tx lanes
+    (``"field_lines"``); None if it has neither."""
+    if problem.limb_curves is not None and (problem.limb_curves[0].any() or problem.limb_curves[1].any()):
+        tx_limb, rx_limb = problem.limb_curves
+        return "without_limbs", dataclasses.replace(problem, tx_usable=problem.tx_usable & ~tx_limb,
+                                                    rx_usable=problem.rx_usable & ~rx_limb, limb_curves=None)
+    if problem.tx_lanes is not None and problem.tx_lanes.any():
+        return "field_lines", dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None)
+    return None

@@ -86,6 +86,7 @@ from .problem import (
     UNREACHABLE_LEVEL,
     SelectionProblem,
     evaluate_selection,
+    without_added,
 )
 from .solvers import HIGHS_MAX_NODES, StageSolution, solve_stage
 
@@ -227,6 +228,7 @@ class RadiusStage:
     report: dict  # heuristic, stage 1, model size, solver, resolution
     settings: dict
     seconds: float  # stage 1's wall seconds (not reproducible: not in the report)
+    without_limbs: bool = False  # the limbs' curves did not lower the radius: stage 2 leaves them out too
 
     @property
     def radius_mm(self) -> float:
@@ -258,9 +260,12 @@ def solve_radius_stage(
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
     ``secondary`` says whether a power-mean stage follows (the start's local search scores it too).
-    With Tx lanes among the candidates, the stage is first solved over the field lines alone, and that
-    selection starts the whole problem when it is the better start: lanes never leave a branch worse off
-    than its field lines, whatever the trust region. Without ``bound_apart`` a trust region's stage
+    With the limbs' curves among the candidates, the stage is first solved without them
+    (:func:`.problem.without_added`), and with Tx lanes but no limbs' curves, over the field lines alone;
+    that selection starts the whole problem when it is the better start: added candidates never leave a
+    branch's radius worse than without them, whatever the trust region. When the limbs' curves do not
+    lower the radius, the stage without them is returned (``without_limbs``: :func:`finish_selection`
+    leaves them out too). Without ``bound_apart`` a trust region's stage
     reports the model's lowest level as its global bound instead of the layer relaxation's (that first
     solve only hands on its selection). ``start`` is the heuristic start (Tx ids, Rx ids, its report) when
     already known (:func:`start_and_bound`)."""
@@ -269,17 +274,17 @@ def solve_radius_stage(
     if start is None:
         start = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
     start_tx, start_rx, heuristic = start[0], start[1], dict(start[2])
-    lanes_seconds = 0.0
-    if problem.tx_lanes is not None and problem.tx_lanes.any():
-        field_lines = solve_radius_stage(
-            dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None), *args,
-            bound_apart=False)
-        lanes_seconds = field_lines.seconds
-        better = (_start_key(problem, *field_lines.selection, resolution_mm, power)
+    reduced_seconds = 0.0
+    reduced = without_added(problem)
+    if reduced is not None:
+        name, smaller = reduced
+        first = solve_radius_stage(smaller, *args, bound_apart=bound_apart and name == "without_limbs")
+        reduced_seconds = first.seconds
+        better = (_start_key(problem, *first.selection, resolution_mm, power)
                   < _start_key(problem, start_tx, start_rx, resolution_mm, power))
-        heuristic["field_lines"] = {"radius_mm": field_lines.radius_mm, "starts_the_stage": bool(better)}
+        heuristic[name] = {"radius_mm": first.radius_mm, "starts_the_stage": bool(better)}
         if better:
-            start_tx, start_rx = field_lines.selection
+            start_tx, start_rx = first.selection
     q = _quantised_distances(problem, resolution_mm)
     q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
@@ -310,8 +315,12 @@ def solve_radius_stage(
             stage1["global_bound"] = stage1["bound"]
     stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
+    if reduced is not None and name == "without_limbs" and stage1["objective"] >= first.radius_mm:
+        # the limbs' curves do not lower the radius: the branch is the one without them, stage 2 too
+        report = {**first.report, "limbs": {"radius_mm": stage1["objective"], "kept": False}}
+        return dataclasses.replace(first, report=report, seconds=seconds + reduced_seconds, without_limbs=True)
     return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
-                       seconds + lanes_seconds)
+                       seconds + reduced_seconds)
 
 
 def start_and_bound(problem: SelectionProblem, n_drive: int, n_sense: int, secondary: bool, resolution_mm: float,
@@ -358,7 +367,10 @@ def radius_proven_above(problem: SelectionProblem, stage: RadiusStage, radius_mm
 
 def finish_selection(problem: SelectionProblem, stage: RadiusStage, relative_gap: float = PHASE1_RELATIVE_GAP) -> SelectionResult:
     """Phase 1 from its radius stage: the power-mean stage when the stage was solved with
-    ``secondary`` (stopped within ``relative_gap`` of its optimum) and every stage's report."""
+    ``secondary`` (stopped within ``relative_gap`` of its optimum; without the limbs' curves when they
+    did not lower the radius) and every stage's report."""
+    if stage.without_limbs:
+        problem = without_added(problem)[1]
     solver = stage.settings["solver"]
     tx_sel, rx_sel = stage.selection
     stages, stage_seconds = list(stage.report["stages"]), [stage.seconds]

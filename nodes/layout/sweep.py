@@ -140,6 +140,7 @@ def subset_curves(curves: CurveSet, ids: np.ndarray) -> CurveSet:
         angle=curves.angle,
         family=curves.family,
         lane_parent=None if curves.lane_parent is None else curves.lane_parent[ids],
+        limb=None if curves.limb is None else curves.limb[ids],
     )
 
 
