@@ -54,3 +54,19 @@ def test_a_dead_end_holds_the_shallower_ones_that_joined_it():
     assert angle_to((-1, 0.35, 0))[small.tip] < 0.05 and small.join_value > middle.join_value
     inner, outer = dead_end_vertices(values, edges, small), dead_end_vertices(values, edges, middle)
     assert inner[small.tip] and not (inner & ~outer).any() and outer.sum() > inner.sum()
+
+
+def test_the_metrics_limbs_are_the_dead_ends_that_sense_with_their_sensing_area_and_cells():
+    from retrotouch.nodes.geometry.triangles import areas, corners
+    from retrotouch.nodes.layout.metrics import limbs
+
+    centres, heights = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)], [40.0, 30.0, 20.0, 12.0]
+    values, faces, edges = bumps(centres, heights), SPHERE.faces, mesh_edges(SPHERE.faces)
+    vertices = SPHERE.vertices * 50.0
+    on = [dead_end_vertices(values, edges, end)[faces].all(axis=1) for end in dead_ends(values, edges, 10.0)]
+    sensing = ~on[1]  # the 20 mm bump is a foot inside the base
+    cell_faces = np.flatnonzero(angle_to((-1, 0, 0))[faces].max(axis=1) < 0.1)[:3]  # three cells on the 30 mm bump
+    found = limbs(vertices, faces, values, sensing, cell_faces)
+    assert [limb["depth_mm"] for limb in found] == pytest.approx([30.0, 12.0], abs=0.5)
+    assert [limb["cells"] for limb in found] == [3, 0]
+    assert found[0]["area_mm2"] == pytest.approx(areas(corners(vertices, faces))[on[0] & sensing].sum())

@@ -69,8 +69,9 @@ MIN_CROSSING_ANGLE_DEG = 8.0
 within a trace width of each other for ``ALONG_MM`` (11.5 deg)."""
 
 
-NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (winding, helices, helix_crossings, "
-              "helix_select, helix_radius, helix_finish) and their entries in prescreen, screen and best from the pipeline")
+NO_HELICES = ("use the rings or dipole Rx family for this object: remove the helix nodes (winding, helices, limbs, "
+              "helix_crossings, helix_select, helix_radius, helix_finish) and their entries in prescreen, screen and best "
+              "from the pipeline")
 
 
 class TraceHelicesParams(NodeParams):

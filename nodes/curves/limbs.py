@@ -2,7 +2,8 @@
 branch's candidates.
 
 A *limb* (a leg, an arm, a tail, a second ear) is a dead end of the distance ``d`` from the base
-(:mod:`retrotouch.nodes.geometry.dead_ends`) deeper than ``min_depth_mm``. The Tx field flows from the
+(:mod:`retrotouch.nodes.geometry.dead_ends`) deeper than ``min_depth_mm`` with sensing faces on it (a foot
+inside the base is none). The Tx field flows from the
 pole to the base past it: no Tx line enters it, so no helix crosses a Tx line there. Each limb gets
 crossings of its own, with the layers the other way round from the body:
 
@@ -10,12 +11,12 @@ crossings of its own, with the layers the other way round from the body:
   ``max_rings``, half a spacing from the tip and from where the limb joins the rest), whose legs run
   side by side along a *spine* (the offset legs of :mod:`.rings`, the tip taking the pole's place):
   a line from the tip down ``-grad d`` to where the limb joins the rest and on along the Tx field to
-  the base. A ring's leg runs beside a Tx field line, so it crosses no Tx line of the family; each
-  helix crosses it once on the body.
+  the base. On the body a leg runs beside a Tx field line: it crosses only Tx lines that come nearer
+  that line than the leg (phase 1 keeps such pairs apart), and each helix once.
 * **Rx lines** out of the limb: from the tip down ``-grad d`` to where the limb joins the rest, then
   along the helix level set (``psi`` of :mod:`.helices`) through that point to the base: a helix
-  there, so it crosses no helix and each Tx line once; inside the limb it crosses each of the limb's
-  rings once.
+  there, so on the body it crosses no helix and each Tx line once; inside the limb it crosses the
+  limb's rings.
 
 Rings are oriented as Tx lines (their free start at the ring's end, the base at the leg's end), lines
 as Rx curves (from the base; their free end at the tip). ``CurveSet.limb`` tells the limb each added
@@ -37,11 +38,8 @@ from .helices import RHO_MIN, HelixChart, HelixSets
 from .integrator import faces_near, trace
 from .ring_levels import RingLevels, row_values
 from .rings import TraceRingsParams, either_way, ring_curves, ring_walk
-from .tracing import base_region_of
+from .tracing import TraceTxParams, base_region_of
 from .tx_seeding import fan_sectors, tx_starts, uniform_angles
-
-SINGULARITY_STOP_MM = 3.0
-"""A spine stops this near the base centre (geodesic, mm), as the Tx lines do by default."""
 
 BASE_REACHED = 0.9
 """An Rx line's helix part must climb at least this far (``rho``) towards the base."""
@@ -73,9 +71,10 @@ def limb_rings(tables: MeshTables, regions, end: DeadEnd, limb_vertices: np.ndar
     prefix, start_faces, start_bary = tx_starts(tables, end.tip, uniform_angles(cum[-1], params.spines))
     nothing = np.zeros(len(faces), dtype=bool)
     along = np.where(limb_faces[:, None], down, field.face_direction)
-    spines, _ = assemble(tables, trace(tables, along, start_faces, start_bary, nothing, base,
-                                       faces_near(tables, field.stop_distance, SINGULARITY_STOP_MM), 20000, 3, prefix),
-                         nothing, "tx", 0.0)
+    tracing = TraceTxParams()  # as the Tx lines are traced by default
+    singular = faces_near(tables, field.stop_distance, tracing.singularity_stop_mm)
+    spines, _ = assemble(tables, trace(tables, along, start_faces, start_bary, nothing, base, singular, tracing.max_steps,
+                                       tracing.max_face_visits, prefix), nothing, "tx", 0.0)
     # the rings' radial function: 0 at the tip, 1 on the base, flat beyond the limb (no ring leaves it)
     u = np.full(len(d), 1.0 - end.join_value / d[end.tip])
     u[limb_vertices] = 1.0 - d[limb_vertices] / d[end.tip]
@@ -94,8 +93,9 @@ def limb_lines(tables: MeshTables, regions, end: DeadEnd, limb_faces: np.ndarray
     _, _, cum = fan_sectors(tables, end.tip)
     prefix, start_faces, start_bary = tx_starts(tables, end.tip, uniform_angles(cum[-1], count))
     nothing = np.zeros(len(tables.faces), dtype=bool)
-    inside, _ = assemble(tables, trace(tables, down, start_faces, start_bary, nothing, base | ~limb_faces, nothing, 20000, 3,
-                                       prefix), nothing, "rx", 0.0)
+    tracing = TraceTxParams()
+    inside, _ = assemble(tables, trace(tables, down, start_faces, start_bary, nothing, base | ~limb_faces, nothing,
+                                       tracing.max_steps, tracing.max_face_visits, prefix), nothing, "rx", 0.0)
     rows = []
     for c in range(inside.count):
         part = inside.curve(c)
@@ -121,7 +121,7 @@ def limb_lines(tables: MeshTables, regions, end: DeadEnd, limb_faces: np.ndarray
 def limbs_note(value: dict) -> str | None:
     """The run summary's line: how many limbs got curves (none: no line)."""
     tx, rx = value["tx"], value["rx"]
-    found = int(max(tx.limb.max(initial=-1), rx.limb.max(initial=-1))) + 1
+    found = len(np.unique(np.r_[tx.limb, rx.limb][np.r_[tx.limb, rx.limb] >= 0]))
     if not found:
         return None
     return (f"{found} limbs: {int((tx.limb >= 0).sum())} Tx rings around them and {int((rx.limb >= 0).sum())} Rx lines out "
@@ -143,11 +143,13 @@ def trace_limbs(params: TraceLimbsParams, mesh: Mesh, regions, chart: HelixChart
     rings, ring_limb, lines, line_limb = [], [], [], []
     for k, end in enumerate(dead_ends(d, edges, params.min_depth_mm)):
         limb_vertices = dead_end_vertices(d, edges, end)
+        limb_faces = limb_vertices[tables.faces].all(axis=1)
+        if not (limb_faces & sensing).any():  # inside the base (a foot)
+            continue
         found = limb_rings(tables, regions, end, limb_vertices, down, tx_field, params)
         rings += found
         ring_limb += [k] * len(found)
-        found = limb_lines(tables, regions, end, limb_vertices[tables.faces].all(axis=1), down, chart, helix_sets,
-                           params.lines_per_limb)
+        found = limb_lines(tables, regions, end, limb_faces, down, chart, helix_sets, params.lines_per_limb)
         lines += found
         line_limb += [k] * len(found)
 

@@ -10,8 +10,8 @@ pad is the summed area of its faces; CV = population std / mean of the cell area
 regular layout). Uncovered spots: the connected pieces of the sensing region whose vertices lie
 farther than ``UNCOVERED_MM`` (geodesic) from every cell, where a touch reaches few crossings and its
 position is poorly determined. Limbs: the dead ends of the geodesic distance from the base deeper than
-``UNCOVERED_MM`` (:mod:`retrotouch.nodes.geometry.dead_ends`: legs, arms, ears, horns, a tail), each with
-the cells on it. Distances and lengths in mm, areas in mm^2.
+``UNCOVERED_MM`` (:mod:`retrotouch.nodes.geometry.dead_ends`: legs, arms, ears, horns, a tail) that hold
+sensing faces, each with the cells on it. Distances and lengths in mm, areas in mm^2.
 """
 from __future__ import annotations
 
@@ -88,16 +88,19 @@ def uncovered_spots(nearest_mm: np.ndarray, vertices: np.ndarray, faces: np.ndar
             "uncovered_share": float(vertex_area[members].sum() / vertex_area.sum()), "uncovered_spots": spots}
 
 
-def limbs(vertices: np.ndarray, faces: np.ndarray, base_distance_mm: np.ndarray, cell_faces: np.ndarray) -> list[dict]:
-    """The object's limbs (module docstring), deepest first: tip point, depth, area (a limb's own limbs
-    included) and how many of the cells (on ``cell_faces``) lie on it."""
+def limbs(vertices: np.ndarray, faces: np.ndarray, base_distance_mm: np.ndarray, sensing_faces: np.ndarray,
+          cell_faces: np.ndarray) -> list[dict]:
+    """The object's limbs that sense (module docstring; a limb inside the base, a foot, is left out), deepest
+    first: tip point, depth, sensing area (a limb's own limbs included) and how many of the cells (on
+    ``cell_faces``) lie on it."""
     edges = mesh_edges(faces)
-    face_area = areas(corners(vertices, faces))
+    sensing_area = np.where(sensing_faces, areas(corners(vertices, faces)), 0.0)
     out = []
     for end in dead_ends(base_distance_mm, edges, UNCOVERED_MM):
         on_limb = dead_end_vertices(base_distance_mm, edges, end)[faces].all(axis=1)
-        out.append({"tip": [float(x) for x in vertices[end.tip]], "depth_mm": end.depth,
-                    "area_mm2": float(face_area[on_limb].sum()), "cells": int(on_limb[cell_faces].sum())})
+        if sensing_area[on_limb].sum() > 0.0:
+            out.append({"tip": [float(x) for x in vertices[end.tip]], "depth_mm": end.depth,
+                        "area_mm2": float(sensing_area[on_limb].sum()), "cells": int(on_limb[cell_faces].sum())})
     return out
 
 

@@ -41,7 +41,7 @@ def write_sensing_map(params: SensingMapParams, mesh: Mesh, regions: SurfaceRegi
     files = sensing_map_files(mesh.vertices, mesh.faces, regions.up, cells.curve_a, cells.curve_b, cells.points,
                               cells.faces, cells.bary, layout.pad, channels, regions.touch_faces,
                               design=layout.design_values())
-    found = limbs(mesh.vertices, mesh.faces, regions.base_distance_mm, cells.faces)
+    found = limbs(mesh.vertices, mesh.faces, regions.base_distance_mm, regions.sensing_faces, cells.faces)
     return Files({**files, "metrics.json": metrics_json(metrics, pose_summary(regions), regions.touch, mesh.repairs, found)})
 
 
