@@ -56,3 +56,11 @@ def test_limb_curves_that_do_not_lower_the_radius_leave_the_selection_as_without
     assert np.array_equal(result.tx, reference.tx) and np.array_equal(result.rx, reference.rx)
     assert np.array_equal(np.sort(result.active), np.sort(reference.active))
     assert result.coverage_radius_mm == reference.coverage_radius_mm > 60.0
+
+
+def test_a_pair_move_never_brings_in_a_pair_laid_along_each_other():
+    problem = dataclasses.replace(body_and_limb((145.0, 50.0)), multi_pairs=np.array([[6, 4]]))  # one crossing, but C2
+    tx, rx, _ = heuristic_selection(problem, 6, 4, True, 0.5)
+    assert not (6 in tx and 4 in rx)
+    result = select_curves(problem, 6, 4, time_limit_s=1.0)
+    assert not (6 in result.tx and 4 in result.rx) and result.report["stages"][0]["status"] == "OPTIMAL"

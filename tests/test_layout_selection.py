@@ -169,12 +169,12 @@ def test_global_bound_never_exceeds_the_model_bound(problem):
 @pytest.mark.parametrize("n_drive,n_sense", [(8, 5), (3, 2)])
 def test_layer_radius_bound_never_exceeds_the_proven_optimum(problem, n_drive, n_sense):
     from retrotouch.nodes.layout.bounds import layer_radius_bound
-    from retrotouch.nodes.layout.selection import _quantised_distances
+    from retrotouch.nodes.layout.problem import quantised_distances
 
     result = select_curves(problem, n_drive, n_sense, secondary=False, time_limit_s=5.0)
     stage = result.report["stages"][0]
     assert result.report["model"]["trust_region_slack_mm"] is None and stage["status"] == "OPTIMAL"
-    q = _quantised_distances(problem, result.report["resolution_mm"])
+    q = quantised_distances(problem, result.report["resolution_mm"])
     low = int(q.min(axis=1).max())
     high = int(np.ceil(stage["objective"] / result.report["resolution_mm"] - 1e-9))
     bound = layer_radius_bound(problem, q, (n_drive, n_sense), low, high, {"time_limit_s": 1.0, "seed": 0, "workers": 1})

@@ -221,7 +221,8 @@ def pair_move(
     selected_t = np.isin(np.arange(pair.shape[0]), T0)
     selected_r = np.isin(np.arange(pair.shape[1]), R0)
     columns = np.flatnonzero(np.isfinite(Dpad[far, :-1]) & (Dpad[far, :-1] < nearest[far])
-                             & ~(selected_t[problem.cross_tx] & selected_r[problem.cross_rx]))
+                             & ~(selected_t[problem.cross_tx] & selected_r[problem.cross_rx])
+                             & ~multi[problem.cross_tx, problem.cross_rx])  # laid along each other: C2 too
     best = (current, None)
     for column in columns[np.argsort(Dpad[far, columns], kind="stable")[:tries]]:
         t, r = int(problem.cross_tx[column]), int(problem.cross_rx[column])

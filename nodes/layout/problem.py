@@ -112,3 +112,25 @@ def without_added(problem: SelectionProblem) -> tuple[str, SelectionProblem] | N
     if problem.tx_lanes is not None and problem.tx_lanes.any():
         return "field_lines", dataclasses.replace(problem, tx_usable=problem.tx_usable & ~problem.tx_lanes, tx_lanes=None)
     return None
+
+
+def quantised_distances(problem: SelectionProblem, resolution_mm: float) -> np.ndarray:
+    """(K, C) sample -> crossing distances in units of ``resolution_mm`` (rounded up); crossings of
+    unusable curves get a value beyond any cap."""
+    usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
+    q = np.ceil(problem.distance / resolution_mm - 1e-9).astype(np.int64)
+    q[:, ~usable_c] = UNREACHABLE_LEVEL
+    return q
+
+
+def nearest_levels(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float) -> np.ndarray:
+    """(K,) each sample's distance to the selection's nearest active crossing in units of ``resolution_mm``
+    (rounded up)."""
+    _, nearest = evaluate_selection(problem, tx, rx)
+    return np.ceil(nearest / resolution_mm - 1e-9).astype(np.int64)
+
+
+def start_key(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float, power: int) -> tuple:
+    """A start's (radius level, sum of level ** power): smaller is better."""
+    levels = nearest_levels(problem, tx, rx, resolution_mm)
+    return int(levels.max()), float(np.sum(levels.astype(np.float64) ** power))

@@ -86,6 +86,9 @@ from .problem import (
     UNREACHABLE_LEVEL,
     SelectionProblem,
     evaluate_selection,
+    nearest_levels,
+    quantised_distances,
+    start_key,
     without_added,
 )
 from .solvers import HIGHS_MAX_NODES, StageSolution, solve_stage
@@ -113,15 +116,6 @@ def _stage_report(name: str, solved: StageSolution, objective: float, bound: flo
     """A stage's status, objective and bound (model units with the constant) and their gap."""
     return {"stage": name, "status": solved.status, "objective": objective, "bound": bound,
             "gap": _gap(objective, bound), **solved.work}
-
-
-def _quantised_distances(problem: SelectionProblem, resolution_mm: float) -> np.ndarray:
-    """(K, C) sample -> crossing distances in units of ``resolution_mm`` (rounded up); crossings of
-    unusable curves get a value beyond any cap."""
-    usable_c = problem.tx_usable[problem.cross_tx] & problem.rx_usable[problem.cross_rx]
-    q = np.ceil(problem.distance / resolution_mm - 1e-9).astype(np.int64)
-    q[:, ~usable_c] = UNREACHABLE_LEVEL
-    return q
 
 
 def _sample_caps(q: np.ndarray, q_start: np.ndarray, max_memberships: int) -> tuple[np.ndarray, int]:
@@ -154,11 +148,6 @@ def _sample_caps(q: np.ndarray, q_start: np.ndarray, max_memberships: int) -> tu
     return sample_cap, slack
 
 
-def _nearest_levels(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float) -> np.ndarray:
-    _, nearest = evaluate_selection(problem, tx, rx)
-    return np.ceil(nearest / resolution_mm - 1e-9).astype(np.int64)
-
-
 def _selection(model: LinearModel, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.flatnonzero(values[:model.n_tx]).astype(np.int64),
             np.flatnonzero(values[model.n_tx:model.n_tx + model.n_rx]).astype(np.int64))
@@ -168,7 +157,7 @@ def _radius_stage(model: LinearModel, problem: SelectionProblem, start: tuple, s
     """Stage 1: minimise the radius from ``start``. Returns the report (mm), the selection (None
     without an incumbent) and the solver's wall seconds."""
     res = settings["resolution_mm"]
-    hint = model.column_values(*start, _nearest_levels(problem, *start, res))
+    hint = model.column_values(*start, nearest_levels(problem, *start, res))
     solved = solve_stage(model, model.radius_objective(), hint, settings["solver"], {**settings, "relative_gap": 0.0})
     bound = model.r_low + np.ceil(solved.bound - 1e-6)
     objective = model.r_low + (solved.objective if solved.values is not None else float(hint @ model.radius_objective()))
@@ -181,11 +170,11 @@ def _power_mean_stage(model: LinearModel, problem: SelectionProblem, start: tupl
     search of stage 1's selection. The report's ``gap`` is on the mean of level**p (the model's
     objective), ``gap_power_mean_mm`` on the power mean in mm; objective and bound are in mm."""
     power, res = settings["power"], settings["resolution_mm"]
-    radius = int(_nearest_levels(problem, *start, res).max())
+    radius = int(nearest_levels(problem, *start, res).max())
     tx_sel, rx_sel, moves = local_search(problem, *start, settings["n_drive"], settings["n_sense"], True, res, power=power)
     fixed = model.radius_fixed(radius)
     cost = fixed.power_objective()
-    hint = fixed.column_values(tx_sel, rx_sel, _nearest_levels(problem, tx_sel, rx_sel, res))
+    hint = fixed.column_values(tx_sel, rx_sel, nearest_levels(problem, tx_sel, rx_sel, res))
     # the solvers take the gap on the cost without the constant (samples fixed at the radius): a limit
     # scaled by (hint + constant) / hint, the hint's cost bounding the solution's, keeps the gap with it
     hinted = max(float(hint @ cost), 1.0)
@@ -260,12 +249,12 @@ def solve_radius_stage(
 ) -> RadiusStage:
     """Phase 1's start and radius stage (see the module docstring) with ``solver`` ("cpsat" or "highs");
     ``secondary`` says whether a power-mean stage follows (the start's local search scores it too).
-    With the limbs' curves among the candidates, the stage is first solved without them
-    (:func:`.problem.without_added`), and with Tx lanes but no limbs' curves, over the field lines alone;
-    that selection starts the whole problem when it is the better start: added candidates never leave a
-    branch's radius worse than without them, whatever the trust region. When the limbs' curves do not
-    lower the radius, the stage without them is returned (``without_limbs``: :func:`finish_selection`
-    leaves them out too). Without ``bound_apart`` a trust region's stage
+    With the limbs' curves among the candidates, the stage is first solved without them, and with Tx lanes
+    but no limbs' curves, over the field lines alone (:func:`.problem.without_added`); that selection starts
+    the whole problem when it is the better start, so added candidates never leave a branch's radius worse
+    than without them. When the limbs' curves give neither a better start nor a smaller radius, the stage
+    without them is the branch's (``without_limbs``: :func:`finish_selection` leaves them out too). Without
+    ``bound_apart`` a trust region's stage
     reports the model's lowest level as its global bound instead of the layer relaxation's (that first
     solve only hands on its selection). ``start`` is the heuristic start (Tx ids, Rx ids, its report) when
     already known (:func:`start_and_bound`)."""
@@ -280,13 +269,15 @@ def solve_radius_stage(
         name, smaller = reduced
         first = solve_radius_stage(smaller, *args, bound_apart=bound_apart and name == "without_limbs")
         reduced_seconds = first.seconds
-        better = (_start_key(problem, *first.selection, resolution_mm, power)
-                  < _start_key(problem, start_tx, start_rx, resolution_mm, power))
+        key = start_key(problem, start_tx, start_rx, resolution_mm, power)
+        better = start_key(problem, *first.selection, resolution_mm, power) < key
+        if name == "without_limbs" and better:  # the limbs' curves do not even give a better start
+            return _without_limbs(first, key[0] * resolution_mm, reduced_seconds)
         heuristic[name] = {"radius_mm": first.radius_mm, "starts_the_stage": bool(better)}
         if better:
             start_tx, start_rx = first.selection
-    q = _quantised_distances(problem, resolution_mm)
-    q_start = _nearest_levels(problem, start_tx, start_rx, resolution_mm)
+    q = quantised_distances(problem, resolution_mm)
+    q_start = nearest_levels(problem, start_tx, start_rx, resolution_mm)
     sample_cap, slack = _sample_caps(q, q_start, max_memberships)
     model = build_model(problem, n_drive, n_sense, q, sample_cap, power)
     restricted = slack < int(q_start.max())
@@ -316,9 +307,7 @@ def solve_radius_stage(
     stage1["global_gap"] = _gap(stage1["objective"], stage1["global_bound"])
     report = {"heuristic": heuristic, "stages": [stage1], "model": size, "solver": solver, "resolution_mm": resolution_mm}
     if reduced is not None and name == "without_limbs" and stage1["objective"] >= first.radius_mm:
-        # the limbs' curves do not lower the radius: the branch is the one without them, stage 2 too
-        report = {**first.report, "limbs": {"radius_mm": stage1["objective"], "kept": False}}
-        return dataclasses.replace(first, report=report, seconds=seconds + reduced_seconds, without_limbs=True)
+        return _without_limbs(first, stage1["objective"], seconds + reduced_seconds)
     return RadiusStage(sample_cap, found if found is not None else (start_tx, start_rx), found is not None, report, settings,
                        seconds + reduced_seconds)
 
@@ -329,24 +318,25 @@ def start_and_bound(problem: SelectionProblem, n_drive: int, n_sense: int, secon
     stage 1's) and a lower bound on any selection's (the layer relaxation), in mm: what
     ``layout.prescreen`` compares across branches before their radius stages."""
     start = heuristic_selection(problem, n_drive, n_sense, secondary, resolution_mm, power)
-    level = int(_nearest_levels(problem, start[0], start[1], resolution_mm).max())
+    level = int(nearest_levels(problem, start[0], start[1], resolution_mm).max())
     if level >= UNREACHABLE_LEVEL:
         return start, math.inf, 0.0
     settings = {"time_limit_s": time_limit_s, "seed": seed, "workers": workers}
-    low = layer_radius_bound(problem, _quantised_distances(problem, resolution_mm), (n_drive, n_sense), 0, level, settings)
+    low = layer_radius_bound(problem, quantised_distances(problem, resolution_mm), (n_drive, n_sense), 0, level, settings)
     return start, level * resolution_mm, max(low - 1, 0) * resolution_mm  # a level-j distance lies in ((j - 1) res, j res]
 
 
-def _start_key(problem: SelectionProblem, tx: np.ndarray, rx: np.ndarray, resolution_mm: float, power: int) -> tuple:
-    """A start's (radius level, sum of level ** power): smaller is better."""
-    levels = _nearest_levels(problem, tx, rx, resolution_mm)
-    return int(levels.max()), float(np.sum(levels.astype(np.float64) ** power))
+def _without_limbs(first: RadiusStage, radius_mm: float, seconds: float) -> RadiusStage:
+    """The stage without the limbs' curves (``first``) as the branch's, stage 2 too: with them, nothing
+    better than ``radius_mm`` was found."""
+    return dataclasses.replace(first, report={**first.report, "limbs": {"radius_mm": radius_mm, "kept": False}},
+                               seconds=seconds, without_limbs=True)
 
 
 def stage_model(problem: SelectionProblem, stage: RadiusStage) -> LinearModel:
     """The model the radius stage solved (the same function of the problem and its caps)."""
     settings = stage.settings
-    return build_model(problem, settings["n_drive"], settings["n_sense"], _quantised_distances(problem, settings["resolution_mm"]),
+    return build_model(problem, settings["n_drive"], settings["n_sense"], quantised_distances(problem, settings["resolution_mm"]),
                        stage.sample_cap, settings["power"])
 
 
@@ -355,7 +345,7 @@ def radius_proven_above(problem: SelectionProblem, stage: RadiusStage, radius_mm
     cap at that radius (no trust region) is proven infeasible within the stage's limits; False when a
     selection may (feasible, or not proven)."""
     settings = stage.settings
-    q = _quantised_distances(problem, settings["resolution_mm"])
+    q = quantised_distances(problem, settings["resolution_mm"])
     level = int(np.ceil(radius_mm / settings["resolution_mm"] - 1e-9))
     if np.any(q.min(axis=1) > level):  # a sample with no crossing that near
         return True
