@@ -61,7 +61,7 @@ def test_rings_run_from_their_limb_to_the_base_and_lines_from_the_base_into_thei
                 assert d[inside].min() > end.join_value + 0.5 * end.depth
 
 
-def test_lines_cross_helices_only_inside_limbs_and_each_leg_has_a_cell(figurine):
+def test_lines_cross_helices_only_inside_limbs_and_legs_get_cells(figurine):
     mesh, _, tx, helices, out, _, ends, limbs, fields = figurine
     cross = crossings(CrossingsParams(), mesh, out["tx"], out["rx"], *fields)
     rx_rx = cross["rx_rx"]
@@ -71,6 +71,9 @@ def test_lines_cross_helices_only_inside_limbs_and_each_leg_has_a_cell(figurine)
     tx_rx = cross["tx_rx"]
     counts = Counter(zip(tx_rx.curve_a.tolist(), tx_rx.curve_b.tolist()))
     ring_limb, line_limb = out["tx"].limb, out["rx"].limb
-    for k, end in enumerate(ends):
-        if end.depth > 25.0:
-            assert any(n == 1 and ring_limb[a] == line_limb[b] == k for (a, b), n in counts.items())
+    legs = [k for k, end in enumerate(ends) if end.depth > 25.0]
+    assert all(any(ring_limb[a] == line_limb[b] == k for a, b in counts) for k in legs)  # each leg's rings and lines meet
+    # a line that leaves its limb on the side of the rings' legs crosses a ring there too (twice in all: no
+    # cell); with four lines per limb, a cell on two legs of three at least, under any jitter of the mesh
+    with_cell = [k for k in legs if any(n == 1 and ring_limb[a] == line_limb[b] == k for (a, b), n in counts.items())]
+    assert len(with_cell) >= 2, with_cell

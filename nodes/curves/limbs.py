@@ -41,10 +41,6 @@ from .rings import TraceRingsParams, either_way, ring_curves, ring_walk
 from .tracing import TraceTxParams, base_region_of
 from .tx_seeding import fan_sectors, tx_starts, uniform_angles
 
-BASE_REACHED = 0.9
-"""An Rx line's helix part must climb at least this far (``rho``) towards the base."""
-
-
 class TraceLimbsParams(NodeParams):
     min_depth_mm: float = Field(10.0, ge=0, description="limbs sticking out more than this beyond where they join the "
                                 "rest (mm) get rings and lines")
@@ -89,6 +85,8 @@ def limb_lines(tables: MeshTables, regions, end: DeadEnd, limb_faces: np.ndarray
                helix_sets: HelixSets, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Rows (faces, bary) of the Rx lines out of one limb, each oriented from the base to the tip."""
     base = base_region_of(regions)
+    on_base = np.zeros(len(tables.vertices), dtype=bool)
+    on_base[tables.faces[base]] = True
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
     _, _, cum = fan_sectors(tables, end.tip)
     prefix, start_faces, start_bary = tx_starts(tables, end.tip, uniform_angles(cum[-1], count))
@@ -111,7 +109,7 @@ def limb_lines(tables: MeshTables, regions, end: DeadEnd, limb_faces: np.ndarray
                 continue
             rho = row_values(tables, chart.rho, walk_faces[[0, -1]], np.clip(tables.bary_of_points(walk_faces[[0, -1]],
                                                                                                  walk_points[[0, -1]]), 0, 1))
-            if rho[-1] > max(rho[0], BASE_REACHED):
+            if rho[-1] > rho[0] and on_base[tables.faces[walk_faces[-1]]].any():  # climbs to the base, not to a hole
                 rows.append(polyline_rows(tables, *reversed_walk(np.vstack([points[:-1], walk_points]),
                                                                  np.r_[point_faces[:-1], walk_faces])))
                 break
