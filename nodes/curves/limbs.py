@@ -2,10 +2,10 @@
 branch's candidates.
 
 A *limb* (a leg, an arm, a tail, a second ear) is a dead end of the distance ``d`` from the base
-(:mod:`retrotouch.nodes.geometry.dead_ends`) deeper than ``min_depth_mm`` with sensing faces on it (a foot
-inside the base is none). The Tx field flows from the
-pole to the base past it: no Tx line enters it, so no helix crosses a Tx line there. Each limb gets
-crossings of its own, with the layers the other way round from the body:
+(:mod:`retrotouch.nodes.geometry.dead_ends`) deeper than ``min_depth_mm`` with sensing faces on it (a
+foot inside the base has none). The Tx field flows from the pole to the base past it: no Tx line enters
+it, so no helix crosses a Tx line there. Each limb gets crossings of its own, with the layers the other
+way round from the body:
 
 * **Tx rings** around the limb: level sets of ``d`` inside it, ``ring_spacing_mm`` apart (at most
   ``max_rings``, half a spacing from the tip and from where the limb joins the rest), whose legs run
@@ -20,8 +20,9 @@ crossings of its own, with the layers the other way round from the body:
 
 Rings are oriented as Tx lines (their free start at the ring's end, the base at the leg's end), lines
 as Rx curves (from the base; their free end at the tip). ``CurveSet.limb`` tells the limb each added
-curve serves (-1 for the branch's own curves): phase 1 first solves the branch without them, so
-limbs never leave it worse off (:func:`retrotouch.nodes.layout.selection.solve_radius_stage`). Units: mm.
+curve serves (-1 for the branch's own curves): phase 1 first solves the branch without them, so they
+never leave its coverage radius worse (:func:`retrotouch.nodes.layout.selection.solve_radius_stage`).
+Units: mm.
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ from .ring_levels import RingLevels, row_values
 from .rings import TraceRingsParams, either_way, ring_curves, ring_walk
 from .tracing import TraceTxParams, base_region_of
 from .tx_seeding import fan_sectors, tx_starts, uniform_angles
+
 
 class TraceLimbsParams(NodeParams):
     min_depth_mm: float = Field(10.0, ge=0, description="limbs sticking out more than this beyond where they join the "
