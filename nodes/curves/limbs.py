@@ -31,7 +31,7 @@ from pydantic import Field
 
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
-from ..geometry.dead_ends import DeadEnd, dead_end_vertices, dead_ends, mesh_edges
+from ..geometry.dead_ends import DeadEnd, dead_end_vertices, dead_ends
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .assembly import assemble, joined, packed_rows, polyline_rows, reversed_rows, reversed_walk
 from .connection import DirectionField
@@ -136,7 +136,7 @@ def trace_limbs(params: TraceLimbsParams, mesh: Mesh, regions, chart: HelixChart
     coordinates) with the limbs' rings and lines after them (see the module docstring)."""
     tables = build_tables(mesh.vertices, mesh.faces)
     d = np.asarray(regions.base_distance_mm, dtype=np.float64)
-    edges = mesh_edges(mesh.faces)
+    edges = tables.edges  # the mesh's unique edges, as geometry.dead_ends.mesh_edges gives them
     down = descent(tables, d)
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
     helix_sets = HelixSets(tables, chart.psi, chart.period, sensing & (chart.rho[tables.faces].min(axis=1) >= RHO_MIN))

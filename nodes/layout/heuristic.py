@@ -198,10 +198,11 @@ def pair_move(
     """
     pair, Dpad, tx_conf, rx_conf, multi = _move_tables(problem)
 
-    def score(T: list, R: list) -> tuple:
-        if not T or not R:
-            return (np.inf, np.inf)
-        radius, total = _score(Dpad[:, pair[np.ix_(T, R)].ravel()].min(axis=1)[:, None], resolution_mm, secondary, power)
+    def nearest_of(T: list, R: list) -> np.ndarray:
+        return Dpad[:, pair[np.ix_(T, R)].ravel()].min(axis=1) if T and R else np.full(len(Dpad), np.inf)
+
+    def score(nearest: np.ndarray) -> tuple:
+        radius, total = _score(nearest[:, None], resolution_mm, secondary, power)
         return radius[0], total[0]
 
     def cheapest_drop(own: list, keep: int, layer: str, other: list) -> list:
@@ -215,8 +216,8 @@ def pair_move(
         return [c for c in own if c != min(losses)[1]]
 
     T0, R0 = [int(a) for a in tx], [int(b) for b in rx]
-    current = score(T0, R0)
-    nearest = Dpad[:, pair[np.ix_(T0, R0)].ravel()].min(axis=1) if T0 and R0 else np.full(len(Dpad), np.inf)
+    nearest = nearest_of(T0, R0)
+    current = score(nearest)
     far = int(np.argmax(nearest))
     selected_t = np.isin(np.arange(pair.shape[0]), T0)
     selected_r = np.isin(np.arange(pair.shape[1]), R0)
@@ -232,7 +233,7 @@ def pair_move(
             T = cheapest_drop(T, t, "tx", R)
         if len(R) > n_sense:
             R = cheapest_drop(R, r, "rx", T)
-        key = score(T, R)
+        key = score(nearest_of(T, R))
         if key < best[0]:
             best = (key, (T, R))
     if best[1] is None:
