@@ -58,6 +58,61 @@ def test_row_and_column_noise_is_removed_and_not_counted_as_noise():
     assert np.abs(np.mean(touch_errors, axis=0)).max() < 1.0 and np.std(touch_errors) < 2.0
 
 
+def test_line_drift_is_removed_where_a_touch_holds_a_whole_line_and_where_channels_leave_the_quiet_band():
+    """Slow drift of every Tx and Rx line (15 counts, periods 60-240 s) over white noise of 0.75
+    counts, a quiet board's: a touch holds Tx line 3 and its channels for 3 s of every 10, and two
+    channels carry a static offset of 12 counts (out of the quiet band: they never update). At rest,
+    no channel may read above the on threshold, and the offset channels read their offset: a
+    baseline that followed the raw counts carried the line drift, and a channel out of the quiet band
+    drifted on with its lines (-> false touches at rest on a quiet board)."""
+    rng = np.random.default_rng(3)
+    shape, params = (21, 12), ProcessingParams()
+    base = rng.uniform(9650, 10360, shape)
+    phase, period = rng.uniform(0, 2 * np.pi, 33), rng.uniform(60.0, 240.0, 33)
+    offset = np.zeros(shape)
+    offset[10, 6], offset[11, 1] = 12.0, 12.0
+    touch = np.zeros(shape)
+    touch[3] = 150.0
+
+    def frame(t: float, touched: bool) -> np.ndarray:
+        drift = 15.0 * np.sin(2 * np.pi * t / period + phase)
+        raw = base + drift[:21, None] + drift[None, 21:] + rng.normal(0, 0.75, shape) + offset
+        return (raw + touch if touched else raw).ravel()
+
+    baseline = Baseline(shape, params)
+    for k in range(params.calibration_frames):
+        baseline.calibrate(frame(k / 10, False) - offset.ravel())
+    valid, held = np.ones(21 * 12, dtype=bool), (touch > 0).ravel()
+    at_rest, offset_reads = [], []
+    for k in range(params.calibration_frames, 1800):
+        t = k / 10
+        touched = t % 10 < 3
+        sigma = baseline.sigma()
+        delta = baseline.delta(frame(t, touched), valid, sigma, held if touched else ~valid)
+        baseline.update(delta, valid, sigma, held if touched else None, t, 0.1)
+        if t % 10 > 3.5:
+            plain = offset.ravel() == 0
+            at_rest.append(np.max(delta[plain] / sigma[plain]))
+            offset_reads.append(delta[~plain])
+    assert max(at_rest) < params.on_sigma
+    assert np.abs(np.mean(offset_reads, axis=0) - 12.0).max() < 1.5
+
+
+def test_a_quieter_board_never_breaks_the_processing(bunny):
+    """The simulator's default board (correlated noise, spikes, per-channel drift, a heavy-tailed
+    finger) at SNR 300 instead of 60: every press one touch-down, no ghost, nothing at rest (before
+    the line offsets were kept from frame to frame: ghosts and false touches at SNR 150-400)."""
+    from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
+    from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD
+
+    path, _ = bunny
+    summary = evaluate_simulator(path, REALISTIC_BOARD.model_copy(update={"snr": 300.0}), EvalParams(seed=0),
+                                 through_pty=False).summary()
+    assert summary["missed_presses"] == 0 and summary["presses_without_one_touch_down"] == 0
+    assert summary["ghost_touches"] == 0 and summary["false_touches_at_rest"] == 0
+    assert summary["localization_error_mm_mean"] < 4.0
+
+
 def _imports(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(encoding="utf-8"))
     names = set()

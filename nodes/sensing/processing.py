@@ -212,7 +212,7 @@ class TouchProcessor:
             held = self._touched
             held[index] = self.near_touch
         self._touched[index[self.active]] = True
-        self.channels.update(full, delta_full, valid_full, sigma_full, held, t, dt)
+        self.channels.update(delta_full, valid_full, sigma_full, held, t, dt)
         return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
 
     def sigma(self) -> np.ndarray:
