@@ -72,9 +72,8 @@ def test_a_sparse_patch_of_the_default_layout_does_not_drift_as_a_block(default_
     distances, so a patch and its touches move together at little cost: under a 3 mm placement
     prior a patch of board seed 2 sat 1.3-1.9 mm off as a block (seed 0: sparse crossings 0.66 mm
     mean, 1.10 mm p90 overall); the placement's own spread (1.5 mm) holds them (0.55 and 0.82 mm; 0.63 mm
-    mean on the layout drawn from the touchable samples; 0.66 mm and 0.98 mm p90 since the line offsets
-    persist, seeds 0-5 p90 0.92-1.11 (was 0.82-1.10): the bounds leave room for such changes, not for
-    a block's drift)."""
+    mean on the layout drawn from the touchable samples: the bound leaves room for the layout's changes,
+    not for a block's drift)."""
     layout = load_sensing_map(default_run / "out" / "sensing_map.json")
     board_params = BoardParams.model_validate({**REALISTIC_BOARD.model_dump(), "seed": 0})
     calibration, _ = calibrate_simulator(layout, board_params, seed=0)
@@ -83,7 +82,7 @@ def test_a_sparse_patch_of_the_default_layout_does_not_drift_as_a_block(default_
     points = layout.cell_points
     sparse = np.sum(np.linalg.norm(points[:, None] - points[None], axis=2) <= 1.5 * layout.pitch_mm(), axis=1) <= 3
     assert sparse.sum() > 0.3 * layout.cell_count
-    assert error[sparse].mean() < 0.8 and np.percentile(error, 90) < 1.1
+    assert error[sparse].mean() < 0.8 and np.percentile(error, 90) < 0.95
 
 
 def _touch(cell: int, point: np.ndarray, touch_id: int = 1) -> Touch:

@@ -7,11 +7,14 @@ step 1), over every channel pair the board scans (``num_tx x num_rx``), wired to
   offset common to the whole board (temperature drift: median of ``delta / baseline`` after the last
   frame's line offsets), then one offset per Tx row and one per Rx column (noise and drift that a
   drive line or a receiver adds to every channel it scans): the last frame's offsets updated by a
-  median polish over the candidates, then the least-squares fit ``r_i + c_j`` to the *quiet*
-  channels (within ``update_sigma`` noise sigmas of the polish). Channel pairs without a crossing
-  carry these common modes but no touch, so they make the estimates robust beside a touch. A row or
-  column with fewer than ``MIN_QUIET`` quiet channels (a touch along a Tx line) keeps its last
-  offset: only its change since is unobservable.
+  median polish over the candidates, then the weighted least-squares fit ``r_i + c_j`` to the
+  *quiet* channels (within ``update_sigma`` noise sigmas of the polish), each weighted by
+  ``sigma^2 / (sigma^2 + reach^2)`` with ``reach`` what the caller's touches may add to it (a
+  finger's faint tail on a witness would pull its lines' offsets up and the touch's own crossings
+  low). Channel pairs without a crossing carry these common modes but no touch, so they make the
+  estimates robust beside a touch. A row or column whose witnesses weigh less than ``MIN_QUIET``
+  quiet channels (a touch along a Tx line) keeps its last offset: only its change since is
+  unobservable.
 * **Tracking**: each quiet channel's baseline follows its common-mode-free delta with time constant
   ``baseline_tau_s`` (what the common modes do not explain: the channel's own slow walk), its noise
   sigma with ``noise_tau_s``. The common modes are removed anew in every frame, so a channel that
@@ -33,7 +36,7 @@ import numpy as np
 if TYPE_CHECKING:
     from .processing import ProcessingParams
 
-MIN_QUIET = 3  # quiet channels a row or column needs for its common-mode offset
+MIN_QUIET = 3  # quiet channels (their weight) a row or column needs for its common-mode offset
 LINE_SWEEPS = 2  # alternating row / column passes of the line offsets' least-squares fit
 POLISH_SWEEPS = 2  # row / column passes of the median polish that judges which channels are quiet
 
@@ -66,15 +69,15 @@ def median_polish(grid: np.ndarray, mask: np.ndarray, sweeps: int = POLISH_SWEEP
     return rows, columns
 
 
-def line_offsets(delta: np.ndarray, quiet: np.ndarray, rows: np.ndarray, columns: np.ndarray,
+def line_offsets(delta: np.ndarray, weights: np.ndarray, rows: np.ndarray, columns: np.ndarray,
                  sweeps: int = LINE_SWEEPS) -> tuple[np.ndarray, np.ndarray]:
     """Offsets ``r_i`` (num_tx, 1) and ``c_j`` (1, num_rx) common to Tx rows and Rx columns, fitted by
-    least squares to the quiet entries of ``delta`` (num_tx, num_rx) from ``rows`` / ``columns``:
-    alternating means along the rows and the columns, ``sweeps`` times (one sweep is exact when
-    every entry is quiet; a touch's excluded entries make the rows see different columns, which
-    later sweeps even out). A line with fewer than ``MIN_QUIET`` quiet entries keeps its offset
-    from the start."""
-    weights = quiet.astype(np.float64)
+    least squares to the entries of ``delta`` (num_tx, num_rx) with ``weights`` (0 for an entry that
+    is not quiet) from ``rows`` / ``columns``: alternating weighted means along the rows and the
+    columns, ``sweeps`` times (one sweep is exact when every weight is equal; a touch's excluded
+    entries make the rows see different columns, which later sweeps even out). A line whose weights
+    sum to less than ``MIN_QUIET`` keeps its offset from the start."""
+    weights = weights.astype(np.float64)
     row_count, column_count = weights.sum(axis=1, keepdims=True), weights.sum(axis=0, keepdims=True)
     for _ in range(sweeps):
         rest = (delta - columns) * weights
@@ -130,9 +133,12 @@ class Baseline:
         floor = max(self.params.min_noise_counts, 0.5 * median(self.noise))
         return np.maximum(self.noise, floor)
 
-    def delta(self, raw: np.ndarray, valid: np.ndarray, sigma: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    def delta(self, raw: np.ndarray, valid: np.ndarray, sigma: np.ndarray, touched: np.ndarray,
+              reach: np.ndarray | None = None) -> np.ndarray:
         """``raw - baseline`` with the frame's common modes removed (counts; 0 where not ``valid``);
-        ``touched`` channels never inform the common modes."""
+        ``touched`` channels never inform the common modes; ``reach`` (channels,) counts, how much
+        the touches may add to each channel, weighs the line offsets' witnesses by
+        ``sigma^2 / (sigma^2 + reach^2)``."""
         delta = raw - self.baseline
         self._scale = 1.0
         candidates = valid & ~touched & (self.baseline > 0)
@@ -146,7 +152,8 @@ class Baseline:
             rows, columns = median_polish((delta - lines).reshape(self.shape), candidates.reshape(self.shape))
             rows, columns = self.rows + rows, self.columns + columns
             quiet = candidates & (np.abs(delta - (rows + columns).ravel()) < self.params.update_sigma * sigma)
-            rows, columns = line_offsets(delta.reshape(self.shape), quiet.reshape(self.shape), rows, columns)
+            weights = quiet if reach is None else quiet * sigma**2 / (sigma**2 + reach**2)
+            rows, columns = line_offsets(delta.reshape(self.shape), weights.reshape(self.shape), rows, columns)
             delta -= (rows + columns).ravel()
             # Kept with zero means: their common level is the next frame's common mode's (else it
             # would walk from frame to frame, and the relative mode with it).

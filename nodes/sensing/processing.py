@@ -8,9 +8,10 @@ Per frame (``TouchProcessor.process``):
    noise and drift of a drive line or a receiver), estimated from the quiet channels (those without
    a crossing included), are removed; quiet channels' baselines and noise follow with time
    constants ``baseline_tau_s`` / ``noise_tau_s``. Cells near an active touch are *held* (not
-   updated) while touched; a cell held longer than ``max_hold_s`` is re-baselined (a stuck touch
-   fades); one reading far below its baseline for ``negative_reset_frames`` frames is re-baselined
-   (a finger that rested on it at start-up).
+   updated, no witnesses of the common modes) while touched; the other witnesses weigh less where a
+   touch's heaviest plausible coupling tail may reach them. A cell held longer than ``max_hold_s``
+   is re-baselined (a stuck touch fades); one reading far below its baseline for
+   ``negative_reset_frames`` frames is re-baselined (a finger that rested on it at start-up).
 2. **Detection**: ``delta = raw - baseline`` minus the common modes, in counts (a touch raises
    counts on FT5x16 raw output). A cell turns on above ``on_sigma`` of its measured noise sigmas
    and stays on above ``off_sigma`` (hysteresis).
@@ -176,6 +177,7 @@ class TouchProcessor:
         self.near_touch = np.zeros(self.map.cell_count, dtype=bool)  # within the hold radius of a touch of the last frame
         self.previous_delta = np.zeros(self.map.cell_count)  # (K,) counts, the last frame's
         self._touched = np.zeros(NUM_TX * NUM_RX, dtype=bool)  # channels the common modes leave out
+        self._reach = np.zeros(NUM_TX * NUM_RX)  # counts the last frame's touches may add per channel
         self.tracker.reset()
         self._last_t: float | None = None
 
@@ -196,7 +198,7 @@ class TouchProcessor:
         self._last_t = t
         p = self.params
         sigma_full = self.channels.sigma()
-        delta_full = self.channels.delta(full, valid_full, sigma_full, self._touched)
+        delta_full = self.channels.delta(full, valid_full, sigma_full, self._touched, self._reach)
         index = self.frame_index
         delta, sigma, valid = delta_full[index], sigma_full[index], valid_full[index]
         threshold = np.where(self.active, p.off_sigma, p.on_sigma) * sigma
@@ -212,8 +214,20 @@ class TouchProcessor:
             held = self._touched
             held[index] = self.near_touch
         self._touched[index[self.active]] = True
+        self._reach = self._tail_reach(tracked)
         self.channels.update(delta_full, valid_full, sigma_full, held, t, dt)
         return FrameResult(t, True, tuple(tracked), tuple(events), delta, self.active.copy())
+
+    def _tail_reach(self, touches: list[Touch]) -> np.ndarray:
+        """(NUM_TX * NUM_RX,) counts the touches may add to each channel under their heaviest
+        plausible coupling tail (:meth:`.CouplingFit.tail_envelope`, each touch's peak delta over its
+        gain): how little a channel can tell of its lines' offsets."""
+        reach = np.zeros(NUM_TX * NUM_RX)
+        for touch in touches:
+            offsets = self.map.cell_points - touch.point
+            amplitude = touch.intensity / self.cell_gain[touch.peak_cell]
+            reach[self.frame_index] += self.cell_gain * amplitude * self.fit.tail_envelope(np.einsum("ij,ij->i", offsets, offsets))
+        return reach
 
     def sigma(self) -> np.ndarray:
         """(K,) noise sigma per cell (counts) the thresholds use, floored."""
