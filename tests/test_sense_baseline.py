@@ -11,10 +11,11 @@ import pytest
 
 from retrotouch.nodes.data.sensing_map import load_sensing_map
 from retrotouch.nodes.sensing.baseline import Baseline
+from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
 from retrotouch.nodes.sensing.processing import ProcessingParams, TouchProcessor
 from retrotouch.nodes.sensing.scripts import ScriptBuilder
 from retrotouch.nodes.sensing.synthetic_map import synthetic_bunny_map
-from retrotouch.nodes.sensing.virtual_board import BoardParams, VirtualBoard
+from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD, BoardParams, VirtualBoard
 
 SENSING = Path(__file__).resolve().parents[1] / "nodes" / "sensing"
 # The board side: the simulator, its scripts and pty, the evaluation that drives both, and the CLI.
@@ -102,9 +103,6 @@ def test_a_quieter_board_never_breaks_the_processing(bunny):
     """The simulator's default board (correlated noise, spikes, per-channel drift, a heavy-tailed
     finger) at SNR 300 instead of 60: every press one touch-down, no ghost, nothing at rest (before
     the line offsets were kept from frame to frame: ghosts and false touches at SNR 150-400)."""
-    from retrotouch.nodes.sensing.evaluation import EvalParams, evaluate_simulator
-    from retrotouch.nodes.sensing.virtual_board import REALISTIC_BOARD
-
     path, _ = bunny
     summary = evaluate_simulator(path, REALISTIC_BOARD.model_copy(update={"snr": 300.0}), EvalParams(seed=0),
                                  through_pty=False).summary()

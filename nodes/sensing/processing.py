@@ -226,7 +226,8 @@ class TouchProcessor:
         for touch in touches:
             offsets = self.map.cell_points - touch.point
             amplitude = touch.intensity / self.cell_gain[touch.peak_cell]
-            reach[self.frame_index] += self.cell_gain * amplitude * self.fit.tail_envelope(np.einsum("ij,ij->i", offsets, offsets))
+            tail = self.fit.tail_envelope(np.einsum("ij,ij->i", offsets, offsets))
+            reach[self.frame_index] += self.cell_gain * amplitude * tail
         return reach
 
     def sigma(self) -> np.ndarray:
