@@ -136,6 +136,8 @@ def main() -> None:
     parser.add_argument("--rest-seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4, 5],
                         help="board seeds of the rest runs on the mismatched board (seed 2 always runs)")
     args = parser.parse_args()
+    if args.snr <= 0 or any(snr <= 0 for snr in args.quieter_snrs):
+        parser.error("--snr and --quieter-snrs take SNRs above 0 (peak signal over noise sigma, e.g. 60)")
     if args.layout:
         path, layout_note = resolve_sensing_map_path(args.layout), f"--layout {args.layout}"
     else:
