@@ -19,7 +19,8 @@ comparison with earlier figures, on the processing's twin board (``BoardParams()
 where crossings surround the finger (rule "surrounded", the flat keys), anywhere near a crossing
 (rule "near") and with a disc coupling profile. ``spread_mismatched_board_calibrated``: the
 spread protocol on the mismatched board after ``sense --calibrate`` there (a simulated operator
-touching each crossing twice; :func:`..evaluation.calibrate_simulator`), with ``crossing_error_mm``:
+touching each crossing twice, then the fifth of them whose fitted position is least certain twice
+more; :func:`..evaluation.calibrate_simulator`), with ``crossing_error_mm``:
 how far the map's and the calibrated crossings are from the board's (the benchmark reads the board
 to score; the processing never does). False touches at rest: 10 simulated minutes with drift on
 the twin board (board seed 2) and on the mismatched board (seed 2 under the old keys; every
@@ -155,7 +156,7 @@ def main() -> None:
     # The same protocol on a quieter board: a better board must not make the processing worse.
     quieter = {snr: evaluate_simulator(path, REALISTIC_BOARD.model_copy(update={"snr": snr}), EvalParams()).summary()
                for snr in args.quieter_snrs}
-    # The same protocol after `sense --calibrate` on that board (touches on its crossings, 2 rounds).
+    # The same protocol after `sense --calibrate` on that board (its default protocol: 2 rounds, then the least certain again).
     started = time.perf_counter()
     calibration, session = calibrate_simulator(sensing_map, mismatched)
     spread_calibrated = evaluate_simulator(path, mismatched, EvalParams(), calibration=calibration).summary()

@@ -66,9 +66,9 @@ def test_estimate_recovers_gains_no_pad_gain_and_width_from_noise_free_touches(b
 def test_the_session_prompts_every_crossing_and_measures_the_boards_gains(bunny, calibrated):
     _, sensing_map = bunny
     calibration, session, prompts = calibrated
-    assert session["targets"] == sensing_map.cell_count and len(prompts) >= session["accepted"]
+    assert session["targets"] == sensing_map.cell_count + 2 * len(session["refined"]) and len(prompts) >= session["accepted"]
     assert prompts[0].startswith("touch crossing Tx") and "of 120" in prompts[0]
-    assert session["accepted"] >= 0.9 * sensing_map.cell_count
+    assert session["accepted"] >= 0.9 * session["targets"]
     board = VirtualBoard(sensing_map, REALISTIC_BOARD)  # the truth, read only to check the estimate
     measured = calibration.measured
     truth = np.log(board.gain[measured] / np.median(board.gain[measured & sensing_map.cell_pad]))
@@ -119,6 +119,28 @@ def test_the_calibrated_processing_keeps_the_boards_coupling_profile_as_measured
     assert np.max(np.abs(fitted - truth)) < 0.5 * np.max(np.abs(gaussian - truth))
 
 
+def test_the_crossings_touched_again_are_the_least_certain_and_end_up_nearer_the_board(bunny, calibrated):
+    """After the round the session prompts the 20 % of the crossings whose fitted position is least
+    certain twice more (the silent rounds-only run below is what the session saw then): they are the
+    ones that erred most (0.63-0.74 against 0.37-0.50 mm for the rest, board seeds 0-2), and with their
+    new touches they err less (0.63 -> 0.53 mm on seed 0) and are more certain."""
+    _, sensing_map = bunny
+    calibration, session, prompts = calibrated
+    rounds_only, _ = calibrate_simulator(sensing_map, REALISTIC_BOARD, CalibParams(rounds=1, refine_share=0.0))
+    truth = VirtualBoard(sensing_map, REALISTIC_BOARD).cell_points  # read only to score the estimates
+    again = np.array(session["refined"])
+    expected = np.argsort(-rounds_only.position_std_mm, kind="stable")[:int(np.ceil(0.2 * rounds_only.measured.sum()))]
+    assert np.array_equal(again, np.sort(expected))
+    assert any(text.startswith(f"{len(again)} crossings are touched again") for text in prompts)
+    before = np.linalg.norm(rounds_only.cell_points - truth, axis=1)
+    after = np.linalg.norm(calibration.cell_points - truth, axis=1)
+    rest = np.setdiff1d(np.arange(sensing_map.cell_count), again)
+    assert before[again].mean() > 1.3 * before[rest].mean()
+    assert after[again].mean() < 0.9 * before[again].mean()
+    assert calibration.position_std_mm[again].mean() < 0.85 * rounds_only.position_std_mm[again].mean()
+    assert calibration.touches == rounds_only.touches + 2 * len(again)
+
+
 def test_calibration_improves_localization_on_the_mismatched_board(bunny, calibrated):
     path, _ = bunny
     calibration, _, _ = calibrated
@@ -142,12 +164,14 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
     assert np.allclose(loaded.cell_points, calibration.cell_points, atol=1e-4)
     assert loaded.coupling_tail == pytest.approx(calibration.coupling_tail, rel=1e-3)
     assert np.allclose(loaded.finger_amplitude, calibration.finger_amplitude, atol=1e-4)
+    assert np.allclose(loaded.position_std_mm, calibration.position_std_mm, atol=1e-4)
     doc = json.loads(path.read_text())
-    older_keys = {"coupling_tail", "finger_amplitude"}
+    older_keys = {"coupling_tail", "finger_amplitude", "position_std_mm"}
     (tmp_path / "gaussian.json").write_text(json.dumps({k: v for k, v in doc.items() if k not in older_keys}))
-    older = load_calibration(tmp_path / "gaussian.json")  # a file written before the tail and the amplitude were stored
+    older = load_calibration(tmp_path / "gaussian.json")  # a file written before these were stored
     assert older.coupling_tail is None and older.processor(sensing_map).params.adapt_coupling
     assert older.finger_amplitude is None and older.processor(sensing_map).fit.amplitude_prior is None
+    assert older.position_std_mm is None and older.summary()["position_std_mm_median"] is None
     assert loaded.summary()["crossings_moved_mm_median"] == calibration.summary()["crossings_moved_mm_median"]
     loaded.processor(sensing_map)
     other = load_sensing_map(synthetic_bunny_map(tmp_path / "other", cells=90))
@@ -166,6 +190,10 @@ def test_file_round_trip_and_errors(bunny, calibrated, tmp_path):
         (tmp_path / "amplitude.json").write_text(json.dumps({**doc, "finger_amplitude": bad}))
         with pytest.raises(UserError, match="malformed"):
             load_calibration(tmp_path / "amplitude.json")
+    for bad in (doc["position_std_mm"][:-1], [-1.0] * len(doc["position_std_mm"])):
+        (tmp_path / "spread.json").write_text(json.dumps({**doc, "position_std_mm": bad}))
+        with pytest.raises(UserError, match="malformed"):
+            load_calibration(tmp_path / "spread.json")
 
 
 def test_sense_calibrate_on_the_simulator_writes_a_file_sense_loads(bunny, tmp_path):

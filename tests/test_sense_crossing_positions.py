@@ -51,6 +51,29 @@ def test_the_fit_recovers_known_displacements_from_noisy_touches(bunny):
     assert np.allclose(fit.moved_mm, np.linalg.norm(fit.points - bunny.cell_points, axis=1))
 
 
+def test_a_crossing_whose_neighbours_are_not_touched_is_less_certain(bunny):
+    """The fit's posterior spread (mm): a crossing's position comes from how the touches around it read
+    it, so without the touches of its neighbours (within 1.5 pitches) its spread grows, and that of
+    crossings far from them hardly changes; every spread lies within the placement prior's."""
+    rng = np.random.default_rng(5)
+    truth = displaced(bunny, 2.0, seed=3)
+    records = []
+    for cell in calibration_targets(bunny, 2).tolist():
+        d2 = np.sum((truth - truth[cell]) ** 2, axis=1)
+        records.append((cell, 300.0 * np.exp(-d2 / (2 * 6.5**2)) + rng.normal(0, 2.0, bunny.cell_count)))
+    sigma, gain = np.full(bunny.cell_count, 2.0), np.ones(bunny.cell_count)
+    full = locate_crossings(bunny, records, sigma, gain, 7.0)
+    centre = 17
+    apart = np.linalg.norm(bunny.cell_points - bunny.cell_points[centre], axis=1)
+    neighbours = set(np.flatnonzero((apart > 0) & (apart <= 1.5 * bunny.pitch_mm())).tolist())
+    fewer = locate_crossings(bunny, [r for r in records if r[0] not in neighbours], sigma, gain, 7.0)
+    far = apart > 4.0 * bunny.pitch_mm()
+    assert len(neighbours) >= 2 and far.any()
+    assert np.all((full.position_std_mm > 0) & (full.position_std_mm < 1.5 * np.sqrt(2)))
+    assert fewer.position_std_mm[centre] > 1.3 * full.position_std_mm[centre]
+    assert np.median(fewer.position_std_mm[far] / full.position_std_mm[far]) < 1.05
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_calibration_locates_the_crossings_of_the_mismatched_board(bunny, seed):
     """One round of `sense --calibrate` on the default board (crossings 1-3 mm off the map, disc

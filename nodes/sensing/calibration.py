@@ -35,6 +35,12 @@ turns away the touch that follows.
   that fitted profile (width and tail, :func:`.coupling_profile.student_profile`) as its coupling,
   kept as measured (no online width or shape learning: the calibration fits it to every touch at
   known crossings, the online learning to touches whose positions it estimates itself).
+* **touching again where it pays** (``refine_share``, ``refine_rounds``): after the rounds, a first
+  estimate says how certain each crossing's fitted position is (:mod:`.crossing_positions`); the
+  ``refine_share`` of the measured crossings whose position is least certain (where crossings are
+  sparse, what the touches around them pin least) are prompted ``refine_rounds`` more times, then
+  everything is estimated from all touches. A crossing's position error weighs most where a finger
+  sits far from the crossings: there the fit must place it from a few crossings' faint readings.
 
 The result is a versioned JSON file (``CALIBRATION_FORMAT``) tied to the layout's crossings, loaded by
 ``sense --calibration FILE``.
@@ -72,6 +78,9 @@ class CalibParams(NodeParams):
     reach_pitch: float = Field(1.2, gt=0, description="a touch counts for a crossing within this many pitches")
     width_snr: float = Field(6.0, gt=0, description="a neighbour enters the width estimate above this many noise sigmas")
     locate_crossings: bool = Field(True, description="estimate where each crossing really is (crossing_positions.py)")
+    refine_share: float = Field(0.2, ge=0, le=1, description="share of the crossings touched again after the rounds: "
+                                "those whose fitted position is least certain (with locate_crossings; 0: none)")
+    refine_rounds: int = Field(2, ge=1, description="touches per crossing touched again")
 
 
 def layout_key(sensing_map: SensingMap) -> str:
@@ -97,6 +106,7 @@ class Calibration:
     map_points: np.ndarray | None = None  # (K, 3) mm, the map's crossings (to report how far they moved)
     coupling_tail: float | None = None  # the profile's tail (None: a Gaussian, learned further online)
     finger_amplitude: tuple[float, float] | None = None  # (log counts, spread) at a padded crossing (None: learned online)
+    position_std_mm: np.ndarray | None = None  # (K,) how certain each fitted point is (None: not located)
 
     def processor(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams()) -> TouchProcessor:
         """A touch processor that uses this calibration instead of the default assumptions."""
@@ -119,6 +129,8 @@ class Calibration:
         return {"touches": self.touches, "crossings_measured": int(self.measured.sum()),
                 "crossings_moved_mm_median": None if moved is None else round(float(np.median(moved)), 3),
                 "crossings_moved_mm_max": None if moved is None else round(float(np.max(moved)), 3),
+                "position_std_mm_median": None if self.position_std_mm is None else round(float(np.median(self.position_std_mm)), 3),
+                "position_std_mm_max": None if self.position_std_mm is None else round(float(np.max(self.position_std_mm)), 3),
                 "no_pad_gain": round(self.no_pad_gain, 4), "coupling_sigma_mm": round(self.coupling_sigma_mm, 3),
                 "coupling_tail": None if self.coupling_tail is None else round(self.coupling_tail, 4),
                 "finger_amplitude": None if self.finger_amplitude is None else [round(v, 5) for v in self.finger_amplitude],
@@ -129,7 +141,8 @@ class Calibration:
         doc = {"format": CALIBRATION_FORMAT, "layout": self.layout, "units": "mm", **self.summary(),
                "cell_gain": [round(float(g), 5) for g in self.cell_gain], "measured": self.measured.tolist(),
                "cell_points": None if self.cell_points is None else np.round(self.cell_points, 4).tolist(),
-               "map_points": None if self.map_points is None else np.round(self.map_points, 4).tolist()}
+               "map_points": None if self.map_points is None else np.round(self.map_points, 4).tolist(),
+               "position_std_mm": None if self.position_std_mm is None else np.round(self.position_std_mm, 4).tolist()}
         Path(path).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
 
@@ -151,6 +164,9 @@ def load_calibration(path: str | Path) -> Calibration:
                               for key in ("cell_points", "map_points"))
         if points is not None and (len(points) != len(gains) or not np.all(np.isfinite(points))):
             raise ValueError("cell_points")
+        spread = None if doc.get("position_std_mm") is None else np.array(doc["position_std_mm"], dtype=np.float64)
+        if spread is not None and (spread.shape != gains.shape or not np.all(np.isfinite(spread) & (spread >= 0))):
+            raise ValueError("position_std_mm")
         tail = doc.get("coupling_tail")
         if tail is not None and not float(tail) > 0:
             raise ValueError("coupling_tail")
@@ -159,7 +175,7 @@ def load_calibration(path: str | Path) -> Calibration:
             amplitude = ProcessingParams(amplitude_prior=amplitude).amplitude_prior
         return Calibration(gains, measured, float(doc["no_pad_gain"]), float(doc["coupling_sigma_mm"]),
                            float(doc["finger_radius_mm"]), int(doc["touches"]), str(doc["layout"]), points, map_points,
-                           None if tail is None else float(tail), amplitude)
+                           None if tail is None else float(tail), amplitude, spread)
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"calibration file {path} is malformed ({type(exc).__name__}): {fix}") from None
 
@@ -169,6 +185,20 @@ def calibration_targets(sensing_map: SensingMap, rounds: int) -> np.ndarray:
     ``rounds`` times."""
     order = np.lexsort((sensing_map.cell_rx, sensing_map.cell_tx))
     return np.tile(order, rounds)
+
+
+def refine_targets(sensing_map: SensingMap, calibration: Calibration, params: CalibParams) -> np.ndarray:
+    """The crossings to touch again (module docstring): the ``refine_share`` of the measured ones whose
+    fitted position is least certain, by Tx then Rx channel, ``refine_rounds`` times; none without
+    located crossings."""
+    spread = calibration.position_std_mm
+    count = int(np.ceil(params.refine_share * np.count_nonzero(calibration.measured)))
+    if spread is None or count == 0:
+        return np.zeros(0, dtype=np.int64)
+    measured = np.flatnonzero(calibration.measured)
+    chosen = measured[np.argsort(-spread[measured], kind="stable")[:count]]
+    chosen = chosen[np.lexsort((sensing_map.cell_rx[chosen], sensing_map.cell_tx[chosen]))]
+    return np.tile(chosen, params.refine_rounds)
 
 
 def describe_target(sensing_map: SensingMap, cell: int) -> str:
@@ -196,6 +226,13 @@ class CalibrationSession:
     @property
     def done(self) -> bool:
         return self.next >= len(self.targets)
+
+    def extend(self, targets: np.ndarray) -> None:
+        """Prompt these crossings after the targets so far (the session goes on)."""
+        was_done = self.done
+        self.targets = np.concatenate([self.targets, np.asarray(targets, dtype=np.int64)])
+        if was_done and not self.done:
+            self._prompt_next()
 
     def _prompt_next(self) -> None:
         if not self.done:
@@ -286,23 +323,26 @@ def estimate(sensing_map: SensingMap, records: list[tuple[int, np.ndarray]], sig
     else:
         width, radius = None, defaults.finger_radius_mm
     width = width or default_coupling_width_mm(radius, pitch)
-    points, tail = None, None
+    points, tail, spread = None, None, None
     if params.locate_crossings:
         located = locate_crossings(sensing_map, records, sigma, gain, width)
-        points, width, tail = located.points, located.width_mm, located.tail
+        points, width, tail, spread = located.points, located.width_mm, located.tail, located.position_std_mm
     amplitude = amplitude_prior(np.log([max(delta[cell], 1e-9) / gain[cell] for cell, delta in records]))
     return Calibration(gain, measured, no_pad, width, radius, len(records), layout_key(sensing_map), points,
-                       sensing_map.cell_points.copy(), tail, amplitude)
+                       sensing_map.cell_points.copy(), tail, amplitude, spread)
 
 
 def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParams = CalibParams(),
               prompt: Callable[[str], None] = lambda text: None, processor: TouchProcessor | None = None,
               on_result: Callable[[FrameResult], None] | None = None) -> tuple[Calibration, dict[str, Any]]:
-    """Run a guided session over ``frames`` (until every target is touched or the frames end) with
-    ``processor`` (default processing; ``on_result`` sees each frame's result, e.g. a live view), then
-    estimate; returns the calibration and what the session saw."""
+    """Run a guided session over ``frames`` (until every target is touched, the refined ones too, or the
+    frames end) with ``processor`` (default processing; ``on_result`` sees each frame's result, e.g. a
+    live view), then estimate; returns the calibration and what the session saw (``refined``: the
+    crossings prompted again, :func:`refine_targets`, ascending)."""
     processor = processor or TouchProcessor(sensing_map)
     session = CalibrationSession(sensing_map, params, prompt)
+    refined = np.zeros(0, dtype=np.int64)
+    refining = params.locate_crossings and params.refine_share > 0
     count = 0
     start = None
     for frame in frames:
@@ -312,8 +352,15 @@ def calibrate(frames: Iterable[Any], sensing_map: SensingMap, params: CalibParam
         if on_result is not None:
             on_result(result)
         count += 1
+        if session.done and refining and session.records:
+            refining = False
+            refined = refine_targets(sensing_map, estimate(sensing_map, session.records, processor.sigma(), params), params)
+            if len(refined):
+                prompt(f"{len(refined) // params.refine_rounds} crossings are touched again: their positions are the "
+                       "least certain")
+                session.extend(refined)
         if session.done:
             break
     calibration = estimate(sensing_map, session.records, processor.sigma(), params)
     return calibration, {"frames": count, "targets": len(session.targets), "accepted": len(session.records),
-                         "skipped": session.skipped}
+                         "skipped": session.skipped, "refined": np.unique(refined).tolist()}

@@ -54,6 +54,8 @@ def run_calibration(layout_path: Path, source: Any, out: Path, open_frames: Call
             + f" (finger radius {summary['finger_radius_mm']:.2f} mm)"
             + ("" if summary["crossings_moved_mm_median"] is None else
                f", crossings {summary['crossings_moved_mm_median']:.1f} mm from the map (median; max "
-               f"{summary['crossings_moved_mm_max']:.1f} mm)"))
+               f"{summary['crossings_moved_mm_max']:.1f} mm), placed to {summary['position_std_mm_median']:.2f} mm "
+               f"(median spread; max {summary['position_std_mm_max']:.2f} mm, {len(session['refined'])} of the least "
+               "certain touched again)"))
     print(line, file=sys.stderr, flush=True)
     sinks.emit(status_event("calibration", line))

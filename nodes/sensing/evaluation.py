@@ -36,7 +36,7 @@ from pydantic import Field
 from ...graph.errors import UserError
 from ...graph.node import NodeParams
 from ..data.sensing_map import SensingMap, load_sensing_map
-from .calibration import CalibParams, Calibration, calibrate, calibration_targets
+from .calibration import CalibParams, Calibration, calibrate, calibration_targets, refine_targets
 from .frames import Frame
 from .locations import crossing_locations, load_locations, nearest_crossing_mm, spread_locations
 from .processing import ProcessingParams, TouchProcessor
@@ -238,26 +238,47 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
     """``sense --calibrate`` on the virtual board: a simulated operator touches each prompted crossing
     where it really is on the board (the crossings of a hand-laid sensor sit off the map) with an aim
     error of up to 1.5 mm, 0.9 s per touch and 0.6 s between touches, in the order prompted;
-    ``session`` goes to :func:`.calibration.calibrate` (processor, on_result). Through the pseudo-terminal,
-    rerun when the stream is cut short (:func:`rerun_if_cut_short`)."""
-    board = VirtualBoard(sensing_map, board_params)
+    ``session`` goes to :func:`.calibration.calibrate` (processor, on_result). The operator's script is
+    written before the session runs, so the crossings the session prompts again after the rounds
+    (:func:`.calibration.refine_targets`) come from a first, silent run of the rounds alone: the board
+    is deterministic, so the session finds the same ones. Through the pseudo-terminal, rerun when the
+    stream is cut short (:func:`rerun_if_cut_short`)."""
     rng = np.random.default_rng([seed, 7])
-    steps = []
-    for k, cell in enumerate(calibration_targets(sensing_map, params.rounds).tolist()):
-        normal = sensing_map.cell_normals[cell]
-        aim = rng.normal(size=3)
-        aim -= aim @ normal * normal
-        aim *= 1.5 * np.sqrt(rng.random()) / np.linalg.norm(aim)
-        steps.append({"gesture": "press", "at": (board.cell_points[cell] + aim).tolist(), "ms": 900, "gap_ms": 600,
-                      "calibration_touch": k})
-    script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
+    board = VirtualBoard(sensing_map, board_params)
 
-    def run_once(fresh: VirtualBoard) -> tuple[Calibration, dict[str, Any]]:
-        if session.get("processor") is not None:
-            session["processor"].reset()  # a run cut short left its baseline and tracks
-        return calibrate(frames_through_pty(fresh, script, fast=True), sensing_map, params, prompt, **session)
+    def touches(targets: np.ndarray, first: int) -> list[dict[str, Any]]:
+        steps = []
+        for k, cell in enumerate(targets.tolist(), start=first):
+            normal = sensing_map.cell_normals[cell]
+            aim = rng.normal(size=3)
+            aim -= aim @ normal * normal
+            aim *= 1.5 * np.sqrt(rng.random()) / np.linalg.norm(aim)
+            steps.append({"gesture": "press", "at": (board.cell_points[cell] + aim).tolist(), "ms": 900, "gap_ms": 600,
+                          "calibration_touch": k})
+        return steps
 
-    return rerun_if_cut_short(run_once, board)
+    def run(steps: list[dict[str, Any]], run_params: CalibParams, quiet: bool) -> tuple[Calibration, dict[str, Any]]:
+        script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
+        options = {} if quiet else session
+
+        def run_once(fresh: VirtualBoard) -> tuple[Calibration, dict[str, Any]]:
+            if options.get("processor") is not None:
+                options["processor"].reset()  # a run cut short left its baseline and tracks
+            return calibrate(frames_through_pty(fresh, script, fast=True), sensing_map, run_params,
+                             (lambda text: None) if quiet else prompt, **options)
+
+        return rerun_if_cut_short(run_once, VirtualBoard(sensing_map, board_params))
+
+    steps = touches(calibration_targets(sensing_map, params.rounds), 0)
+    if params.locate_crossings and params.refine_share > 0:
+        rounds_only, _ = run(steps, params.model_copy(update={"refine_share": 0.0}), quiet=True)
+        again = refine_targets(sensing_map, rounds_only, params)
+        steps += touches(again, len(steps))
+        calibration, seen = run(steps, params, quiet=False)
+        if seen["refined"] != np.unique(again).tolist():
+            raise AssertionError("the simulated session prompted other crossings again than its silent first run")
+        return calibration, seen
+    return run(steps, params, quiet=False)
 
 
 def evaluate_simulator(
