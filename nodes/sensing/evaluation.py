@@ -257,7 +257,9 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
                           "calibration_touch": k})
         return steps
 
-    def run(steps: list[dict[str, Any]], run_params: CalibParams, quiet: bool) -> tuple[Calibration, dict[str, Any]]:
+    def run(steps: list[dict[str, Any]], run_params: CalibParams, quiet: bool,
+            unused: VirtualBoard) -> tuple[Calibration, dict[str, Any]]:
+        """The session over ``steps`` on ``unused`` (a board that has made no frame yet)."""
         script = ScriptBuilder(sensing_map, board_params, seed).build(steps)
         options = {} if quiet else session
 
@@ -267,18 +269,18 @@ def calibrate_simulator(sensing_map: SensingMap, board_params: BoardParams, para
             return calibrate(frames_through_pty(fresh, script, fast=True), sensing_map, run_params,
                              (lambda text: None) if quiet else prompt, **options)
 
-        return rerun_if_cut_short(run_once, VirtualBoard(sensing_map, board_params))
+        return rerun_if_cut_short(run_once, unused)
 
     steps = touches(calibration_targets(sensing_map, params.rounds), 0)
     if params.locate_crossings and params.refine_share > 0:
-        rounds_only, _ = run(steps, params.model_copy(update={"refine_share": 0.0}), quiet=True)
+        rounds_only, _ = run(steps, params.model_copy(update={"refine_share": 0.0}), True, board)
         again = refine_targets(sensing_map, rounds_only, params)
         steps += touches(again, len(steps))
-        calibration, seen = run(steps, params, quiet=False)
+        calibration, seen = run(steps, params, False, VirtualBoard(sensing_map, board_params))  # frames from the start
         if seen["refined"] != np.unique(again).tolist():
             raise AssertionError("the simulated session prompted other crossings again than its silent first run")
         return calibration, seen
-    return run(steps, params, quiet=False)
+    return run(steps, params, False, board)
 
 
 def evaluate_simulator(
