@@ -158,9 +158,8 @@ class TouchProcessor:
                           else np.asarray(cell_gain, dtype=np.float64))
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
-        position_var = np.zeros(sensing_map.cell_count) if position_var is None else np.asarray(position_var, dtype=np.float64)
-        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance, position_var,
-                               measured_gains=cell_gain is not None)
+        self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance,
+                               measured_gains=cell_gain is not None, position_var=position_var)
         self.contacts = ContactAreas(sensing_map, params.contact_mesh_faces,
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
