@@ -125,8 +125,7 @@ def _imports(path: Path) -> set[str]:
 
 def test_the_processing_never_reads_the_board_settings():
     """No module of the processing chain imports the simulator or its settings, and the processor
-    takes a sensing map, its own params and (optionally) what a calibration measured, gains and how
-    certain the crossings' positions are: nothing of the board."""
+    takes a sensing map, its own params and (optionally) measured gains: nothing of the board."""
     processing = sorted(p for p in SENSING.glob("*.py") if p.name not in BOARD_SIDE | {"__init__.py"})
     assert {p.name for p in processing} >= {"processing.py", "baseline.py", "coupling_fit.py", "gain_learning.py",
                                             "contacts.py", "plane_fit.py", "tracking.py", "calibration.py"}
@@ -136,7 +135,7 @@ def test_the_processing_never_reads_the_board_settings():
                                "pty_board", "evaluation"}, path.name
     import inspect
 
-    assert list(inspect.signature(TouchProcessor).parameters) == ["sensing_map", "params", "cell_gain", "position_var"]
+    assert list(inspect.signature(TouchProcessor).parameters) == ["sensing_map", "params", "cell_gain"]
 
 
 def test_gains_and_the_no_pad_gain_are_learned_from_ordinary_touches(bunny):

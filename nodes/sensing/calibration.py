@@ -120,8 +120,7 @@ class Calibration:
             "adapt_coupling": params.adapt_coupling and self.coupling_tail is None})  # a measured profile is kept
         if self.cell_points is not None:
             sensing_map = relocated_map(sensing_map, self.cell_points)
-        spread = None if self.position_std_mm is None else 0.5 * self.position_std_mm**2  # per tangent direction
-        return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain, position_var=spread)
+        return TouchProcessor(sensing_map, tuned, cell_gain=self.cell_gain)
 
     def summary(self) -> dict[str, Any]:
         gains = self.cell_gain[self.measured]

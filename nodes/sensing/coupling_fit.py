@@ -51,13 +51,9 @@ class CouplingFit:
     """The coupling model of one sensing map and what it learned so far (width, shape, amplitude)."""
 
     def __init__(self, sensing_map: SensingMap, params: ProcessingParams, projector: SurfaceProjector,
-                 cell_gain: np.ndarray, cell_distance: np.ndarray, measured_gains: bool = False,
-                 position_var: np.ndarray | None = None):
-        """``position_var`` (K,): how uncertain each crossing's position is (mm^2 along a tangent
-        direction, :mod:`.calibration`; 0 when not given)."""
+                 cell_gain: np.ndarray, cell_distance: np.ndarray, measured_gains: bool = False):
         self.map, self.params, self.projector = sensing_map, params, projector
         self.cell_gain, self.cell_distance = cell_gain, cell_distance
-        self.position_var = np.zeros(sensing_map.cell_count) if position_var is None else np.asarray(position_var, float)
         self.pitch = sensing_map.pitch_mm()
         self.coupling_sigma = params.coupling_sigma_mm or default_coupling_width_mm(params.finger_radius_mm, self.pitch)
         self.initial_coupling_sigma = self.coupling_sigma
@@ -262,8 +258,7 @@ class CouplingFit:
         Model ``delta_i = g_i exp(a) K(|p - x_i|)`` over every crossing within ``3 s + pitch`` of the
         start (``s`` the coupling width), dark ones included (a crossing that reads nothing says the
         finger is not near it); residuals weighted by ``1 / sigma_i^2`` (the deltas' noise is
-        additive, so this is the likelihood), and by the crossings' ``position_var`` where the coupling is
-        steep; the surface-constrained fit is :class:`.TangentPlaneFit`.
+        additive, so this is the likelihood); the surface-constrained fit is :class:`.TangentPlaneFit`.
 
         A first fit (no ``log_amplitude``) starts ``a`` at the log of the largest gain-normalised
         delta, or at the amplitude prior's mean if higher. On thin parts (ears) and tips the strongest
@@ -309,8 +304,7 @@ class CouplingFit:
                     first_ring = len(starts)
                     starts += self._ring_starts(point, face, float(normalised[strong].max()))
         z, h = d / noise, g / noise  # in noise sigmas
-        plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.position_var[near], self.pitch,
-                                    self.amplitude_prior)
+        plane_fit = TangentPlaneFit(self.projector, self.profile, x, z, h, self.pitch, self.amplitude_prior)
         fits = [plane_fit.run(p, f, log_amplitude, anchor=point if k >= first_ring else None)
                 for k, (p, f) in enumerate(starts)]
         _, point, face, bary, log_amplitude, information = min(fits, key=lambda fit: fit[0])

@@ -11,13 +11,6 @@ stays inside the face needs no projection: the point is on the surface and the f
 The per-plane work runs compiled (numba): a fit runs thousands of times a second on a few dozen
 crossings, where numpy's per-call overhead would be most of the time.
 
-Where the crossings' positions are uncertain (``position_var``, mm^2 along any tangent direction, as
-``sense --calibrate`` measured them; 0 without), each squared residual is weighted by the effective variance
-of errors in the variables (Orear 1982): ``1 / (1 + (d model_i / d distance)^2 var_i)`` in noise
-units, so a crossing that may sit off where the finger's coupling is steep counts less than one that
-is known or that the coupling is flat at (under the finger, far off). The weights follow the fit
-(iteratively reweighted; their derivative is left out of the normal equations).
-
 Priors keep directions the crossings do not resolve bounded (on a sparse layout three crossings can
 be nearly collinear, or only two see the finger): ``u`` (offset from the start) ~ N(0, pitch^2), so
 an unresolved direction stays at the start; ``a`` ~ N(a0, sigma_a^2) once the amplitude is learned,
@@ -39,15 +32,13 @@ SURFACE_ROUNDS = 2  # tangent planes the fit re-linearises in (it stops once the
 
 class TangentPlaneFit:
     """The fit of one touch to the crossings at ``x`` (k, 3) (mm) with deltas ``z`` and gains ``h``,
-    both in units of each crossing's noise sigma (so the residuals are weighted already), and the
-    variance of each crossing's position ``position_var`` (k,) (mm^2)."""
+    both in units of each crossing's noise sigma (so the residuals are weighted already)."""
 
     def __init__(self, projector: SurfaceProjector, profile: CouplingProfile, x: np.ndarray, z: np.ndarray,
-                 h: np.ndarray, position_var: np.ndarray, pitch: float, amplitude_prior: tuple[float, float] | None):
+                 h: np.ndarray, pitch: float, amplitude_prior: tuple[float, float] | None):
         self.projector = projector
         self.profile = (profile.inner_squared, profile.log_slopes, profile.log_intercepts)
         self.x, self.z, self.h = np.ascontiguousarray(x), np.ascontiguousarray(z), np.ascontiguousarray(h)
-        self.position_var = np.ascontiguousarray(position_var, dtype=np.float64)
         # prior_u, prior_a, prior_mean_a, max step (mm)
         self.priors = np.array([1.0 / pitch**2, 0.0, 0.0, 0.5 * pitch])
         if amplitude_prior is not None:
@@ -64,8 +55,7 @@ class TangentPlaneFit:
             frame = self.projector.face_frames[face]
             offsets = _set_plane(self.columns, self.x, point, start, frame)
             u0, u1, log_amplitude, cost, information = _levenberg_marquardt(
-                self.columns, self.z, self.h, self.position_var, *self.profile, self.priors, offsets, log_amplitude,
-                FIT_ITERATIONS)
+                self.columns, self.z, self.h, *self.profile, self.priors, offsets, log_amplitude, FIT_ITERATIONS)
             point = point + u0 * frame[0] + u1 * frame[1]
             bary = self.projector.barycentrics_in_face(point, face)
             if bary is not None:
@@ -76,8 +66,8 @@ class TangentPlaneFit:
             if shift < 0.05:
                 break
         offsets = _set_plane(self.columns, self.x, point, start, self.projector.face_frames[face])
-        _, _, _, cost, information = _levenberg_marquardt(self.columns, self.z, self.h, self.position_var, *self.profile,
-                                                          self.priors, offsets, log_amplitude, 0)
+        _, _, _, cost, information = _levenberg_marquardt(self.columns, self.z, self.h, *self.profile, self.priors,
+                                                          offsets, log_amplitude, 0)
         return cost, point, face, bary, log_amplitude, information
 
 
@@ -86,7 +76,7 @@ def compile_kernels() -> None:
     first touch does not wait for it (~2.5 s once per install, ~0.3 s to load)."""
     columns, one = np.zeros((1, 3)), np.ones(1)
     offsets = _set_plane(columns, np.ones((1, 3)), np.zeros(3), np.zeros(3), np.eye(3))
-    _levenberg_marquardt(columns, one, one, np.zeros(1), np.ones(1), np.zeros(2), np.zeros(2), np.ones(4), offsets, 0.0, 1)
+    _levenberg_marquardt(columns, one, one, np.ones(1), np.zeros(2), np.zeros(2), np.ones(4), offsets, 0.0, 1)
 
 
 @numba.njit(cache=True)
@@ -104,10 +94,10 @@ def _set_plane(columns, x, point, start, frame):
 
 
 @numba.njit(cache=True)
-def _evaluate(columns, z, h, position_var, inner_squared, log_slopes, log_intercepts, priors, offsets, u0, u1, la,
+def _evaluate(columns, z, h, inner_squared, log_slopes, log_intercepts, priors, offsets, u0, u1, la,
               model, residual, slope_scaled):
     """Cost at the in-plane offset (u0, u1) (mm) and log-amplitude ``la``; fills the model, the
-    residual and d model / d q (noise sigmas), each times the crossing's effective-variance weight."""
+    residual and d model / d q (noise sigmas) per crossing."""
     amplitude = math.exp(la)
     cost = 0.0
     for i in range(len(z)):
@@ -116,11 +106,9 @@ def _evaluate(columns, z, h, position_var, inner_squared, log_slopes, log_interc
         slope = log_slopes[segment]
         k = math.exp(log_intercepts[segment] + slope * q)
         scale = h[i] * amplitude
-        along = 2.0 * math.sqrt(max(q, 0.0)) * scale * slope * k  # d model / d distance (noise sigmas per mm)
-        weight = 1.0 / math.sqrt(1.0 + along * along * position_var[i])
-        model[i] = weight * scale * k
-        residual[i] = weight * z[i] - model[i]
-        slope_scaled[i] = weight * scale * slope * k
+        model[i] = scale * k
+        residual[i] = z[i] - model[i]
+        slope_scaled[i] = scale * slope * k
         cost += residual[i] * residual[i]
     o0, o1 = offsets[0] + u0, offsets[1] + u1
     return cost + priors[0] * (o0 * o0 + o1 * o1) + priors[1] * (la - priors[2]) ** 2
@@ -147,8 +135,8 @@ def _normal_equations(columns, model, residual, slope_scaled, u0, u1):
 
 
 @numba.njit(cache=True)
-def _levenberg_marquardt(columns, z, h, position_var, inner_squared, log_slopes, log_intercepts, priors, offsets,
-                         log_amplitude, iterations):
+def _levenberg_marquardt(columns, z, h, inner_squared, log_slopes, log_intercepts, priors, offsets, log_amplitude,
+                         iterations):
     """Damped Gauss-Newton steps (at most ``iterations``) in the current plane from u = 0; returns
     (u0, u1, log amplitude, cost, data information) at the end."""
     prior_u, prior_a, prior_mean_a, max_step = priors[0], priors[1], priors[2], priors[3]
@@ -157,7 +145,7 @@ def _levenberg_marquardt(columns, z, h, position_var, inner_squared, log_slopes,
     model, residual, slope_scaled = np.empty(n), np.empty(n), np.empty(n)
     trial_model, trial_residual, trial_slope = np.empty(n), np.empty(n), np.empty(n)
     u0 = u1 = 0.0
-    cost = _evaluate(columns, z, h, position_var, inner_squared, log_slopes, log_intercepts, priors, offsets, u0, u1,
+    cost = _evaluate(columns, z, h, inner_squared, log_slopes, log_intercepts, priors, offsets, u0, u1,
                      log_amplitude, model, residual, slope_scaled)
     damping = 1e-3
     for _ in range(iterations):
@@ -181,7 +169,7 @@ def _levenberg_marquardt(columns, z, h, position_var, inner_squared, log_slopes,
         if length > max_step:
             shrink = max_step / length
             s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
-        trial = _evaluate(columns, z, h, position_var, inner_squared, log_slopes, log_intercepts, priors, offsets, u0 + s0,
+        trial = _evaluate(columns, z, h, inner_squared, log_slopes, log_intercepts, priors, offsets, u0 + s0,
                           u1 + s1, log_amplitude + s2, trial_model, trial_residual, trial_slope)
         if trial <= cost:
             u0, u1, log_amplitude, cost = u0 + s0, u1 + s1, log_amplitude + s2, trial

@@ -26,8 +26,7 @@ Per frame (``TouchProcessor.process``):
    (``g_i`` = 1 with a pad, ``no_pad_gain`` without, or per crossing as ``sense --calibrate`` measured
    them, :mod:`.calibration`; ``K`` the radial coupling profile,
    :mod:`.coupling_profile`) fitted by maximum likelihood (Levenberg-Marquardt on
-   the deltas of every crossing near the peak, dark ones included; a crossing whose calibrated position
-   is uncertain weighs less where the coupling is steep, :mod:`.plane_fit`) with the finger kept on the
+   the deltas of every crossing near the peak, dark ones included) with the finger kept on the
    surface; weak priors (offset ~ N(0, pitch^2), amplitude as calibrated or learned from well-posed touches) keep
    directions that a sparse layout does not resolve bounded. With several touches each one is
    refitted to the deltas minus the others' fitted coupling, starting from its first fit; peaks
@@ -144,9 +143,8 @@ class TouchProcessor:
     """Stateful frame -> touches processing for one sensing map (see the module docstring)."""
 
     def __init__(self, sensing_map: SensingMap, params: ProcessingParams = ProcessingParams(),
-                 cell_gain: np.ndarray | None = None, position_var: np.ndarray | None = None):
-        """``cell_gain`` (K,): measured per-cell gains (:mod:`.calibration`) instead of pad ? 1 : no_pad_gain;
-        ``position_var`` (K,): how uncertain the crossings' measured positions are (mm^2, step 4)."""
+                 cell_gain: np.ndarray | None = None):
+        """``cell_gain`` (K,): measured per-cell gains (:mod:`.calibration`) instead of pad ? 1 : no_pad_gain."""
         self.map = sensing_map
         self.params = params
         self.pitch = sensing_map.pitch_mm()
@@ -159,7 +157,7 @@ class TouchProcessor:
         self.cell_distance = np.linalg.norm(cells[:, None] - cells[None], axis=2)
         self.projector = SurfaceProjector(sensing_map.vertices, sensing_map.faces)
         self.fit = CouplingFit(sensing_map, params, self.projector, self.cell_gain, self.cell_distance,
-                               measured_gains=cell_gain is not None, position_var=position_var)
+                               measured_gains=cell_gain is not None)
         self.contacts = ContactAreas(sensing_map, params.contact_mesh_faces,
                                      params.interpolation_radius_mm or 1.5 * self.pitch, self.pitch)
         neighbours = [np.flatnonzero((row <= self.peak_radius) & (row > 0)) for row in self.cell_distance]
