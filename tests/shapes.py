@@ -116,6 +116,28 @@ def standing_figure() -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, mesh.faces)
 
 
+def figure_arms_out() -> trimesh.Trimesh:
+    """:func:`standing_figure` with its arms stretched out sideways (a T pose): each hand about 15 %
+    farther from a sole, along the surface, than the top of the head, the arms about 13 mm thick."""
+    axes = np.array([24.0, 15.0, 40.0])
+
+    def radius(d: np.ndarray) -> np.ndarray:
+        body = 1.0 / np.sqrt(((d / axes) ** 2).sum(axis=1))
+        extra = np.zeros(len(d))
+        for side in (-1, 1):
+            leg = np.array([0.35 * side, 0.0, -0.94]) / np.hypot(0.35, 0.94)
+            extra = np.maximum(extra, 45.0 * np.exp(-((np.arccos(np.clip(d @ leg, -1, 1)) / 0.13) ** 4)))
+            arm = np.array([side * 0.94, 0.0, 0.34]) / np.hypot(0.94, 0.34)
+            extra = np.maximum(extra, 62.0 * np.exp(-((np.arccos(np.clip(d @ arm, -1, 1)) / 0.09) ** 4)))
+        head = 22.0 * np.exp(-((np.arccos(np.clip(d[:, 2], -1, 1)) / 0.3) ** 2))
+        return body + extra + head
+
+    mesh = radial(radius, subdivisions=7)
+    vertices = mesh.vertices.copy()
+    vertices[:, 2] = np.maximum(vertices[:, 2], vertices[:, 2].min() + 8.0)
+    return trimesh.Trimesh(vertices, mesh.faces)
+
+
 def lying_spoon() -> trimesh.Trimesh:
     """A spoon-like solid lying on its curved back: an oval bowl (70 x 44 mm) and a 110 mm handle,
     along x, 14 mm high; nothing on it is flat."""
@@ -189,6 +211,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "bowl_foot_ring": bowl_with_foot_ring,
     "four_legged_figurine": four_legged_figurine,
     "standing_figure": standing_figure,
+    "figure_arms_out": figure_arms_out,
     "lying_spoon": lying_spoon,
     "metal_spoon": metal_spoon,
     "bust_cut_base": bust_with_cut_base,

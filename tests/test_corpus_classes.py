@@ -31,6 +31,7 @@ EXPECTED_POSE = {
     "bowl_foot_ring": "foot_ring",
     "four_legged_figurine": "patches",
     "standing_figure": "patches",
+    "figure_arms_out": "patches",
     "lying_spoon": "round",
     "metal_spoon": "thin",
     "bust_cut_base": "flat",
@@ -94,6 +95,11 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
     if name == "four_legged_figurine":  # standing on one leg's foot, the other three legs are limbs (about 35 mm deep)
         legs = [limb for limb in metrics["limbs"] if limb["depth_mm"] > 25.0]
         assert len(legs) >= 3 and all(0 < limb["area_mm2"] and limb["cells"] <= metrics["cells"] for limb in legs)
+    if name == "figure_arms_out":  # the far pole tips a stretched hand, the top pole the head
+        height = mesh.vertices @ regions.up
+        top = detect_regions(RegionParams(tx_pole="top"), mesh, touch_of(mesh))
+        share = lambda v: (height[v] - height.min()) / np.ptp(height)  # noqa: E731
+        assert share(regions.far_vertex) < 0.85 and share(top.far_vertex) > 0.95
     assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
 
 

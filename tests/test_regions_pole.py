@@ -1,5 +1,6 @@
-"""regions.detect's Tx pole choice: the paper's point farthest from the base, or the free region's
-geodesic centre (the point whose largest distance to the region is smallest)."""
+"""regions.detect's Tx pole choice: the paper's point farthest from the base, the highest peak of that
+distance, or the free region's geodesic centre (the point whose largest distance to the region is
+smallest)."""
 from __future__ import annotations
 
 import numpy as np
@@ -52,6 +53,31 @@ def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
     ends = np.maximum(100.0 - 0.5 * np.linalg.norm(vertices - vertices[low_end], axis=1),
                       99.0 - 0.5 * np.linalg.norm(vertices - vertices[high_end], axis=1))
     assert abs(height[high_end] - height[low_end]) < 10.0 and farthest_pole(graph, ends, free, height) == low_end
+
+
+def test_the_top_pole_is_the_highest_peak_of_the_distance_from_the_base_not_a_farther_hand():
+    """A stretched hand (a peak of the distance from the base, 20 % farther than the head but at half its
+    height) takes the far pole; the top pole goes to the head. On a flat top, of the peaks about as
+    high, the one farthest from the base."""
+    import trimesh
+
+    from retrotouch.nodes.regions.faces import FaceGraph
+    from retrotouch.nodes.regions.poles import farthest_pole, top_pole
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    hand, head = int(np.argmax(vertices[:, 0])), int(np.argmax(vertices[:, 2]))
+    graph, free, height = FaceGraph(faces, len(vertices)), np.arange(len(vertices)), vertices[:, 2]
+    peak = lambda v, top: top - 0.5 * np.linalg.norm(vertices - vertices[v], axis=1)  # noqa: E731
+    reach = np.maximum(peak(hand, 120.0), peak(head, 100.0))
+    assert farthest_pole(graph, reach, free, height) == hand
+    assert top_pole(graph, reach, free, height) == head
+    # a flat top: every vertex of the cap at one height, the distance from the base largest off its centre
+    flat = np.minimum(height, 45.0)
+    cap = np.flatnonzero(flat == 45.0)
+    off_centre = int(cap[np.argmax(vertices[cap, 0])])
+    pole = top_pole(graph, peak(off_centre, 100.0), free, flat)
+    assert pole == off_centre and flat[pole] == flat.max()
 
 
 def test_the_penguin_at_150_mm_gets_its_pole_on_its_head_not_on_its_other_foot():

@@ -187,7 +187,7 @@ class SurfaceRegions:
     tipping_angle_deg: float  # smallest tilt (deg) that topples the object in this pose
     base_area_fraction: float  # base area / surface area
     sensing_area_fraction: float  # sensing area / surface area
-    tx_pole: str  # how far_vertex was chosen: "far" or "centre" (regions.detect's tx_pole)
+    tx_pole: str  # how far_vertex was chosen: "far", "top" or "centre" (regions.detect's tx_pole)
     touch: dict  # the finger model and the touchable share of the surface (metrics.json's "touch")
 
 

@@ -29,8 +29,9 @@ Then, with heat-method geodesic distances (potpourri3d):
   first exclusion farthest from the base before its growth for the wiring (a grown base leaves a
   second foot beside it, which is no pole), on a thin object, whose top is everywhere close to the
   base's rim, farthest from the base centre, so the Tx lines run the object's length; of near ties
-  a much higher one (:func:`.poles.farthest_pole`); with
-  ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
+  a much higher one (:func:`.poles.farthest_pole`); with ``tx_pole="top"`` the highest peak of that
+  distance (:func:`.poles.top_pole`: a standing figure's head, where the far pole may be a stretched
+  hand); with ``tx_pole="centre"`` the geodesic centre of that free region: the free vertex whose largest
   distance to the region's ``CENTRE_SAMPLES`` farthest-point samples is smallest, so Tx lines fan
   out to every side of the object;
   ``exclusion_far``: faces with mean vertex distance from it below ``exclusion_far_mm`` plus the
@@ -54,7 +55,7 @@ from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks, is_lying, is_sheet, with_the_table_side
 from .faces import FaceGraph
-from .poles import farthest_pole, geodesic_centre
+from .poles import tx_pole
 from .pose import at_pose_size, candidate_floors, centre_of_mass, mirror_planes, ranked_floors, tipping_angle_deg
 from .touch import clear_of_table, pocket_of, touch_summary, touchable_faces_of
 
@@ -113,8 +114,9 @@ class RegionParams(NodeParams):
         60.0, gt=0, le=180, description="first exclusion: max normal deviation from resting direction"
     )
     exclusion_far_mm: float = Field(10.0, ge=0, description="second exclusion: geodesic radius at far point")
-    tx_pole: Literal["far", "centre"] = Field(
-        "far", description="the Tx pole: the point farthest from the base, or the free region's geodesic centre"
+    tx_pole: Literal["far", "top", "centre"] = Field(
+        "far", description="the Tx pole: the point farthest from the base, the highest peak of that distance, or the "
+        "free region's geodesic centre"
     )
     direction_cells: int = Field(2000, ge=20, description="automatic pose: direction cells (one hull plane each)")
     wiring_room_mm: float = Field(
@@ -350,11 +352,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
         raise UserError("base and first exclusion cover the whole surface: lower exclusion_base_mm")
     from_centre = solver.compute_distance(int(anchors[0]))
     reach = from_centre if base.kind == "thin" else from_contact
-    far_vertex = farthest_pole(graph, reach, free, vertices @ -down)
-    from_far = solver.compute_distance(far_vertex)
-    if params.tx_pole == "centre":
-        far_vertex = geodesic_centre(solver, free, far_vertex, from_far)
-        from_far = solver.compute_distance(far_vertex)
+    far_vertex, from_far = tx_pole(params.tx_pole, graph, reach, free, vertices @ -down, solver)
     exclusion_far = (from_far[faces].mean(axis=1) < params.exclusion_far_mm) | (faces == far_vertex).any(axis=1)
     exclusion_far &= ~blocked
     within_reach = touchable_faces_of(touchable, vertices, faces)

@@ -1,5 +1,6 @@
 """The Tx pole's choices for ``regions.detect`` (see its module docstring): the far pole, with its
-rule for near ties, and the geodesic centre of the free region. Distances mm, heights mm along up."""
+rule for near ties, the top pole and the geodesic centre of the free region. Distances mm, heights mm
+along up."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,6 +15,8 @@ FAR_TIE_SHARE = 0.05
 FAR_TIE_RISE = 0.25
 """... and the highest of them is the pole when it stands higher than the farthest by this share of
 the object's height."""
+TOP_TIE_SHARE = 0.01
+"""Peaks within this share of the object's height below the highest tie for the top Tx pole."""
 
 
 def farthest_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray) -> int:
@@ -22,13 +25,32 @@ def farthest_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height:
     the table) when it stands ``FAR_TIE_RISE`` of the object's height above it. A standing figure's
     second foot can lie as far from the base as its head, and a pole on it would send every Tx line
     up from the floor; peaks of about one height (a lying object's ends) keep the farthest."""
-    neighbour = np.full(len(reach), -np.inf)
-    np.maximum.at(neighbour, graph.halfedges[:, 0], reach[graph.halfedges[:, 1]])
     farthest = int(free[np.argmax(reach[free])])
-    near = free[(reach[free] >= neighbour[free]) & (reach[free] >= (1.0 - FAR_TIE_SHARE) * reach[farthest])]
+    summits = peaks(graph, reach, free)
+    near = summits[reach[summits] >= (1.0 - FAR_TIE_SHARE) * reach[farthest]]
     highest = int(near[np.argmax(height[near])]) if len(near) else farthest
     rises = height[highest] - height[farthest] > FAR_TIE_RISE * (height.max() - height.min())
     return highest if rises else farthest
+
+
+def peaks(graph: FaceGraph, values: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """The vertices of ``among`` that no neighbour exceeds in ``values``."""
+    neighbour = np.full(len(values), -np.inf)
+    np.maximum.at(neighbour, graph.halfedges[:, 0], values[graph.halfedges[:, 1]])
+    return among[values[among] >= neighbour[among]]
+
+
+def top_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray) -> int:
+    """The top Tx pole: the highest of the free peaks of ``reach`` (the distance from the base, mm; no
+    neighbour farther), of those within ``TOP_TIE_SHARE`` of the object's height below it the farthest
+    from the base. On a standing figure whose hand or tail lies farther from the base than its head,
+    the far pole sends every Tx line down that thin limb; the head sends them down the body."""
+    candidates = peaks(graph, reach, free)
+    if len(candidates) == 0:
+        candidates = free
+    top = height[candidates].max()
+    tied = candidates[height[candidates] >= top - TOP_TIE_SHARE * (height.max() - height.min())]
+    return int(tied[np.argmax(reach[tied])])
 
 
 def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray) -> int:
@@ -39,3 +61,15 @@ def geodesic_centre(solver, free: np.ndarray, first: int, from_first: np.ndarray
         distance = solver.compute_distance(int(free[np.argmax(nearest)]))[free]
         nearest, largest = np.minimum(nearest, distance), np.maximum(largest, distance)
     return int(free[np.argmin(largest)])
+
+
+def tx_pole(kind: str, graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.ndarray,
+            solver) -> tuple[int, np.ndarray]:
+    """The Tx pole of ``kind`` ("far", "top" or "centre", as ``regions.detect``'s ``tx_pole``) and its
+    geodesic distance to every vertex (mm, from the heat-method ``solver``)."""
+    vertex = (top_pole if kind == "top" else farthest_pole)(graph, reach, free, height)
+    distance = solver.compute_distance(vertex)
+    if kind == "centre":
+        vertex = geodesic_centre(solver, free, vertex, distance)
+        distance = solver.compute_distance(vertex)
+    return vertex, distance
