@@ -117,8 +117,9 @@ def standing_figure() -> trimesh.Trimesh:
 
 
 def figure_arms_out() -> trimesh.Trimesh:
-    """:func:`standing_figure` with its arms stretched out sideways (a T pose): each hand about 15 %
-    farther from a sole, along the surface, than the top of the head, the arms about 13 mm thick."""
+    """:func:`standing_figure` with its arms stretched out sideways (a T pose), the arms about 13 mm
+    thick; 212 mm across. Each hand lies about a fifth farther from the base (a sole, grown up its leg
+    for the wiring), along the surface, than the top of the head."""
     axes = np.array([24.0, 15.0, 40.0])
 
     def radius(d: np.ndarray) -> np.ndarray:

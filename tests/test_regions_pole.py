@@ -56,8 +56,8 @@ def test_a_near_tie_for_the_far_pole_goes_to_the_higher_peak():
 
 
 def test_the_top_pole_is_the_highest_peak_of_the_distance_from_the_base_not_a_farther_hand():
-    """A stretched hand (a peak of the distance from the base, 20 % farther than the head but at half its
-    height) takes the far pole; the top pole goes to the head. On a flat top, of the peaks about as
+    """A stretched hand (a peak of the distance from the base, 20 % farther than the head, halfway up)
+    takes the far pole; the top pole goes to the head. On a flat top, of the peaks about as
     high, the one farthest from the base."""
     import trimesh
 

@@ -46,7 +46,7 @@ def top_pole(graph: FaceGraph, reach: np.ndarray, free: np.ndarray, height: np.n
     from the base. On a standing figure whose hand or tail lies farther from the base than its head,
     the far pole sends every Tx line down that thin limb; the head sends them down the body."""
     candidates = peaks(graph, reach, free)
-    if len(candidates) == 0:
+    if len(candidates) == 0:  # every free vertex has a farther neighbour outside the free region
         candidates = free
     top = height[candidates].max()
     tied = candidates[height[candidates] >= top - TOP_TIE_SHARE * (height.max() - height.min())]
