@@ -121,6 +121,26 @@ def test_a_second_poles_branches_are_screened_against_the_first_poles():
     assert [screen_branches(rule, staged).keeps(b) for b in staged] == [True, True]  # alone: its 2 best in any case
 
 
+def test_a_branch_whose_start_an_earlier_poles_branch_had_is_not_solved_again():
+    """Two Tx poles on one vertex give the same branches: the second pole's are not solved again, and
+    the rule takes the others over the rest only."""
+    import numpy as np
+
+    def started_from(start_radius, lower_bound, tx):
+        return BranchBound({"n_drive": 21}, "helices", 0.0, {"candidates": {"tx": 90}},
+                           (np.array(tx), np.array([0, 3]), {"radius_mm": start_radius}), start_radius, lower_bound, "ok")
+
+    first = [started_from(20.0, 12.0, [1, 2]), started_from(21.0, 15.0, [4, 5])]
+    twin, other = started_from(20.0, 12.0, [1, 2]), started_from(20.0, 12.0, [1, 7])  # other: one curve differs
+    rule = ScreenParams(radius_tolerance_mm=1.0, margin_mm=1.0, keep_at_least=2)
+    cut = prescreen(rule, [twin, other], first)
+    assert cut.repeated(twin) and not cut.keeps(twin)
+    assert not cut.repeated(other) and cut.keeps(other)
+    assert cut.summary.startswith("1 of 1 branches solved") and "1 the same as an earlier Tx pole's" in cut.summary
+    assert not prescreen(rule, [twin, other], []).repeated(twin)  # the first pole solves its own
+    assert prescreen(rule, [twin], first).summary == "none solved: 1 branches the same as an earlier Tx pole's"
+
+
 def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(caplog):
     shut = AngleLayout("rings", 90.0, False, "screened out", None,
                        {"screened": True, "coverage_radius_lower_bound_mm": 30.5, "phase1": {"stages": []}})

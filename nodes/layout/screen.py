@@ -20,13 +20,16 @@ the ``keep_at_least`` branches with the smallest radii go on in any case. The ru
 Both compare a branch also with the ``earlier`` branches, those of the Tx poles swept before its own
 (the fallback's second pole against the first): the radii another pole reaches count as reached, and
 the ``keep_at_least`` smallest are taken over both, so a second pole whose branches cannot beat the
-first's solves none of them. The branch with the smallest stage-1 radius always passes the prescreen
+first's solves none of them. A branch whose phase-1 start is an earlier branch's (:func:`start_digest`:
+two Tx poles on one vertex, the top pole of most objects being the far pole) is not solved again. The branch with the smallest stage-1 radius always passes the prescreen
 (its bound is below that radius, which is below every start's). ``layout.pick_best`` checks afterwards
 that no screened branch could have tied the chosen one, and says so when one could. Units: mm.
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 from collections.abc import Sequence
 
@@ -89,10 +92,23 @@ class Screen:
         return branch.stage is not None and branch.stage.radius_mm > max(self.threshold_mm, self.sure_mm)
 
 
+def start_digest(bound: BranchBound) -> str:
+    """A digest of what phase 1 starts a branch from: family, angle, parameters, candidate counts, the
+    heuristic start (curves and report) and the two radii; equal for the branches of two Tx poles that
+    are one vertex."""
+    tx, rx, report = bound.start if bound.start is not None else ((), (), None)
+    fields = [bound.family, bound.angle_deg, bound.params, bound.base, report, bound.start_radius_mm, bound.lower_bound_mm]
+    digest = hashlib.sha256(json.dumps(fields, sort_keys=True, default=repr).encode())
+    for ids in (tx, rx):
+        digest.update(np.asarray(ids, dtype=np.int64).tobytes() + b"|")
+    return digest.hexdigest()
+
+
 @dataclasses.dataclass(frozen=True)
 class PreScreen:
     """Which branches ``layout.coverage`` solves (``layout.prescreen``): those whose lower bound is at
-    most ``threshold_mm`` (inf: all), and surely those whose start's radius is at most ``sure_mm``;
+    most ``threshold_mm`` (inf: all), and surely those whose start's radius is at most ``sure_mm``, but
+    none whose :func:`start_digest` is in ``repeats`` (an earlier Tx pole's branch solved it);
     ``settings`` the ScreenParams fields, which ``layout.screen`` applies too; ``summary`` says how
     many and why."""
 
@@ -100,10 +116,14 @@ class PreScreen:
     sure_mm: float
     settings: dict
     summary: str
+    repeats: tuple[str, ...] = ()
+
+    def repeated(self, bound: BranchBound) -> bool:
+        return bound.lower_bound_mm is not None and start_digest(bound) in self.repeats
 
     def keeps(self, bound: BranchBound) -> bool:
-        return (bound.lower_bound_mm is None or bound.lower_bound_mm <= self.threshold_mm
-                or bound.start_radius_mm <= self.sure_mm)
+        return not self.repeated(bound) and (bound.lower_bound_mm is None or bound.lower_bound_mm <= self.threshold_mm
+                                             or bound.start_radius_mm <= self.sure_mm)
 
 
 class ScreenParams(NodeParams):
@@ -141,18 +161,27 @@ def _best_text(what: str, own: list[float], earlier: list[float]) -> str:
 def prescreen(params: ScreenParams, bounds: list[BranchBound], earlier: list[BranchBound]) -> PreScreen:
     """The threshold on the branches' lower bounds up to which ``layout.coverage`` solves their radius
     stage; ``earlier``: the branches of the Tx poles swept before (module docstring)."""
-    bounded = [b for b in bounds if b.lower_bound_mm is not None]
+    solved_before = {start_digest(b) for b in earlier if b.lower_bound_mm is not None}
+    digests = [start_digest(b) if b.lower_bound_mm is not None else None for b in bounds]
+    twins = sum(d in solved_before for d in digests)
+    repeats = tuple(sorted({d for d in digests if d in solved_before}))
+    bounded = [b for b, d in zip(bounds, digests) if d is not None and d not in solved_before]
+    again = f"; {twins} the same as an earlier Tx pole's, not solved again" if twins else ""
     own = [b.start_radius_mm for b in bounded]
     others = [b.start_radius_mm for b in earlier if b.lower_bound_mm is not None]
     cut = _cut(params, own + others)
+    if twins and not bounded:
+        return PreScreen(math.inf, math.inf, params.model_dump(), f"none solved: {twins} branches the same as an earlier "
+                         "Tx pole's", repeats)
     if cut is None:
-        return PreScreen(math.inf, math.inf, params.model_dump(), f"all {len(bounds)} branches solved")
+        return PreScreen(math.inf, math.inf, params.model_dump(), f"all {len(bounds) - twins} branches solved{again}",
+                         repeats)
     threshold, sure = cut
     kept = sum(PreScreen(threshold, sure, {}, "").keeps(b) for b in bounded)
     return PreScreen(threshold, sure, params.model_dump(), (
         f"{kept} of {len(bounded)} branches solved: the others' coverage radius is proven above {threshold:.1f} mm "
         f"({_best_text('heuristic start', own, others)} + tolerance + margin; the {params.keep_at_least} best starts "
-        "solved in any case)"))
+        f"solved in any case){again}"), repeats)
 
 
 def screen_branches(params: ScreenParams, branches: list[BranchStart], earlier: Sequence[BranchStart] = ()) -> Screen:
