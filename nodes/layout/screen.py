@@ -21,9 +21,10 @@ Both compare a branch also with the ``earlier`` branches, those of the Tx poles 
 (the fallback's second pole against the first): the radii another pole reaches count as reached, and
 the ``keep_at_least`` smallest are taken over both, so a second pole whose branches cannot beat the
 first's solves none of them. A branch whose phase-1 start is an earlier branch's (:func:`start_digest`:
-two Tx poles on one vertex, the top pole of most objects being the far pole) is not solved again. The branch with the smallest stage-1 radius always passes the prescreen
-(its bound is below that radius, which is below every start's). ``layout.pick_best`` checks afterwards
-that no screened branch could have tied the chosen one, and says so when one could. Units: mm.
+two Tx poles on one vertex, the top pole of most objects being the far pole) is not solved again. The
+branch with the smallest stage-1 radius always passes the prescreen (its bound is below that radius,
+which is below every start's). ``layout.pick_best`` checks afterwards that no screened branch could
+have tied the chosen one, and says so when one could. Units: mm.
 """
 from __future__ import annotations
 

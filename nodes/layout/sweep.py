@@ -274,7 +274,7 @@ def coverage(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveS
     if bound.lower_bound_mm is None:
         return branch_start(None, bound.message)
     if prescreen.repeated(bound):
-        return branch_start(None, "not solved: the same phase-1 problem as an earlier Tx pole's branch (one pole vertex)")
+        return branch_start(None, "not solved: an earlier Tx pole's branch had its phase-1 start (the two poles on one vertex)")
     if not prescreen.keeps(bound):
         return branch_start(None, f"screened out before its radius stage: its coverage radius is at least "
                                   f"{bound.lower_bound_mm:.1f} mm, above {prescreen.threshold_mm:.1f} mm",
