@@ -152,6 +152,13 @@ def test_a_screened_branch_that_could_have_tied_the_chosen_one_is_warned_about(c
     with caplog.at_level("WARNING"):
         pick_best(PickParams(print_table=False), [branch(0, 30.0, 8.0, 0.5), shut, far])
     assert len(caplog.records) == 1 and "1 screened branch(es) could have tied" in caplog.text
+    caplog.clear()
+    twin = AngleLayout("dipole", 0.0, False, "not solved: an earlier Tx pole's branch had its phase-1 start", None,
+                       {"screened": True, "repeated": True, "phase1": {"stages": []}})
+    with caplog.at_level("WARNING"):
+        out = pick_best(PickParams(print_table=False), [branch(0, 30.0, 8.0, 0.5), twin])
+    row = out["metrics"]["angles"][1]
+    assert not caplog.records and row["status"] == "REPEATED" and row["note"] == twin.message and row["screened"]
 
 
 def test_gap_is_unknown_when_a_stage_has_no_incumbent():

@@ -7,7 +7,8 @@ the smallest coverage radius (within ``radius_tolerance_mm``), then the smallest
 sample distances when the secondary objective is on (within ``mean_tolerance`` of it, relative),
 then the most cells, then the smallest Voronoi CV of the pads. Every branch gets a row in
 ``metrics["angles"]`` and the printed table, with its notes: a failed branch with its reason, a
-branch ``layout.screen`` left unfinished with its lower bound, and a feasible branch whose coverage
+branch ``layout.screen`` left unfinished with its lower bound, one ``layout.prescreen`` left unsolved
+as an earlier Tx pole's repeat (status REPEATED), and a feasible branch whose coverage
 radius exceeds ``outlier_factor`` times the median of the feasible branches as far worse. A screened
 branch whose lower bound is within ``radius_tolerance_mm`` of the chosen radius could have tied it:
 that is warned about, with the fix. Units: mm, deg.
@@ -112,7 +113,8 @@ def angle_table(candidates: list[AngleLayout], outlier_factor: float = 1.5) -> l
             "min_same_layer_clearance_mm": m.get("min_same_layer_clearance_mm"),
             "channels": f"{m.get('tx_channels', 0)}x{m.get('rx_channels', 0)}",
             "deterministic_time": _deterministic_time(m),
-            "status": "/".join(s["status"] for s in stages) or ("PRESCREENED" if m.get("screened") else c.message),
+            "status": "/".join(s["status"] for s in stages) or (
+                "REPEATED" if m.get("repeated") else "PRESCREENED" if m.get("screened") else c.message),
             "gap": None if not stages or any(s["gap"] is None for s in stages) else max(s["gap"] for s in stages),
             "global_gap": None if not stages or any(s.get("global_gap") is None for s in stages)
             else max(s["global_gap"] for s in stages),
@@ -173,7 +175,7 @@ def pick_best(params: PickParams, candidates: list[AngleLayout]) -> dict[str, ob
         raise UserError(f"no branch gives a feasible layout{fix} ({reasons})")
     best = best_branch(candidates, params.radius_tolerance_mm, params.mean_tolerance)
     reach = candidates[best].metrics["coverage_radius_mm"] + params.radius_tolerance_mm
-    missed = [c for c in screened if c.metrics["coverage_radius_lower_bound_mm"] <= reach]
+    missed = [c for c in screened if not c.metrics.get("repeated") and c.metrics["coverage_radius_lower_bound_mm"] <= reach]
     if missed:
         log.warning("%d screened branch(es) could have tied the chosen one (coverage radius %.1f mm): rerun with a larger "
                     "-S prescreen.margin_mm, or null to solve and finish every branch", len(missed),

@@ -72,6 +72,7 @@ class BranchStart:
     stage: RadiusStage | None
     message: str
     prescreened_bound_mm: float | None = None  # the lower bound of a branch ``layout.prescreen`` dropped (stage None)
+    repeated: bool = False  # ``layout.prescreen`` dropped it: an earlier Tx pole's branch had its phase-1 start
 
 
 @dataclasses.dataclass(frozen=True)

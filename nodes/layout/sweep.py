@@ -274,7 +274,8 @@ def coverage(params: NodeParams, mesh: Mesh, samples: SurfaceSamples, tx: CurveS
     if bound.lower_bound_mm is None:
         return branch_start(None, bound.message)
     if prescreen.repeated(bound):
-        return branch_start(None, "not solved: an earlier Tx pole's branch had its phase-1 start (the two poles on one vertex)")
+        return branch_start(None, "not solved: an earlier Tx pole's branch had its phase-1 start (the two poles on one vertex)",
+                            repeated=True)
     if not prescreen.keeps(bound):
         return branch_start(None, f"screened out before its radius stage: its coverage radius is at least "
                                   f"{bound.lower_bound_mm:.1f} mm, above {prescreen.threshold_mm:.1f} mm",
@@ -304,6 +305,8 @@ def finish_branch(mesh: Mesh, samples: SurfaceSamples, tx: CurveSet, rx: CurveSe
     when None), with the parameters of its ``layout.bound``; a branch it drops is reported as
     screened out with its radius stage."""
     params, angle_deg, base = OptimizeParams.model_validate(branch.params), branch.angle_deg, branch.base
+    if branch.repeated:
+        return _failed(branch.family, angle_deg, base, branch.message, screened=True, repeated=True)
     if branch.prescreened_bound_mm is not None:
         return _failed(branch.family, angle_deg, base, branch.message, screened=True,
                        coverage_radius_lower_bound_mm=branch.prescreened_bound_mm)
