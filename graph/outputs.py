@@ -17,6 +17,7 @@ import os
 import platform
 import posixpath
 import shutil
+import stat
 import time
 import uuid
 from typing import Any
@@ -58,13 +59,22 @@ def check_out_dir(out_dir: str) -> None:
     """Fail before anything runs when ``out_dir`` cannot become the output folder: it is a file, a
     folder this app did not write, or its disk is read-only or full."""
     out_dir = os.path.abspath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+    if _not_a_folder(out_dir):
         raise UserError(f"--out {out_dir} is a file, not a folder; {OUT_FIX} (a new folder or a previous output "
                         "folder)")
     if _foreign(out_dir):
         raise UserError(f"--out {out_dir} exists and was not written by {current().name} (no {MANIFEST}); "
                         "choose a new or empty folder")
     check_room("--out", out_dir, OUT_FIX, probe_at=os.path.dirname(out_dir))  # where the new folder is written
+
+
+def _not_a_folder(path: str) -> bool:
+    """Whether ``path`` exists and is not a folder, by one ``stat``: a run swapping the same output
+    folder moves it away and back, so two checks could see it exist and then not be a folder."""
+    try:
+        return not stat.S_ISDIR(os.stat(path).st_mode)
+    except (FileNotFoundError, NotADirectoryError):
+        return False
 
 
 def write_outputs(plan: Any, refs: dict[int, ArtifactRef], out_dir: str, run: dict[str, Any]) -> dict[str, Any]:
