@@ -95,48 +95,41 @@ def four_legged_figurine(soles: bool = True) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, mesh.faces)
 
 
-def standing_figure() -> trimesh.Trimesh:
-    """A figure standing on two legs: an ellipsoid body (48 x 30 x 80 mm), a head on top, two legs
-    parted like a person's, each ending in a small flat sole (about 100 mm^2); 133 mm high. Lying
-    on its front or back it touches the table along a longer strip than its soles."""
+def figure_on_two_legs(arms_out: bool, subdivisions: int) -> trimesh.Trimesh:
+    """An ellipsoid body (48 x 30 x 80 mm) with a head on top and two legs parted like a person's, each
+    ending in a small flat sole (about 100 mm^2); with ``arms_out`` two arms about 13 mm thick stretched
+    out sideways; an icosphere of ``subdivisions`` made radial."""
     axes = np.array([24.0, 15.0, 40.0])
 
     def radius(d: np.ndarray) -> np.ndarray:
         body = 1.0 / np.sqrt(((d / axes) ** 2).sum(axis=1))
-        legs = np.zeros(len(d))
+        limbs = np.zeros(len(d))
         for side in (-1, 1):
             leg = np.array([0.35 * side, 0.0, -0.94]) / np.hypot(0.35, 0.94)
-            legs = np.maximum(legs, 45.0 * np.exp(-((np.arccos(np.clip(d @ leg, -1, 1)) / 0.13) ** 4)))
+            limbs = np.maximum(limbs, 45.0 * np.exp(-((np.arccos(np.clip(d @ leg, -1, 1)) / 0.13) ** 4)))
+            if arms_out:
+                arm = np.array([side * 0.94, 0.0, 0.34]) / np.hypot(0.94, 0.34)
+                limbs = np.maximum(limbs, 62.0 * np.exp(-((np.arccos(np.clip(d @ arm, -1, 1)) / 0.09) ** 4)))
         head = 22.0 * np.exp(-((np.arccos(np.clip(d[:, 2], -1, 1)) / 0.3) ** 2))
-        return body + legs + head
+        return body + limbs + head
 
-    mesh = radial(radius)
+    mesh = radial(radius, subdivisions)
     vertices = mesh.vertices.copy()
     vertices[:, 2] = np.maximum(vertices[:, 2], vertices[:, 2].min() + 8.0)
     return trimesh.Trimesh(vertices, mesh.faces)
+
+
+def standing_figure() -> trimesh.Trimesh:
+    """A figure standing on two legs (:func:`figure_on_two_legs`), 133 mm high. Lying on its front or
+    back it touches the table along a longer strip than its soles."""
+    return figure_on_two_legs(arms_out=False, subdivisions=6)
 
 
 def figure_arms_out() -> trimesh.Trimesh:
-    """:func:`standing_figure` with its arms stretched out sideways (a T pose), the arms about 13 mm
-    thick; 212 mm across. Each hand lies about a fifth farther from the base (a sole, grown up its leg
-    for the wiring), along the surface, than the top of the head."""
-    axes = np.array([24.0, 15.0, 40.0])
-
-    def radius(d: np.ndarray) -> np.ndarray:
-        body = 1.0 / np.sqrt(((d / axes) ** 2).sum(axis=1))
-        extra = np.zeros(len(d))
-        for side in (-1, 1):
-            leg = np.array([0.35 * side, 0.0, -0.94]) / np.hypot(0.35, 0.94)
-            extra = np.maximum(extra, 45.0 * np.exp(-((np.arccos(np.clip(d @ leg, -1, 1)) / 0.13) ** 4)))
-            arm = np.array([side * 0.94, 0.0, 0.34]) / np.hypot(0.94, 0.34)
-            extra = np.maximum(extra, 62.0 * np.exp(-((np.arccos(np.clip(d @ arm, -1, 1)) / 0.09) ** 4)))
-        head = 22.0 * np.exp(-((np.arccos(np.clip(d[:, 2], -1, 1)) / 0.3) ** 2))
-        return body + extra + head
-
-    mesh = radial(radius, subdivisions=7)
-    vertices = mesh.vertices.copy()
-    vertices[:, 2] = np.maximum(vertices[:, 2], vertices[:, 2].min() + 8.0)
-    return trimesh.Trimesh(vertices, mesh.faces)
+    """The standing figure with its arms stretched out sideways (a T pose), 212 mm across. Each hand lies
+    about a fifth farther from the base (a sole, grown up its leg for the wiring), along the surface,
+    than the top of the head."""
+    return figure_on_two_legs(arms_out=True, subdivisions=7)
 
 
 def lying_spoon() -> trimesh.Trimesh:
