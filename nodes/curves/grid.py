@@ -5,18 +5,21 @@ The surface where curves may run, everything but the base and its exclusion, is 
 object, and its rim is the base's. Two ends and two sides split the rim as a rectangle's corners
 would: each end is the ``end_share`` of the rim's length around the rim point farthest along the
 disc's principal axis (area-weighted, one end at either extreme), the sides are what lies between.
-Two harmonic functions on the disc (cotan Laplacian, no flux through the boundary where no value is
-set) are the two coordinates of its conformal map onto a rectangle, up to discretisation:
+Two functions on the disc are its coordinates, each the share of the way from one arc to the
+opposite one, ``d0 / (d0 + d1)`` with ``d0``, ``d1`` the geodesic distances within the disc (heat
+method) from the two arcs:
 
 * ``across`` is 0 on one end and 1 on the other; its level sets run from side to side, across the
   principal axis;
 * ``along`` is 0 on one side and 1 on the other; its level sets run from end to end.
 
-Level sets of one function never meet, and a level set of each meets one of the other once, at a
-right angle: on a slender or flat object (a sword, a plate's top, a spoon's bowl) that is a touch
-panel's grid, with no pole where the lines of one layer crowd. The levels are evenly spread, and a
-few more pass through the points farthest from the lines before them (where the conformal map
-shrinks the surface); every curve has both ends on the rim and runs the way the other function
+Level sets of one function never meet, and on a slender or flat object (a sword, a plate's top, a
+spoon's bowl, a boat's deck) a level set of each meets one of the other once: a touch panel's grid,
+with no pole where the lines of one layer crowd. Evenly spread levels are evenly spread on the
+surface along the shortest way between the two arcs (where ``d0 + d1`` is constant the share grows
+with ``d0``), where the disc narrows as where it is wide (the coordinates of a conformal map crowd
+their lines where it narrows). A few more levels pass through the points farthest from the
+lines before them; every curve has both ends on the rim and runs the way the other function
 grows. A level set that the disc's other boundary loops (holes where the base encloses a cut-off
 region) break into pieces keeps each piece with an end on the rim, starting there.
 ``curves.trace_grid`` computes both families once; ``curves.grid_layers`` (one branch per choice)
@@ -26,6 +29,7 @@ lines, which start on it, as ``fab.unfold`` expects. Units: mm.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -34,7 +38,6 @@ from pydantic import Field
 from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import CurveEnd, CurveSet, Mesh
-from ..geometry.harmonic import harmonic_interpolation
 from ..geometry.mesh_tables import MeshTables, build_tables
 from .assembly import polyline_rows, reversed_rows, reversed_walk
 from .ring_levels import LevelSets, reseeded_levels
@@ -107,17 +110,32 @@ def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share:
     return rim[end_a], rim[end_b], rim[side_c], rim[side_d]
 
 
-def disc_function(tables: MeshTables, domain: np.ndarray, zero: np.ndarray, one: np.ndarray) -> np.ndarray:
-    """``(n,)`` harmonic on the faces ``domain``, 0 at the vertices ``zero`` and 1 at ``one`` (no flux
-    through the rest of its boundary); NaN off the domain."""
+def disc_distances(tables: MeshTables, domain: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """A function of vertex ids: the ``(n,)`` geodesic distances (heat method, mm) from them within the
+    faces ``domain`` alone; NaN off the domain. One factorisation serves every call."""
+    import potpourri3d as pp3d  # heavy: imported when used, not on node discovery
+
     used, local = np.unique(tables.faces[domain], return_inverse=True)
     index = np.full(len(tables.vertices), -1, dtype=np.int64)
     index[used] = np.arange(len(used))
-    fixed = np.r_[index[zero], index[one]]
-    values = np.r_[np.zeros(len(zero)), np.ones(len(one))]
-    u = np.full(len(tables.vertices), np.nan)
-    u[used] = harmonic_interpolation(tables.vertices[used], local.reshape(-1, 3), fixed, values)
-    return u
+    solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices[used], local.reshape(-1, 3))
+
+    def distances(sources: np.ndarray) -> np.ndarray:
+        d = np.full(len(tables.vertices), np.nan)
+        d[used] = np.maximum(solver.compute_distance_multisource(index[sources]), 0.0)
+        d[sources] = 0.0
+        return d
+
+    return distances
+
+
+def distance_share(distances: Callable[[np.ndarray], np.ndarray], zero: np.ndarray, one: np.ndarray) -> np.ndarray:
+    """``(n,)`` ``d0 / (d0 + d1)`` of the :func:`disc_distances` from the vertices ``zero`` and from
+    ``one``: 0 on ``zero``, 1 on ``one``, in [0, 1]; NaN where those are."""
+    d0, d1 = distances(zero), distances(one)
+    total = d0 + d1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0.0, d0 / total, np.nan)
 
 
 def level_curves(tables: MeshTables, sets: LevelSets, other: np.ndarray, on_rim: np.ndarray, levels: np.ndarray) -> list:
@@ -157,8 +175,9 @@ def trace_grid(params: TraceGridParams, mesh: Mesh, regions) -> dict[str, object
         raise UserError(f"curves.trace_grid: the surface around the base has no rim to wire a grid to; {NO_GRID}")
     rim = loops[0]
     end_a, end_b, side_c, side_d = rim_arcs(tables, domain, rim, params.end_share)
-    across = disc_function(tables, domain, end_a, end_b)
-    along = disc_function(tables, domain, side_c, side_d)
+    distances = disc_distances(tables, domain)
+    across = distance_share(distances, end_a, end_b)
+    along = distance_share(distances, side_c, side_d)
     on_rim = np.zeros(len(tables.vertices), dtype=bool)
     on_rim[rim] = True
     families = {}
