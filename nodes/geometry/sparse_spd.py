@@ -1,5 +1,6 @@
 """Sparse symmetric positive definite systems, the Laplacian-like ones every stage solves: one
-supernodal Cholesky factorisation (cholespy) reused for any number of right-hand sides."""
+Cholesky factorisation (cholespy: CHOLMOD's simplicial LL' factor on a nested-dissection ordering)
+reused for any number of right-hand sides."""
 from __future__ import annotations
 
 import numpy as np
