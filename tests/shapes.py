@@ -62,6 +62,21 @@ def box() -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices, faces)
 
 
+def phone() -> trimesh.Trimesh:
+    """A phone-sized slab, 150 x 75 x 8 mm, its four upright edges rounded (8 mm radius), its faces
+    subdivided to about 3 mm edges: a thin object whose top is a wide flat disc for the grid."""
+    mesh = trimesh.creation.box(extents=(150.0, 75.0, 8.0))
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=3.0)
+    inner = np.array([150.0 / 2 - 8.0, 75.0 / 2 - 8.0])
+    xy = vertices[:, :2]
+    nearest = np.clip(xy, -inner, inner)  # the point of the inset rectangle nearest each vertex
+    offset = xy - nearest
+    reach = np.linalg.norm(offset, axis=1)
+    corner = reach > 1e-9
+    xy[corner] = nearest[corner] + offset[corner] / reach[corner, None] * np.minimum(reach[corner], 8.0)[:, None]
+    return trimesh.Trimesh(vertices, faces)
+
+
 def radial(direction_radius: Callable[[np.ndarray], np.ndarray], subdivisions: int = 6) -> trimesh.Trimesh:
     """An icosphere whose vertex in unit direction ``d`` moves to ``direction_radius(d) * d``."""
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
@@ -210,6 +225,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "metal_spoon": metal_spoon,
     "bust_cut_base": bust_with_cut_base,
     "box": box,
+    "phone": phone,
     "vase": vase,
     "point_cloud_scan": point_cloud_scan,
 }
