@@ -68,7 +68,7 @@ def phone() -> trimesh.Trimesh:
     mesh = trimesh.creation.box(extents=(150.0, 75.0, 8.0))
     vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=3.0)
     inner = np.array([150.0 / 2 - 8.0, 75.0 / 2 - 8.0])
-    xy = vertices[:, :2]
+    xy = vertices[:, :2]  # a view: moving it moves the vertices
     nearest = np.clip(xy, -inner, inner)  # the point of the inset rectangle nearest each vertex
     offset = xy - nearest
     reach = np.linalg.norm(offset, axis=1)

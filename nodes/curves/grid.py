@@ -131,7 +131,7 @@ def disc_distances(tables: MeshTables, domain: np.ndarray) -> Callable[[np.ndarr
 
 def distance_share(distances: Callable[[np.ndarray], np.ndarray], zero: np.ndarray, one: np.ndarray) -> np.ndarray:
     """``(n,)`` ``d0 / (d0 + d1)`` of the :func:`disc_distances` from the vertices ``zero`` and from
-    ``one``: 0 on ``zero``, 1 on ``one``, in [0, 1]; NaN where those are."""
+    ``one``: 0 on ``zero``, 1 on ``one``, in [0, 1]; NaN off the domain."""
     d0, d1 = distances(zero), distances(one)
     total = d0 + d1
     with np.errstate(invalid="ignore", divide="ignore"):
