@@ -65,15 +65,16 @@ def box() -> trimesh.Trimesh:
 def phone() -> trimesh.Trimesh:
     """A phone-sized slab, 150 x 75 x 8 mm, its four upright edges rounded (8 mm radius), its faces
     subdivided to about 3 mm edges: a thin object whose top is a wide flat disc for the grid."""
-    mesh = trimesh.creation.box(extents=(150.0, 75.0, 8.0))
+    length, width, corner_radius = 150.0, 75.0, 8.0
+    mesh = trimesh.creation.box(extents=(length, width, 8.0))
     vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=3.0)
-    inner = np.array([150.0 / 2 - 8.0, 75.0 / 2 - 8.0])
+    inner = np.array([length / 2 - corner_radius, width / 2 - corner_radius])
     xy = vertices[:, :2]  # a view: moving it moves the vertices
     nearest = np.clip(xy, -inner, inner)  # the point of the inset rectangle nearest each vertex
     offset = xy - nearest
     reach = np.linalg.norm(offset, axis=1)
     corner = reach > 1e-9
-    xy[corner] = nearest[corner] + offset[corner] / reach[corner, None] * np.minimum(reach[corner], 8.0)[:, None]
+    xy[corner] = nearest[corner] + offset[corner] / reach[corner, None] * np.minimum(reach[corner], corner_radius)[:, None]
     return trimesh.Trimesh(vertices, faces)
 
 
