@@ -2,29 +2,38 @@
 touch panel, with no pole.
 
 The surface where curves may run, everything but the base and its exclusion, is a disc on a genus-0
-object, and its rim is the base's. Two ends and two sides split the rim as a rectangle's corners
-would: each end is the ``end_share`` of the rim's length around the rim point farthest along the
-disc's principal axis (area-weighted, one end at either extreme), the sides are what lies between.
-Two functions on the disc are its coordinates, each the share of the way from one arc to the
-opposite one, ``d0 / (d0 + d1)`` with ``d0``, ``d1`` the geodesic distances within the disc (heat
-method) from the two arcs:
+object, and its rim is the base's. The grid's lines are the level sets of two functions on the disc,
+its coordinates, ``across`` (its level sets run across the disc's principal axis) and ``along``
+(they run along it), each from 0 to 1, in one of two kinds (``coordinates``):
 
-* ``across`` is 0 on one end and 1 on the other; its level sets run from side to side, across the
-  principal axis;
-* ``along`` is 0 on one side and 1 on the other; its level sets run from end to end.
+* ``geodesic``: two ends and two sides split the rim as a rectangle's corners would: each end is the
+  ``end_share`` of the rim's length around the rim point farthest along the principal axis
+  (area-weighted, one end at either extreme), the sides are what lies between. Each coordinate is the
+  share of the way from one arc to the opposite one, ``d0 / (d0 + d1)`` with ``d0``, ``d1`` the
+  geodesic distances within the disc (heat method) from the two arcs: ``across`` is 0 on one end and
+  1 on the other, ``along`` 0 on one side and 1 on the other. Evenly spread levels are evenly spread
+  on the surface along the shortest way between the two arcs (where ``d0 + d1`` is constant the share
+  grows with ``d0``), where the disc narrows as where it is wide (the coordinates of a conformal map
+  crowd their lines where it narrows). The lines follow a slender disc that bends (a curved blade).
+* ``plan``: the position in the table's plane, as the object is seen from above in its resting pose:
+  ``across`` along the horizontal principal axis of the disc, ``along`` across it, each scaled to
+  [0, 1] over the disc. On a top seen once from above (an airplane's, a starfish's: a top whose arms
+  point several ways, which no two rim arcs span) a level set of each meets one of the other at most
+  once wherever the two lie on the disc, and evenly spread levels are evenly spread lines in plan;
+  where the disc folds under itself (a round object's sides) a pair may meet twice, which phase 1
+  never selects together.
 
 Level sets of one function never meet, and on a slender or flat object (a sword, a plate's top, a
 spoon's bowl, a boat's deck) a level set of each meets one of the other once: a touch panel's grid,
-with no pole where the lines of one layer crowd. Evenly spread levels are evenly spread on the
-surface along the shortest way between the two arcs (where ``d0 + d1`` is constant the share grows
-with ``d0``), where the disc narrows as where it is wide (the coordinates of a conformal map crowd
-their lines where it narrows). A few more levels pass through the points farthest from the
-lines before them; every curve has both ends on the rim and runs the way the other function
-grows. A level set that the disc's other boundary loops (holes where the base encloses a cut-off
-region) break into pieces keeps each piece with an end on the rim, starting there.
-``curves.trace_grid`` computes both families once; ``curves.grid_layers`` (one branch per choice)
-makes one of them the Tx lines, walked backwards so that they end on the rim, and the other the Rx
-lines, which start on it, as ``fab.unfold`` expects. Units: mm.
+with no pole where the lines of one layer crowd. A few more levels pass through the points farthest
+from the lines before them; every curve has an end on the rim, both where it can, and runs the way
+the other function grows. A level set that the disc's boundary breaks into pieces (the other arms of
+a plan's top, holes where the base encloses a cut-off region) keeps each piece with an end on the
+rim, starting there; each piece is a candidate of its own. ``curves.trace_grid`` computes both
+families once; ``curves.grid_layers`` (one branch per choice) makes one of them the Tx lines, walked
+backwards so that they end on the rim, and the other the Rx lines, which start on it, as
+``fab.unfold`` expects. The family is ``grid`` with geodesic coordinates, ``grid_plan`` with plan
+ones. Units: mm.
 """
 from __future__ import annotations
 
@@ -53,7 +62,10 @@ class TraceGridParams(NodeParams):
     n_across: int = Field(40, ge=1, description="evenly spread lines across the principal axis (level sets of 'across')")
     n_along: int = Field(24, ge=1, description="evenly spread lines along the principal axis (level sets of 'along')")
     n_reseeded: int = Field(8, ge=0, description="more lines of each family, each through the point farthest from the lines before it")
-    end_share: float = Field(0.1, gt=0.0, lt=0.5, description="each end's share of the rim's length")
+    end_share: float = Field(0.1, gt=0.0, lt=0.5, description="geodesic coordinates: each end's share of the rim's length")
+    coordinates: Literal["geodesic", "plan"] = Field(
+        "geodesic", description="the grid's coordinates: shares of geodesic distance between rim arcs, or the position "
+        "in the table's plane seen from above")
 
 
 class GridLayersParams(NodeParams):
@@ -89,10 +101,8 @@ def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share:
     lowest and highest along the domain's principal axis, each ``end_share`` of the rim's length;
     ``side_c`` follows ``end_a`` along the rim (domain on the left), ``side_d`` follows ``end_b``."""
     centroids = tables.vertices[tables.faces[domain]].mean(axis=1)
-    weights = tables.areas[domain] / tables.areas[domain].sum()
-    centre = weights @ centroids
-    spread = (centroids - centre).T @ ((centroids - centre) * weights[:, None])
-    axis = np.linalg.eigh(spread)[1][:, -1]
+    centre = tables.areas[domain] @ centroids / tables.areas[domain].sum()
+    axis = principal_axis(tables, domain)
     step = np.linalg.norm(tables.vertices[np.roll(rim, -1)] - tables.vertices[rim], axis=1)
     arc = np.r_[0.0, np.cumsum(step)[:-1]]
     length = step.sum()
@@ -108,6 +118,33 @@ def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share:
     side_c = ~end_a & ~end_b & (from_a < from_a[b])
     side_d = ~end_a & ~end_b & ~side_c
     return rim[end_a], rim[end_b], rim[side_c], rim[side_d]
+
+
+def principal_axis(tables: MeshTables, domain: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
+    """The unit axis along which the faces ``domain`` spread most (area-weighted centroids), within the
+    plane perpendicular to the unit ``normal`` when one is given."""
+    centroids = tables.vertices[tables.faces[domain]].mean(axis=1)
+    if normal is not None:
+        centroids = centroids - np.outer(centroids @ normal, normal)
+    weights = tables.areas[domain] / tables.areas[domain].sum()
+    centre = weights @ centroids
+    spread = (centroids - centre).T @ ((centroids - centre) * weights[:, None])
+    return np.linalg.eigh(spread)[1][:, -1]
+
+
+def plan_coordinates(tables: MeshTables, domain: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(across, along)`` per vertex: the position along the horizontal principal axis of the faces
+    ``domain`` (``up``: the unit vertical) and across it, seen from above, each scaled to [0, 1] over the
+    domain's vertices; NaN off the domain."""
+    axis = principal_axis(tables, domain, up)
+    used = np.unique(tables.faces[domain])
+    coordinates = []
+    for direction in (axis, np.cross(up, axis)):
+        x = tables.vertices[used] @ direction
+        u = np.full(len(tables.vertices), np.nan)
+        u[used] = (x - x.min()) / max(float(np.ptp(x)), 1e-12)
+        coordinates.append(u)
+    return coordinates[0], coordinates[1]
 
 
 def disc_distances(tables: MeshTables, domain: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -174,10 +211,14 @@ def trace_grid(params: TraceGridParams, mesh: Mesh, regions) -> dict[str, object
     if not loops or len(loops[0]) < 8:
         raise UserError(f"curves.trace_grid: the surface around the base has no rim to wire a grid to; {NO_GRID}")
     rim = loops[0]
-    end_a, end_b, side_c, side_d = rim_arcs(tables, domain, rim, params.end_share)
-    distances = disc_distances(tables, domain)
-    across = distance_share(distances, end_a, end_b)
-    along = distance_share(distances, side_c, side_d)
+    if params.coordinates == "plan":
+        across, along = plan_coordinates(tables, domain, np.asarray(regions.up, dtype=np.float64))
+    else:
+        end_a, end_b, side_c, side_d = rim_arcs(tables, domain, rim, params.end_share)
+        distances = disc_distances(tables, domain)
+        across = distance_share(distances, end_a, end_b)
+        along = distance_share(distances, side_c, side_d)
+    family = "grid_plan" if params.coordinates == "plan" else "grid"
     on_rim = np.zeros(len(tables.vertices), dtype=bool)
     on_rim[rim] = True
     families = {}
@@ -187,7 +228,7 @@ def trace_grid(params: TraceGridParams, mesh: Mesh, regions) -> dict[str, object
         rows = level_curves(tables, sets, other, on_rim, levels)
         if not rows:
             raise UserError(f"curves.trace_grid: no line {name} the surface reaches the rim; {NO_GRID}")
-        families[name] = pack(tables, rows, np.full(len(rows), int(CurveEnd.BASE), dtype=np.int8), 0.0, "grid")
+        families[name] = pack(tables, rows, np.full(len(rows), int(CurveEnd.BASE), dtype=np.int8), 0.0, family)
     return families
 
 
@@ -199,5 +240,5 @@ def grid_layers(params: GridLayersParams, mesh: Mesh, across: CurveSet, along: C
     tx, rx = (across, along) if params.tx == "across" else (along, across)
     rows = [reversed_rows(tables, tx.faces[tx.curve(c)], tx.bary[tx.curve(c)]) for c in range(tx.count)]
     angle = 0.0 if params.tx == "across" else 0.5 * np.pi
-    tx = dataclasses.replace(pack(tables, rows, tx.end_reason, angle, "grid"), layer="tx")
+    tx = dataclasses.replace(pack(tables, rows, tx.end_reason, angle, tx.family), layer="tx")
     return {"tx": tx, "rx": dataclasses.replace(rx, angle=angle)}

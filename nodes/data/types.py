@@ -60,7 +60,7 @@ class CurveSet:
     end_reason: np.ndarray  # (C,) int8, CurveEnd codes
     angle: float  # Rx initial angular offset (dipole), corridor position (rings), 0 / pi winding left / right (helices), in radians; 0.0 for Tx
     # "field" (Tx lines), "dipole" (Rx dipole loops), "rings" / "rings_tx" (Rx rings, legs side by side / on Tx lines),
-    # "helices", "grid"; rings and helices on the per-line climb add "_per_line"
+    # "helices", "grid" / "grid_plan" (geodesic / plan coordinates); rings and helices on the per-line climb add "_per_line"
     family: str = "field"
     # Tx: (C,) int64, the field line each lane copies up to where it turns beside another line
     # (``curves.tx_lanes``), -1 for the field lines themselves; None when the family has no lanes

@@ -114,7 +114,7 @@ class AngleLayout:
     """One branch of the sweep (an Rx family at one angle, around one Tx pole): its layout (None if
     infeasible), metrics, and the regions it was laid out on (their ``tx_pole``)."""
 
-    family: str  # the Rx family (CurveSet.family), "grid" with Tx lines of its own
+    family: str  # the Rx family (CurveSet.family), "grid" or "grid_plan" with Tx lines of its own
     angle_deg: float  # the dipole's angle offset, the rings' corridor position around the Tx pole, 0 / 180 for left- / right-handed helices, or 0 / 90 for the grid's lines across / along as Tx
     feasible: bool
     message: str
