@@ -186,6 +186,20 @@ def metal_spoon() -> trimesh.Trimesh:
     return swept(vertices, n, k, caps)
 
 
+def starfish() -> trimesh.Trimesh:
+    """A starfish toy lying on the table: five arms reaching 80 mm from the middle of a 30 mm core,
+    20 mm thick in the middle and 10 mm at the arms' tips, rounded all over: a lying top whose arms
+    point five ways."""
+    def radius(d: np.ndarray) -> np.ndarray:
+        arm = np.abs(np.cos(2.5 * np.arctan2(d[:, 1], d[:, 0]))) ** 4
+        flat = np.hypot(d[:, 0], d[:, 1])
+        half_thickness = 10.0 - 5.0 * arm
+        reach = 30.0 + 50.0 * arm  # mm in the table's plane
+        return 1.0 / np.sqrt((flat / reach) ** 2 + (d[:, 2] / half_thickness) ** 2)
+
+    return radial(radius)
+
+
 def swept(vertices: np.ndarray, sections: int, size: int, caps: np.ndarray) -> trimesh.Trimesh:
     """A closed mesh from ``sections`` closed cross-sections of ``size`` points each (the first
     ``sections * size`` rows of ``vertices``, section by section), consecutive ones joined by quads
@@ -227,6 +241,7 @@ CLASSES: dict[str, Callable[[], trimesh.Trimesh | np.ndarray]] = {
     "bust_cut_base": bust_with_cut_base,
     "box": box,
     "phone": phone,
+    "starfish": starfish,
     "vase": vase,
     "point_cloud_scan": point_cloud_scan,
 }

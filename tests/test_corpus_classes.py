@@ -37,6 +37,7 @@ EXPECTED_POSE = {
     "bust_cut_base": "flat",
     "box": "flat",
     "phone": "thin",
+    "starfish": "thin",
     "vase": "flat",
     "point_cloud_scan": "flat",
 }

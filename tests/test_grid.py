@@ -5,12 +5,13 @@ import dataclasses
 
 import numpy as np
 import pytest
+import shapes
 from curves_fixture import bunny, load_scaled, regions_for
 
 from retrotouch.graph.errors import UserError
 from retrotouch.nodes.curves.crossings import CrossingsParams, crossings
 from retrotouch.nodes.curves.grid import (GridLayersParams, TraceGridParams, boundary_loops, disc_distances, distance_share,
-                                          grid_layers, rim_arcs, trace_grid)
+                                          grid_layers, plan_coordinates, principal_axis, rim_arcs, trace_grid)
 from retrotouch.nodes.data.types import CurveEnd
 from retrotouch.nodes.geometry.mesh_tables import build_tables
 
@@ -162,3 +163,29 @@ def test_a_strip_narrower_than_a_finger_still_gets_lines_across(tmp_path):
     axis = np.argmax(np.ptp(mesh.vertices, axis=0))
     spread = np.sort(centres[:, axis])
     assert spread[-1] - spread[0] > 0.8 * np.ptp(mesh.vertices[:, axis])  # along the whole strip
+
+
+def test_plan_coordinates_are_the_position_seen_from_above_and_their_lines_plane_cuts(tmp_path):
+    # A starfish lying on the table: each coordinate is the position along a horizontal axis scaled to
+    # [0, 1] over the disc, so its level sets are the disc cut by vertical planes, one piece per arm
+    # they pass through, each a candidate of its own.
+    path = shapes.write_shape("starfish", tmp_path)
+    mesh = load_scaled(path, diagonal_mm=shapes.diagonal_mm("starfish"), target_vertices=4000)
+    regions = regions_for(mesh)
+    tables = build_tables(mesh.vertices, mesh.faces)
+    domain = ~(regions.base_faces | regions.exclusion_base)
+    inside = np.unique(tables.faces[domain])
+    for u in plan_coordinates(tables, domain, regions.up):
+        assert np.isnan(np.delete(u, inside)).all()
+        assert u[inside].min() == 0.0 and u[inside].max() == 1.0
+    axis = principal_axis(tables, domain, regions.up)
+    assert abs(axis @ regions.up) < 1e-9 and abs(np.linalg.norm(axis) - 1.0) < 1e-9
+    params = TraceGridParams(coordinates="plan")
+    families = trace_grid(params, mesh, regions)
+    for name, direction, n in (("across", axis, params.n_across), ("along", np.cross(regions.up, axis), params.n_along)):
+        curves = families[name]
+        assert curves.family == "grid_plan"
+        positions = np.array([np.ptp(curves.points[curves.curve(c)] @ direction) for c in range(curves.count)])
+        assert positions.max() < 1e-6  # each line lies in one vertical plane
+        levels = np.unique(np.round([curves.points[curves.curve(c)][0] @ direction for c in range(curves.count)], 6))
+        assert len(levels) <= n + params.n_reseeded < curves.count  # levels through two arms give two pieces
