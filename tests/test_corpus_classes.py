@@ -102,8 +102,9 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
         top = detect_regions(RegionParams(tx_pole="top"), mesh, touch_of(mesh))
         share = lambda v: (height[v] - height.min()) / np.ptp(height)  # noqa: E731
         assert share(regions.far_vertex) < 0.85 and share(top.far_vertex) > 0.95
-    if name == "phone":  # a wide flat top: the grid's lines spread over it like a touch panel's (6.5 mm, the helices 24 mm)
-        assert metrics["rx_family"] == "grid" and metrics["coverage_radius_mm"] < 10.0, metrics["coverage_radius_mm"]
+    if name == "phone":  # a wide flat top: a grid's lines spread over it like a touch panel's (the plan's 7.0 mm, the
+        # geodesic one's 6.5 mm, the helices 24 mm)
+        assert metrics["rx_family"] in ("grid", "grid_plan") and metrics["coverage_radius_mm"] < 10.0, metrics["coverage_radius_mm"]
     assert metrics["pads"] >= 10 and metrics["cells"] >= 20, (metrics["pads"], metrics["cells"])
 
 
