@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from retrotouch.nodes.data.sensing_map import load_sensing_map
@@ -54,6 +54,11 @@ def damaged_stream(seed: int, sigma: float, damage: list[tuple[bool, int, bytes]
 @given(st.integers(0, 10_000), st.sampled_from([1.0, 3.0, 8.0]),
        st.lists(st.tuples(st.booleans(), st.integers(0, 253), st.binary(max_size=40)), min_size=4, max_size=4),
        st.lists(st.integers(0, 20_000), max_size=12))
+# a frame cut from the tail of the frame before the garbage and the garbage passed every check
+@example(97, 8.0, [(False, 0, b"")] * 4, [])
+# on a quiet board an offset a byte off looks as steady as the boundary
+@example(2676, 1.0, [(True, 93, b""), (True, 8, b""), (False, 41, b"I\xbc\xf5m\xbf_R\xf4\x1f\x88\xdff\xb4\xfd02"),
+                     (True, 55, b"")], [510, 4199, 14031, 18432, 19662, 13424, 2937, 6724, 4827, 2186, 8920])
 def test_binary_alignment_survives_dropped_bytes_and_garbage(seed, sigma, damage, cuts):
     """Never a wrong frame (each one is the board's, in order); at most 2 frames lost per incident."""
     chunks, truth, incidents = damaged_stream(seed, sigma, damage, cuts)

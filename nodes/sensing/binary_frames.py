@@ -13,11 +13,17 @@ which changes with the noise of that cell and so jumps by multiples of 256 count
 * A frame is released once the next frame's two header bytes confirm the boundary (or, on
   :meth:`flush`, when the stream pauses and the frame checks out on its own); so a dropped byte
   never releases a frame whose tail is shifted: the frame it falls in is dropped.
+* A frame that checks out on its own but not with the next frame's header (garbage follows it, or it
+  holds a byte of the next frame after a lost one) is dropped whole before the search, when a frame
+  before it was confirmed: no frame starts inside it (a "frame" cut from its tail and what follows can
+  pass every check by chance; a frame it held the start of is lost, at most two per incident).
 * A frame that fails sends the parser searching: over ``SEARCH_FRAMES`` frames' worth of bytes it
-  tries every offset up to two frames and, among those whose frames all pass, locks on the first
-  whose minimum is near the last one seen (within ``4 BASE_STEP``), then with the fewest changes
-  of the minimum's high byte, then not below 256 counts, then with the smallest total change; the bytes before it are counted in ``stats.dropped_bytes``, each loss of lock in
-  ``stats.resyncs``. A noise-free stream (every cell constant) would leave the offset ambiguous.
+  tries every offset up to two frames and, among those whose frames all pass (of two a frame apart,
+  the first), locks on the first whose minimum is near the last one seen (within ``4 BASE_STEP``),
+  then very near it (within ``BASE_STEP / 4``: on a quiet board an offset a byte off can look as
+  steady as the boundary), then with the fewest changes of the minimum's high byte, then not below
+  256 counts, then with the smallest total change; the bytes before it are counted in
+  ``stats.dropped_bytes``, each loss of lock in ``stats.resyncs``. A noise-free stream (every cell constant) would leave the offset ambiguous.
 """
 from __future__ import annotations
 
@@ -60,8 +66,12 @@ class BinaryFrameParser:
                 return frames
             if len(self._pending) < n + 2:
                 return frames
-            frame = self._checked(bytes(self._pending[:n]), (self._pending[n] << 8) | self._pending[n + 1])
+            chunk = bytes(self._pending[:n])
+            frame = self._checked(chunk, (self._pending[n] << 8) | self._pending[n + 1])
             if frame is None:
+                if self._base is not None and self._plausible(chunk):
+                    self.stats.dropped_bytes += n
+                    del self._pending[:n]
                 self._lose_lock()
                 continue
             del self._pending[:n]
@@ -86,14 +96,20 @@ class BinaryFrameParser:
         self._locked = True  # after a pause the board starts its next frame on a boundary
         return frames
 
+    def _plausible(self, chunk: bytes, next_base: int | None = None) -> bool:
+        """Whether ``chunk`` can be a frame after the last one and before the next frame's minimum
+        ``next_base`` (when known)."""
+        base = (chunk[0] << 8) | chunk[1]
+        return bool(np.frombuffer(chunk, dtype=np.uint8, offset=2).min() == 0
+                    and (self._base is None or abs(base - self._base) <= BASE_STEP)
+                    and (next_base is None or abs(next_base - base) <= BASE_STEP))
+
     def _checked(self, chunk: bytes, next_base: int | None = None) -> np.ndarray | None:
-        """The oriented frame of ``chunk`` if it is plausible after the last frame and before the
-        next frame's minimum ``next_base`` (when known); sets the last frame's minimum."""
+        """The oriented frame of ``chunk`` if it is :meth:`_plausible`; sets the last frame's minimum."""
+        if not self._plausible(chunk, next_base):
+            return None
         base = (chunk[0] << 8) | chunk[1]
         payload = np.frombuffer(chunk, dtype=np.uint8, offset=2)
-        if (payload.min() != 0 or (self._base is not None and abs(base - self._base) > BASE_STEP)
-                or (next_base is not None and abs(next_base - base) > BASE_STEP)):
-            return None
         self._base = self._last_base = base
         self.stats.frames += 1
         return self.options.orient(base + payload.astype(np.int64))
@@ -122,6 +138,7 @@ class BinaryFrameParser:
             steps = np.abs(np.diff(bases, axis=1))
             passing = np.flatnonzero(np.all(payload_min == 0, axis=1) & np.all(steps <= BASE_STEP, axis=1))
             if len(passing):
+                passing = passing[np.unique(passing % n, return_index=True)[1]]  # one alignment: its first frame
                 break
             self.stats.dropped_bytes += n
             del self._pending[:n]
@@ -132,9 +149,12 @@ class BinaryFrameParser:
         # what the 0 byte of a steady smallest cell and its neighbour's byte look like.
         high_changes = np.count_nonzero(np.diff(bases[passing] >> 8, axis=1), axis=1)
         tiny = bases[passing, 0] < 256
-        far = (np.zeros(len(passing), dtype=bool) if self._last_base is None
-               else np.abs(bases[passing, 0] - self._last_base) > 4 * BASE_STEP)
-        offset = int(passing[np.lexsort((steps[passing].sum(axis=1), tiny, high_changes, far))[0]])
+        if self._last_base is None:
+            near = far = np.zeros(len(passing), dtype=bool)
+        else:
+            away = np.abs(bases[passing, 0] - self._last_base)
+            near, far = away <= BASE_STEP // 4, away > 4 * BASE_STEP
+        offset = int(passing[np.lexsort((steps[passing].sum(axis=1), tiny, high_changes, ~near, far))[0]])
         self.stats.dropped_bytes += offset
         del self._pending[:offset]
         self._locked = True
