@@ -4,8 +4,9 @@ Runs ``retrotouch run pipelines/retrofit.yaml -S mesh=PATH -S diagonal_mm=D -S v
 fresh process per mesh, a shared cache folder) on every mesh or point cloud in ``--meshes`` (default
 ``../shared/meshes``) and on one generated shape per class of ``tests/shapes.py`` (a plate, a bowl
 with a foot ring, a four-legged figurine, a figure standing on two legs and one with its arms stretched
-out, a lying spoon-like object, a thin metal spoon, a bust with a cut base, a box, a narrow-necked vase,
-a point-cloud scan with holes and fragments; written at their natural size).
+out, a lying spoon-like object, a thin metal spoon, a bust with a cut base, a box, a phone-sized slab, a
+lying starfish, a narrow-necked vase, a point-cloud scan with holes and fragments; written at their
+natural size).
 ``--sizes FILE.json`` maps a mesh file's stem to its bounding-box diagonal in mm (default 170 mm; the
 generated shapes keep their own size). The pose, base and sensing region are read from the run's ``metrics.json``.
 

@@ -111,12 +111,12 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
 def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions(tmp_path: Path) -> None:
     """``-S tx_poles=[far, centre]``: every branch runs around each Tx pole, screened and picked as one
     sweep; the sensing map's pose names the chosen branch's pole and its sensing share is that pole's.
-    (Rings with side-by-side legs, helices and the grid: the other families map the same way.)"""
+    (Rings with side-by-side legs, helices and both grids: the other families map the same way.)"""
     out = run_class(tmp_path, "four_legged_figurine", "tx_poles=[far, centre]", "rx_angles_deg=[]", "ring_legs=[offset]")
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     rows = metrics["angles"]
-    assert sorted(r["tx_pole"] for r in rows) == ["centre"] * 3 + ["far"] * 3  # rings, helices, grid per pole
+    assert sorted(r["tx_pole"] for r in rows) == ["centre"] * 4 + ["far"] * 4  # rings, helices, both grids per pole
     finished = [r for r in rows if r["coverage_radius_mm"] is not None]
     chosen = min(finished, key=lambda r: r["coverage_radius_mm"])
     assert metrics["coverage_radius_mm"] <= chosen["coverage_radius_mm"] + 1.0  # pick_best's radius tolerance
