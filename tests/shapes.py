@@ -187,9 +187,9 @@ def metal_spoon() -> trimesh.Trimesh:
 
 
 def starfish() -> trimesh.Trimesh:
-    """A starfish toy lying on the table: five arms reaching 80 mm from the middle of a 30 mm core,
-    20 mm thick in the middle and 10 mm at the arms' tips, rounded all over: a lying top whose arms
-    point five ways."""
+    """A starfish toy lying on the table: a core 30 mm in radius and five arms reaching 80 mm from its
+    middle, 20 mm thick there and 10 mm at the arms' tips, rounded all over (146 x 153 x 20 mm): a
+    lying top whose arms point five ways."""
     def radius(d: np.ndarray) -> np.ndarray:
         arm = np.abs(np.cos(2.5 * np.arctan2(d[:, 1], d[:, 0]))) ** 4
         flat = np.hypot(d[:, 0], d[:, 1])

@@ -23,7 +23,8 @@ which changes with the noise of that cell and so jumps by multiples of 256 count
   then very near it (within ``BASE_STEP / 4``: on a quiet board an offset a byte off can look as
   steady as the boundary), then with the fewest changes of the minimum's high byte, then not below
   256 counts, then with the smallest total change; the bytes before it are counted in
-  ``stats.dropped_bytes``, each loss of lock in ``stats.resyncs``. A noise-free stream (every cell constant) would leave the offset ambiguous.
+  ``stats.dropped_bytes``, each loss of lock in ``stats.resyncs``. A noise-free stream (every cell
+  constant) would leave the offset ambiguous.
 """
 from __future__ import annotations
 
