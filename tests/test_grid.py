@@ -178,7 +178,7 @@ def test_plan_coordinates_are_the_position_seen_from_above_and_their_lines_plane
     for u in plan_coordinates(tables, domain, regions.up):
         assert np.isnan(np.delete(u, inside)).all()
         assert u[inside].min() == 0.0 and u[inside].max() == 1.0
-    axis = principal_axis(tables, domain, regions.up)
+    _, axis = principal_axis(tables, domain, regions.up)
     assert abs(axis @ regions.up) < 1e-9 and abs(np.linalg.norm(axis) - 1.0) < 1e-9
     params = TraceGridParams(coordinates="plan")
     families = trace_grid(params, mesh, regions)

@@ -100,9 +100,7 @@ def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share:
     """The rim's ``(end_a, end_b, side_c, side_d)`` vertex arcs: the ends centred on the rim vertices
     lowest and highest along the domain's principal axis, each ``end_share`` of the rim's length;
     ``side_c`` follows ``end_a`` along the rim (domain on the left), ``side_d`` follows ``end_b``."""
-    centroids = tables.vertices[tables.faces[domain]].mean(axis=1)
-    centre = tables.areas[domain] @ centroids / tables.areas[domain].sum()
-    axis = principal_axis(tables, domain)
+    centre, axis = principal_axis(tables, domain)
     step = np.linalg.norm(tables.vertices[np.roll(rim, -1)] - tables.vertices[rim], axis=1)
     arc = np.r_[0.0, np.cumsum(step)[:-1]]
     length = step.sum()
@@ -120,23 +118,26 @@ def rim_arcs(tables: MeshTables, domain: np.ndarray, rim: np.ndarray, end_share:
     return rim[end_a], rim[end_b], rim[side_c], rim[side_d]
 
 
-def principal_axis(tables: MeshTables, domain: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
-    """The unit axis along which the faces ``domain`` spread most (area-weighted centroids), within the
-    plane perpendicular to the unit ``normal`` when one is given."""
+def principal_axis(
+    tables: MeshTables, domain: np.ndarray, normal: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(centre, axis)``: the area-weighted centre (mm) of the faces ``domain``'s centroids and the unit
+    axis along which they spread most, both within the plane perpendicular to the unit ``normal`` when
+    one is given."""
     centroids = tables.vertices[tables.faces[domain]].mean(axis=1)
     if normal is not None:
         centroids = centroids - np.outer(centroids @ normal, normal)
     weights = tables.areas[domain] / tables.areas[domain].sum()
     centre = weights @ centroids
     spread = (centroids - centre).T @ ((centroids - centre) * weights[:, None])
-    return np.linalg.eigh(spread)[1][:, -1]
+    return centre, np.linalg.eigh(spread)[1][:, -1]
 
 
 def plan_coordinates(tables: MeshTables, domain: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(across, along)`` per vertex: the position along the horizontal principal axis of the faces
     ``domain`` (``up``: the unit vertical) and across it, seen from above, each scaled to [0, 1] over the
     domain's vertices; NaN off the domain."""
-    axis = principal_axis(tables, domain, up)
+    _, axis = principal_axis(tables, domain, up)
     used = np.unique(tables.faces[domain])
     coordinates = []
     for direction in (axis, np.cross(up, axis)):
