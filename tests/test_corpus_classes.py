@@ -56,16 +56,15 @@ def trimmed_pipeline(folder: Path) -> Path:
 
 
 def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
-    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one ring corridor and climb,
-    one helix winding and climb and one grid, plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
+    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one helix winding and climb and
+    one grid (no rings: the first sweep has none), plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
     mesh_path = shapes.write_shape(name, tmp_path)
     out = tmp_path / "out"
     command = [
         sys.executable, "-m", "retrotouch.nodes", "run", str(trimmed_pipeline(tmp_path)),
         "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
-        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "corridor_turns=[0.0]",
-        "-S", "ring_climbs=[median]", "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
+        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "ring_climbs=[median]", "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
     ]
     for override in overrides:
         command += ["-S", override]
@@ -109,10 +108,12 @@ def test_class_runs_end_to_end_without_overrides(tmp_path: Path, name: str) -> N
 
 
 def test_the_pole_sweep_picks_over_both_tx_poles_and_hands_on_the_chosen_regions(tmp_path: Path) -> None:
-    """``-S tx_poles=[far, centre]``: every branch runs around each Tx pole, screened and picked as one
-    sweep; the sensing map's pose names the chosen branch's pole and its sensing share is that pole's.
-    (Rings with side-by-side legs, helices and both grids: the other families map the same way.)"""
-    out = run_class(tmp_path, "four_legged_figurine", "tx_poles=[far, centre]", "rx_angles_deg=[]", "ring_legs=[offset]")
+    """``-S tx_poles=[far, centre]`` with one ring corridor, as the fallback sweeps: every branch runs around each
+    Tx pole, screened and picked as one sweep; the sensing map's pose names the chosen branch's pole and its
+    sensing share is that pole's. (Rings with side-by-side legs, helices and both grids: the other families
+    map the same way.)"""
+    out = run_class(tmp_path, "four_legged_figurine", "tx_poles=[far, centre]", "rx_angles_deg=[]", "corridor_turns=[0.0]",
+                    "ring_legs=[offset]")
     metrics = json.loads((out / "metrics.json").read_text())
     jsonschema.validate(metrics, METRICS_SCHEMA)
     rows = metrics["angles"]

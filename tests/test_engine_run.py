@@ -192,13 +192,12 @@ def test_default_pipeline_end_to_end(repo, default_run, cli):
     assert manifest["pipeline"]["sha256"] == hashlib.sha256(pipeline.read_bytes()).hexdigest()
     assert all(n["status"] == "ran" for n in manifest["nodes"])
     assert sum(n["node"] == "select" for n in manifest["nodes"]) == 0  # the dipole loops: off unless rx_angles_deg lists angles
-    assert sum(n["node"] == "ring_select" for n in manifest["nodes"]) == 16  # one per ring corridor, kind of legs and climb
+    assert sum(n["node"] == "ring_select" for n in manifest["nodes"]) == 0  # the rings: in the fallback's sweep only
     assert sum(n["node"] == "helix_select" for n in manifest["nodes"]) == 4  # one per winding sense and climb
     assert sum(n["node"] == "grid_select" for n in manifest["nodes"]) == 4  # geodesic or plan, lines across or along as Tx
     metrics = json.loads((out / "metrics.json").read_text())
-    assert len(metrics["angles"]) == 24
-    assert {row["rx_family"] for row in metrics["angles"]} == {"rings", "rings_tx", "rings_per_line", "rings_tx_per_line",
-                                                                   "helices", "helices_per_line", "grid", "grid_plan"}
+    assert len(metrics["angles"]) == 8
+    assert {row["rx_family"] for row in metrics["angles"]} == {"helices", "helices_per_line", "grid", "grid_plan"}
     fallback = manifest["fallback"]  # the pipeline's second sweep (the centre Tx pole too) reads the chosen layout's metric
     assert fallback["value"] == "best.metrics.uncovered_share" and fallback["read"] == metrics["uncovered_share"] < 0.2
     assert not fallback["ran_again"] and manifest["overrides"] == []
