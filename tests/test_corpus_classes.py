@@ -56,15 +56,17 @@ def trimmed_pipeline(folder: Path) -> Path:
 
 
 def run_class(tmp_path: Path, name: str, *overrides: str) -> Path:
-    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one helix winding and climb and
-    one grid (no rings: the first sweep has none), plus ``-S`` ``overrides``, as the ``retrotouch run`` command; its output folder."""
+    """The trimmed pipeline on the generated ``name`` at ``VERTICES``, one Rx angle, one helix winding and climb, one
+    grid and no rings (as the first sweep; one ring climb where ``overrides`` add a corridor), plus ``-S``
+    ``overrides``, as the ``retrotouch run`` command; its output folder."""
     mesh_path = shapes.write_shape(name, tmp_path)
     out = tmp_path / "out"
     command = [
         sys.executable, "-m", "retrotouch.nodes", "run", str(trimmed_pipeline(tmp_path)),
         "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--scheduler", "sync",
         "-S", f"mesh={mesh_path}", "-S", f"diagonal_mm={shapes.diagonal_mm(name)}",
-        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "ring_climbs=[median]", "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
+        "-S", f"vertices={VERTICES}", "-S", "rx_angles_deg=[0]", "-S", "ring_climbs=[median]",
+        "-S", "helix_windings=[left]", "-S", "helix_climbs=[median]", "-S", "grid_tx=[across]",
     ]
     for override in overrides:
         command += ["-S", override]
