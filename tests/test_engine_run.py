@@ -198,7 +198,7 @@ def test_default_pipeline_end_to_end(repo, default_run, cli):
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["angles"]) == 8
     assert {row["rx_family"] for row in metrics["angles"]} == {"helices", "helices_per_line", "grid", "grid_plan"}
-    fallback = manifest["fallback"]  # the pipeline's second sweep (the centre Tx pole too) reads the chosen layout's metric
+    fallback = manifest["fallback"]  # the pipeline's second sweep (the other Tx poles, the rings) reads the chosen layout's metric
     assert fallback["value"] == "best.metrics.uncovered_share" and fallback["read"] == metrics["uncovered_share"] < 0.2
     assert not fallback["ran_again"] and manifest["overrides"] == []
 
