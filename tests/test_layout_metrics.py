@@ -6,6 +6,7 @@ import tracemalloc
 import numpy as np
 import potpourri3d as pp3d
 import pytest
+import trimesh
 from test_layout_fixtures import RADIUS_MM, Regions, sphere_mesh
 
 from retrotouch.nodes.layout import metrics, samples as samples_module
@@ -13,7 +14,8 @@ from retrotouch.nodes.layout.metrics import (
     UNCOVERED_SPOTS_LISTED, coefficient_of_variation, min_pairwise, row_minima, uncovered_spots, voronoi_cell_areas,
 )
 from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners
-from retrotouch.nodes.layout.samples import SamplesParams, geodesics_for, surface_samples
+from retrotouch.nodes.layout.samples import HeatGeodesics, SamplesParams, geodesics_for, mean_edge_mm, surface_samples
+from retrotouch.nodes.mesh.repair import isotropic_remesh
 
 
 def locate(mesh, directions):
@@ -72,6 +74,36 @@ def test_heat_geodesics_from_a_point_inside_a_face_are_not_biased_low():
         band = (exact > near * geo.mean_edge_mm) & (exact < far * geo.mean_edge_mm)
         ratio = fields[band] / exact[band]
         assert abs(np.median(ratio) - 1.0) < 0.02 and ratio.min() > 0.98
+
+
+def test_fields_solved_on_a_decimated_copy_match_the_sphere_within_an_edge_of_the_copy():
+    mesh = sphere_mesh(5)
+    geo = HeatGeodesics(mesh.vertices, mesh.faces, proxy_vertices=2500)
+    assert geo.proxy is not None and abs(len(geo.proxy.vertices) - 2500) < 250
+    np.testing.assert_allclose(np.asarray(geo.proxy.interpolation.sum(axis=1)).ravel(), 1.0)  # barycentric rows
+    faces, bary = np.array([0, 500, 9000]), np.full((3, 3), 1.0 / 3.0)
+    fields = geo.fields(faces, bary)
+    assert fields.shape == (len(mesh.vertices), 3) and fields.dtype == np.float32
+    src = np.einsum("kc,kcd->kd", bary, mesh.vertices[mesh.faces[faces]])
+    cosine = (mesh.vertices / RADIUS_MM) @ (src / np.linalg.norm(src, axis=1, keepdims=True)).T
+    exact = RADIUS_MM * np.arccos(np.clip(cosine, -1, 1))
+    far = exact > 10.0
+    assert np.median(np.abs(fields - exact)[far] / exact[far]) < 0.01
+    assert np.abs(fields - exact).max() < mean_edge_mm(geo.proxy.vertices, geo.proxy.faces)
+
+
+def test_a_decimated_copy_keeps_the_two_sides_of_a_thin_plate_apart():
+    box = trimesh.creation.box(extents=(80.0, 80.0, 1.5))
+    V, F = isotropic_remesh(np.asarray(box.vertices), np.asarray(box.faces), 1.2, iterations=6, feature_angle_deg=30.0)
+    geo = HeatGeodesics(V, F, proxy_vertices=len(V) // 4)
+    assert geo.proxy is not None
+    centre = np.hypot(V[:, 0], V[:, 1]) < 10.0
+    top = np.flatnonzero(centre & (V[:, 2] > 0))[0]
+    face = np.flatnonzero((F == top).any(axis=1))[0]
+    distance = geo.fields(np.array([face]), (F[face] == top).astype(float)[None, :])[:, 0]
+    # from the top's centre to the bottom's the way is round the rim, about 80 mm: not through 1.5 mm of plate
+    assert distance[centre & (V[:, 2] < 0)].min() > 60.0
+    assert distance[centre & (V[:, 2] > 0)].max() < 12.0
 
 
 def test_samples_are_on_sensing_faces_and_spread():
@@ -135,7 +167,7 @@ def test_fields_do_not_depend_on_the_scale_of_the_heat(heat_scale, monkeypatch):
     expected = geo.fields(faces, bary)
     solve = samples_module.solve
     monkeypatch.setattr(samples_module, "solve",
-                        lambda factor, rhs: solve(factor, rhs) * (heat_scale if factor is geo._heat else 1.0))
+                        lambda factor, rhs: solve(factor, rhs) * (heat_scale if factor is geo.solver.heat else 1.0))
     scaled = geo.fields(faces, bary)
     assert np.isfinite(scaled).all()
     np.testing.assert_allclose(scaled, expected, rtol=1e-5, atol=1e-4)
@@ -146,7 +178,7 @@ def test_fields_that_are_not_finite_stop_the_run_instead_of_reaching_phase_1(mon
     geo = geodesics_for(mesh)
     solve = samples_module.solve
     monkeypatch.setattr(samples_module, "solve",
-                        lambda factor, rhs: solve(factor, rhs) * (np.inf if factor is geo._poisson else 1.0))
+                        lambda factor, rhs: solve(factor, rhs) * (np.inf if factor is geo.solver.poisson else 1.0))
     with pytest.raises(FloatingPointError, match="not finite"):
         geo.fields(np.array([0, 5]), np.full((2, 3), 1 / 3))
 

@@ -102,11 +102,12 @@ class SurfaceProjector:
     def project(self, points: np.ndarray, facing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(n, 3) points -> closest surface points (n, 3), their faces (n,), barycentrics (n, 3).
 
-        With ``facing`` (3,), faces whose normal points away from it are skipped when others are
-        near: on thin parts (ears, handles) the point lands on the side facing that way."""
+        With ``facing`` (3,) or one per point (n, 3), faces whose normal points away from it are
+        skipped when others are near: on thin parts (ears, handles) the point lands on the side
+        facing that way."""
         points = np.atleast_2d(points)
         if len(points) == 1:
-            single = self._project_one(points[0], facing)
+            single = self._project_one(points[0], None if facing is None else np.reshape(facing, (-1, 3))[0])
             if single is not None:
                 return single
         _, candidates = self.tree.query(points, k=self.k)
@@ -118,7 +119,10 @@ class SurfaceProjector:
         closest = (origin + bary[:, 1:2] * ab + bary[:, 2:3] * ac).reshape(len(points), self.k, 3)
         distance2 = np.sum((closest - points[:, None]) ** 2, axis=2)
         if facing is not None:
-            away = self.face_normals[candidates] @ facing <= 0.0
+            candidate_normals = self.face_normals[candidates]
+            dots = (candidate_normals @ facing if np.ndim(facing) == 1
+                    else np.einsum("nkc,nc->nk", candidate_normals, facing))
+            away = dots <= 0.0
             distance2 = np.where(away & ~np.all(away, axis=1, keepdims=True), np.inf, distance2)
         best = np.argmin(distance2, axis=1)
         rows = np.arange(len(points))

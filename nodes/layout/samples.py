@@ -10,8 +10,11 @@ surface points given as (face, barycentrics) rather than vertices only, and (b) 
 solved at once with one sparse Cholesky factorisation (cholespy) and matrix right-hand sides. The operators are the
 standard P1 ones: ``G`` the per-face gradient, ``L = G^T A G`` the cotan stiffness matrix (equal to
 ``potpourri3d.cotan_laplacian``), ``M`` the lumped (barycentric) vertex areas, time step
-``t = t_coef * h^2`` with ``h`` the mean edge length. tests/test_layout_geodesics.py checks the
+``t = t_coef * h^2`` with ``h`` the mean edge length. tests/test_layout_metrics.py checks the
 result against exact sphere geodesics and against potpourri3d.
+
+A mesh of more than ``PROXY_VERTICES`` vertices is solved on a copy decimated to about that many
+(:mod:`..geometry.proxy`), the fields interpolated back to its vertices.
 
 Units: mesh coordinates are millimetres, so every distance here is in millimetres.
 """
@@ -27,14 +30,20 @@ from ...graph.errors import UserError
 from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
+from ..geometry.proxy import proxy_of
 from ..geometry.sparse_spd import cholesky, solve
-from ..geometry.triangles import areas, corners, cross_products, zero_area
+from ..geometry.triangles import areas, corners, cross_products, normals, zero_area
 
 _COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
+PROXY_VERTICES = 30_000
+"""Above this many vertices the fields are solved on a decimated copy (module docstring): their cost (two
+sparse factorisations, two solves per source) then stops growing with the mesh, while the heat method's
+own error is about an edge of the mesh it runs on (the 170 mm bunny's copy: 1.1 mm, finer than the
+default 20,000-vertex mesh's 1.3 mm)."""
 
 
-class HeatGeodesics:
-    """Heat-method geodesic distance fields on one triangle mesh (see the module docstring)."""
+class HeatSolver:
+    """The heat method's operators on one triangle mesh, factorised once (see the module docstring)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, t_coef: float = 1.0):
         import scipy.sparse as sp  # heavy: imported when used, not on node discovery
@@ -64,42 +73,32 @@ class HeatGeodesics:
         self.div_operator = (self.grad.T @ weights).tocsr()  # integrated divergence of a face field
         mass = np.zeros(n)
         np.add.at(mass, F.ravel(), np.repeat(area / 3.0, 3))
-        edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-        h = float(np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1).mean())
+        h = mean_edge_mm(V, F)
         t = t_coef * h * h
         self.vertices = V
         self.faces = F
-        self.vertex_count = n
-        self.mean_edge_mm = h
-        self._heat = cholesky(sp.diags(mass) + t * self.stiffness)
+        self.heat = cholesky(sp.diags(mass) + t * self.stiffness)
         # L has the constants as null space; a tiny mass shift makes it definite, then the
         # distance is re-anchored at its source (see fields), so the shift only removes the free constant.
-        self._poisson = cholesky(self.stiffness + 1e-9 * sp.diags(mass))
+        self.poisson = cholesky(self.stiffness + 1e-9 * sp.diags(mass))
 
     def _load(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Load vectors (n, S) of point sources at (face, barycentrics): the P1 projection of a Dirac."""
         S = len(faces)
-        B = np.zeros((self.vertex_count, S))
+        B = np.zeros((len(self.vertices), S))
         np.add.at(B, (self.faces[faces].ravel(), np.repeat(np.arange(S), 3)), bary.ravel())
         return B
 
-    def fields(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Geodesic distance (mm) from each source point to every vertex: array (n, S), float32.
-
-        Source ``s`` is the surface point ``p = bary[s] @ V[F[faces[s]]]``. The heat method's distance
-        is rounded off over about an edge around its source, so the field's constant is set where it
-        is exact: at the corners of the source's face, whose distances from ``p`` are straight lines,
-        the field matches them on average (weighted by ``bary``; a vertex source is 0 at its vertex).
-        Inside that face the field is the P1 interpolation of those distances (up to an edge length at
-        ``p``, not 0); it is clipped at 0.
-        """
+    def fields(self, faces: np.ndarray, bary: np.ndarray, to_mesh=None) -> np.ndarray:
+        """:meth:`HeatGeodesics.fields` on this solver's mesh: (n, S) float32, or ``to_mesh @`` them
+        block by block for a scipy sparse ``to_mesh`` (rows, n)."""
         faces = np.asarray(faces, dtype=np.int64)
         bary = np.asarray(bary, dtype=np.float64)
-        out = np.empty((self.vertex_count, len(faces)), dtype=np.float32)
+        out = np.empty((len(self.vertices) if to_mesh is None else to_mesh.shape[0], len(faces)), dtype=np.float32)
         m = len(self.faces)
         for start in range(0, len(faces), _COLUMNS_PER_BATCH):
             sl = slice(start, start + _COLUMNS_PER_BATCH)
-            u = solve(self._heat, self._load(faces[sl], bary[sl]))
+            u = solve(self.heat, self._load(faces[sl], bary[sl]))
             g = (self.grad @ u).reshape(m, 3, -1)
             del u
             # far from a source the heat underflows: scale each gradient by its largest component
@@ -114,16 +113,70 @@ class HeatGeodesics:
             np.maximum(np.sqrt(norm, out=norm), 1.0, out=norm)  # 1 <= |g| / scale <= sqrt(3) where g != 0
             np.divide(np.negative(g, out=g), norm[:, None, :], out=g)  # X = -grad u / |grad u|
             del norm
-            phi = solve(self._poisson, self.div_operator @ g.reshape(3 * m, -1))
+            phi = solve(self.poisson, self.div_operator @ g.reshape(3 * m, -1))
             del g
-            corners = self.faces[faces[sl]]  # (s, 3)
-            corner_points = self.vertices[corners]  # (s, 3, 3)
+            source_corners = self.faces[faces[sl]]  # (s, 3)
+            corner_points = self.vertices[source_corners]  # (s, 3, 3)
             to_corners = np.linalg.norm(corner_points - np.einsum("sc,scd->sd", bary[sl], corner_points)[:, None], axis=2)
-            phi -= np.sum((phi[corners, np.arange(phi.shape[1])[:, None]] - to_corners) * bary[sl], axis=1)[None, :]
-            out[:, sl] = np.maximum(phi, 0.0, out=phi)
+            phi -= np.sum((phi[source_corners, np.arange(phi.shape[1])[:, None]] - to_corners) * bary[sl], axis=1)[None, :]
+            np.maximum(phi, 0.0, out=phi)
+            out[:, sl] = phi if to_mesh is None else to_mesh @ phi
             if not np.isfinite(out[:, sl]).all():  # never silently: phase 1 would quantise garbage
-                raise FloatingPointError(f"heat-method distances from sources {start}..{start + len(corners) - 1} are not finite")
+                raise FloatingPointError(f"heat-method distances from sources {start}..{start + len(source_corners) - 1} are not finite")
         return out
+
+
+def mean_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The mean length (mm) of the faces' edges, each counted once per face it bounds."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return float(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1).mean())
+
+
+class HeatGeodesics:
+    """Heat-method geodesic distance fields on one triangle mesh (see the module docstring), solved on the
+    mesh or, above ``proxy_vertices``, on its decimated copy; the solver is built by the first :meth:`fields`
+    (interpolating fields at points needs none)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, t_coef: float = 1.0, proxy_vertices: int = PROXY_VERTICES):
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        self.vertex_count = len(self.vertices)
+        self.mean_edge_mm = mean_edge_mm(self.vertices, self.faces)
+        self._t_coef = t_coef
+        self._proxy_vertices = proxy_vertices
+
+    @functools.cached_property
+    def proxy(self):
+        """The decimated copy (:func:`..geometry.proxy.proxy_of`), or None on a mesh small enough or
+        when no copy keeps its topology."""
+        if self.vertex_count <= self._proxy_vertices:
+            return None
+        return proxy_of(self.vertices, self.faces, self._proxy_vertices)
+
+    @functools.cached_property
+    def solver(self) -> HeatSolver:
+        """The heat method's operators on the copy, else on the mesh."""
+        on = self.proxy if self.proxy is not None else self
+        return HeatSolver(on.vertices, on.faces, self._t_coef)
+
+    def fields(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Geodesic distance (mm) from each source point to every vertex: array (n, S), float32.
+
+        Source ``s`` is the surface point ``p = bary[s] @ V[F[faces[s]]]``. The heat method's distance
+        is rounded off over about an edge around its source, so the field's constant is set where it
+        is exact: at the corners of the source's face, whose distances from ``p`` are straight lines,
+        the field matches them on average (weighted by ``bary``; a vertex source is 0 at its vertex).
+        Inside that face the field is the P1 interpolation of those distances (up to an edge length at
+        ``p``, not 0); it is clipped at 0. On a copy, the sources are its closest points (on its side
+        facing as the mesh does there) and the fields its interpolation at the mesh's vertices.
+        """
+        faces = np.asarray(faces, dtype=np.int64)
+        bary = np.asarray(bary, dtype=np.float64)
+        if self.proxy is None:
+            return self.solver.fields(faces, bary)
+        points = np.einsum("sc,scd->sd", bary, self.vertices[self.faces[faces]])
+        copy_faces, copy_bary = self.proxy.locate(points, normals(corners(self.vertices, self.faces[faces]))[0])
+        return self.solver.fields(copy_faces, copy_bary, self.proxy.interpolation)
 
     def evaluate(self, fields: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interpolate vertex fields (n, S) at surface points -> (S, P) distances in mm."""
