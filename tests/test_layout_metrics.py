@@ -97,13 +97,14 @@ def test_a_decimated_copy_keeps_the_two_sides_of_a_thin_plate_apart():
     V, F = isotropic_remesh(np.asarray(box.vertices), np.asarray(box.faces), 1.2, iterations=6, feature_angle_deg=30.0)
     geo = HeatGeodesics(V, F, proxy_vertices=len(V) // 4)
     assert geo.proxy is not None
-    centre = np.hypot(V[:, 0], V[:, 1]) < 10.0
-    top = np.flatnonzero(centre & (V[:, 2] > 0))[0]
+    off_axis = np.hypot(V[:, 0], V[:, 1])
+    centre = off_axis < 10.0
+    top = np.flatnonzero(V[:, 2] > 0)[np.argmin(off_axis[V[:, 2] > 0])]  # the top vertex nearest the axis
     face = np.flatnonzero((F == top).any(axis=1))[0]
     distance = geo.fields(np.array([face]), (F[face] == top).astype(float)[None, :])[:, 0]
     # from the top's centre to the bottom's the way is round the rim, about 80 mm: not through 1.5 mm of plate
     assert distance[centre & (V[:, 2] < 0)].min() > 60.0
-    assert distance[centre & (V[:, 2] > 0)].max() < 12.0
+    assert distance[centre & (V[:, 2] > 0)].max() < 10.0 + off_axis[top] + 2.0
 
 
 def test_samples_are_on_sensing_faces_and_spread():
