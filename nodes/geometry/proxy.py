@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .triangles import corners, cross_products, vertex_normals, zero_area
+from ...graph.errors import UserError
+from .triangles import vertex_normals
 
 if TYPE_CHECKING:
     from .surface import SurfaceProjector  # compiled with numba: imported when a copy is made
@@ -50,31 +51,27 @@ class Proxy:
         return closest_on(self.projector, points, facing)
 
 
-def closed_surface(faces: np.ndarray, vertex_count: int) -> tuple[bool, int]:
-    """``(closed, Euler characteristic)``: whether every edge of ``faces`` joins exactly two faces and
-    every one of the ``vertex_count`` vertices is used, and ``V - E + F``."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges[:, 0] * vertex_count + edges[:, 1], return_counts=True)
-    used = np.count_nonzero(np.bincount(faces.ravel(), minlength=vertex_count))
-    return bool((counts == 2).all() and used == vertex_count), int(vertex_count - len(counts) + len(faces))
-
-
 def proxy_of(vertices: np.ndarray, faces: np.ndarray, target_vertices: int) -> Proxy | None:
     """The closed mesh ``(vertices, faces)`` decimated to about ``target_vertices`` by quadric edge
     collapse (fast-simplification), with its maps; None when the collapse changed the surface's
-    topology (a hole, a lost handle) or left a face of zero area, where only the mesh itself will do."""
+    topology (a hole, a lost handle, a flipped face), left a face of zero area or a vertex unused, where only
+    the mesh itself will do."""
     import fast_simplification  # imported when a mesh is large enough to need a copy
     import scipy.sparse as sp
 
+    from .mesh_tables import build_tables
     from .surface import SurfaceProjector
 
     vertices = np.array(vertices, dtype=np.float64, order="C")
     faces = np.array(faces, dtype=np.int64, order="C")
     coarse_vertices, coarse_faces = fast_simplification.simplify(vertices, faces, target_count=2 * target_vertices)
     coarse_faces = np.asarray(coarse_faces, dtype=np.int64)
-    closed, chi = closed_surface(coarse_faces, len(coarse_vertices))
-    double_areas = np.linalg.norm(cross_products(corners(coarse_vertices, coarse_faces)), axis=1)
-    if not closed or chi != closed_surface(faces, len(vertices))[1] or zero_area(double_areas).any():
+    try:  # closed, manifold, consistently oriented, no face of zero area
+        coarse_chi = build_tables(coarse_vertices, coarse_faces).euler_characteristic
+    except UserError:
+        return None
+    chi = np.count_nonzero(np.bincount(faces.ravel(), minlength=len(vertices))) - len(faces) // 2  # V - F / 2, closed
+    if coarse_chi != chi or not np.bincount(coarse_faces.ravel(), minlength=len(coarse_vertices)).all():
         return None
     projector = SurfaceProjector(np.ascontiguousarray(coarse_vertices, dtype=np.float64), coarse_faces)
     face, bary = closest_on(projector, vertices, vertex_normals(vertices, faces))
