@@ -8,6 +8,7 @@ import numpy as np
 
 from ..data.types import CurveEnd, CurveSet
 from ..geometry.mesh_tables import MeshTables
+from ..geometry.vertex_distance import VertexDistances
 from .assembly import assemble, concat_traces, join_both_ways, pick_curves
 from .connection import DirectionField
 from .integrator import Traces, across_exit_edge, trace, vertex_face_table
@@ -153,7 +154,7 @@ def field_lines_through(
     return join_both_ways(tables, pick_curves(back[0], np.flatnonzero(ok)), forward, orient_to_base=False), phi[ok], ok
 
 
-def gap_distances(solver, tables: MeshTables, curves: CurveSet, vertices: np.ndarray) -> np.ndarray:
+def gap_distances(solver: VertexDistances, tables: MeshTables, curves: CurveSet, vertices: np.ndarray) -> np.ndarray:
     """Geodesic (heat method) distance in mm from each of ``vertices`` to the nearest vertex of a face
     that ``curves`` run through: the distance to the nearest curve, low by at most about one edge."""
     return solver.compute_distance_multisource(np.unique(tables.faces[curves.faces]))[vertices]
@@ -182,12 +183,10 @@ def adaptive_tx_traces(params: TraceTxParams, tables: MeshTables, regions, field
     from later seeding, so every round adds a curve or blocks a seed. Stops early when no unblocked
     sensing vertex is farther than the mean edge length from the family.
     """
-    import potpourri3d as pp3d  # heavy: imported when used, not on node discovery
-
     _, _, cum = fan_sectors(tables, field.start_vertex)
     phi = uniform_angles(cum[-1], max(1, round(params.uniform_share * params.n_curves)))
     parts = [tx_traces(params, tables, field, phi, start_region, base, singular)]
-    solver = pp3d.MeshHeatMethodDistanceSolver(tables.vertices, tables.faces)
+    solver = VertexDistances(tables.vertices, tables.faces)
     sensing = np.asarray(regions.sensing_faces, dtype=bool)
     vertices = np.unique(tables.faces[sensing])
     points = tables.vertices[vertices]

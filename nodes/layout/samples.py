@@ -30,16 +30,11 @@ from ...graph.errors import UserError
 from ...graph.hashing import digest_fields
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
-from ..geometry.proxy import proxy_of
+from ..geometry.proxy import PROXY_VERTICES, proxy_of
 from ..geometry.sparse_spd import cholesky, solve
 from ..geometry.triangles import areas, corners, cross_products, normals, zero_area
 
 _COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
-PROXY_VERTICES = 30_000
-"""Above this many vertices the fields are solved on a decimated copy (module docstring): their cost (two
-sparse factorisations, two solves per source) then stops growing with the mesh, while the heat method's
-own error is about an edge of the mesh it runs on (the 170 mm bunny's copy: 1.1 mm, finer than the
-default 20,000-vertex mesh's 1.3 mm)."""
 
 
 class HeatSolver:

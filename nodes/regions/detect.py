@@ -15,7 +15,7 @@ support plane), ``up = -down``. The height below the object of a vertex along ``
    (a leg above a foot) so every trace has room to reach it, or, where a neck blocks the wiring (a
    contact at the end of a thin handle), started on another contact patch (:func:`room_for_wiring`).
 
-Then, with heat-method geodesic distances (potpourri3d):
+Then, with heat-method geodesic distances (:mod:`..geometry.vertex_distance`):
 
 * ``base_centre``: the interior base vertex farthest from the base boundary; ``base_dipole`` adds
   its interior neighbour farthest from the boundary.
@@ -45,7 +45,6 @@ import dataclasses
 from typing import Literal
 
 import numpy as np
-import potpourri3d as pp3d
 import trimesh
 from pydantic import Field, field_validator, model_validator
 
@@ -53,6 +52,7 @@ from ...graph.errors import UserError
 from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions, TouchField
 from ..geometry.triangles import corners, normals
+from ..geometry.vertex_distance import VertexDistances
 from .base import MIN_NECK_GAIN, Base, find_base, grow_through_necks, is_lying, is_sheet, with_the_table_side
 from .faces import FaceGraph
 from .poles import tx_pole
@@ -198,7 +198,7 @@ def resting_base(
     return base, down, tipping, why
 
 
-def base_distance(solver, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def base_distance(solver: VertexDistances, graph: FaceGraph, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(from boundary, from base)`` per vertex (mm): the heat-method distance from the base's boundary
     vertices, and the same set to 0 on the base (many-source distances are smoothed, so the boundary is
     the better source set)."""
@@ -330,7 +330,7 @@ def detect_regions(params: RegionParams, mesh: Mesh, touchable: TouchField) -> S
     base = with_the_table_side(graph, base, ~above_table, areas, is_lying(vertices, down))
     if base.faces.all():
         raise UserError("the base covers the whole surface: lower min_base_radius_mm or angle_threshold_deg")
-    solver = pp3d.MeshHeatMethodDistanceSolver(vertices, faces)
+    solver = VertexDistances(vertices, faces)
     from_boundary, from_base = base_distance(solver, graph, base.faces)
     from_contact, rim_mm, rank = from_base, None, 0
     if params.wiring_room_mm > 0:
