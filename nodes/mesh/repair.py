@@ -7,7 +7,9 @@ Nodes:
   remeshing does not weld them again), orient faces coherently, close holes (every hole by default, so a
   scan's open bottom is closed), keep only the largest
   connected component (a scan's loose fragments), and make the orientation outward (signed
-  volume > 0). Each change is listed in ``Mesh.repairs``.
+  volume > 0). A surface these filters cannot make manifold and coherently oriented (a model whose
+  parts were glued through each other, a non-orientable export) is rebuilt by screened Poisson from
+  points sampled evenly on it (:func:`rebuilt_from_samples`). Each change is listed in ``Mesh.repairs``.
 * ``mesh.remesh`` -- isotropic explicit remeshing to a target edge length in mm, or to a target
   vertex count (the edge length is solved for in a few passes). A dense input (a scan with
   millions of faces) is decimated first; a vertex count that misses its target is logged and listed.
@@ -28,6 +30,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, cross_products, signed_volume
 from .meshset import face_components, from_meshset, to_meshset
+from .reconstruct import POINTS_PER_DEPTH_CELL, reconstruct_from_points
 from .topology import keeps_closed_topology
 
 log = logging.getLogger(__name__)
@@ -44,7 +47,7 @@ SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
 NON_MANIFOLD_ROUNDS = 4
-"""mesh.repair: rounds of non-manifold edge and vertex repair before it gives up."""
+"""mesh.repair: rounds of non-manifold edge and vertex repair before the surface is rebuilt instead."""
 FLAT_FACE_RATIO = 100.0
 """mesh.remesh: a face whose longest edge is more than this many times its height is nearly flat (the
 remesher can leave three vertices in a line at a crease; a regular remesh stays below 30); an edge
@@ -82,6 +85,8 @@ class RepairParams(NodeParams):
     non_manifold_edges: Literal["remove_faces", "split_vertices"] = Field(
         "remove_faces", description="how non-manifold edges are repaired"
     )
+    rebuild_depth: int = Field(7, ge=5, le=10, description="a surface repair cannot make manifold and coherently "
+                               "oriented is rebuilt from samples by screened Poisson at this octree depth")
 
 
 def separate_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
@@ -108,8 +113,9 @@ def counted(meshset: pymeshlab.MeshSet) -> tuple[int, int]:
     return meshset.current_mesh().vertex_number(), meshset.current_mesh().face_number()
 
 
-def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
-    """Run the pymeshlab clean-up filters on ``meshset``; one line per change they made."""
+def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> tuple[list[str], str | None]:
+    """Run the pymeshlab clean-up filters on ``meshset``: one line per change they made, and what
+    non-manifold edges and vertices they left (None: none)."""
     done = []
     before = counted(meshset)
     meshset.meshing_remove_duplicate_vertices()
@@ -131,18 +137,15 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
             measures = meshset.get_topological_measures()
             if not (measures["non_two_manifold_edges"] or measures["non_two_manifold_vertices"]):
                 break
-        else:
-            raise UserError(
-                f"{measures['non_two_manifold_edges']:,} non-manifold edges and {measures['non_two_manifold_vertices']:,} "
-                f"non-manifold vertices remain after {NON_MANIFOLD_ROUNDS} rounds of repair: make the surface "
-                "manifold in a mesh editor (e.g. MeshLab's Cleaning and Repairing filters)"
-            )
         repaired = counted(meshset)
         if repaired != after:
             done.append(f"repaired non-manifold edges/vertices (vertices {after[0]:,} -> {repaired[0]:,}, "
                         f"faces {after[1]:,} -> {repaired[1]:,})")
     meshset.meshing_re_orient_faces_coherently()
-    if params.close_holes and measures["boundary_edges"]:
+    non_manifold = ", ".join(f"{measures[key]:,} {name}" for key, name in (("non_two_manifold_edges", "non-manifold edges"),
+                                                                    ("non_two_manifold_vertices", "non-manifold vertices"))
+                             if measures[key]) or None
+    if params.close_holes and measures["boundary_edges"] and non_manifold is None:  # else the surface is rebuilt (repair_mesh)
         holes = measures["number_holes"]
         largest = params.max_hole_edges or 3 * counted(meshset)[1] + 3  # a hole has fewer edges than 3 x faces
         try:
@@ -161,7 +164,7 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> list[str]:
             done.append(f"closed {max(holes, 1)} hole(s) with {filled:,} faces"
                         + (f" ({crossing:,} of their boundary edges closed by a patch that may cross the surface)"
                            if crossing else ""))
-    return done
+    return done, non_manifold
 
 
 @node("mesh.repair", params=RepairParams, inputs=("mesh",), outputs=("mesh",))
@@ -169,7 +172,7 @@ def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
     """Clean a scanned mesh with pymeshlab and orient it outward (signed volume > 0); every change
     is appended to ``Mesh.repairs``."""
     meshset = to_meshset(mesh.vertices, mesh.faces)
-    done = clean(meshset, params)
+    done, non_manifold = clean(meshset, params)
     vertices, faces = from_meshset(meshset)
     vertices, separated = separate_coincident(vertices, faces)
     if separated:
@@ -179,10 +182,44 @@ def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
         done += [dropped] if dropped else []
     if len(faces) == 0:
         raise UserError(f"repair left no faces in {mesh.source}: the input is not a usable surface")
+    broken = non_manifold or one_sided(faces)
+    if broken:
+        vertices, faces, rebuilt = rebuilt_from_samples(vertices, faces, params.rebuild_depth, mesh.source_name, broken)
+        done.append(rebuilt)
+        if params.keep_largest:
+            vertices, faces, dropped = keep_largest_component(vertices, faces)
+            done += [dropped] if dropped else []
     if signed_volume(vertices, faces) < 0.0:
         faces = np.ascontiguousarray(faces[:, ::-1])
         done.append("flipped the faces to point outward")
     return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))
+
+
+def one_sided(faces: np.ndarray) -> str | None:
+    """How many edges two faces of ``faces`` run the same way (re-orienting cannot make them agree:
+    the surface is one-sided, or parts of it were glued through each other), or None when none does."""
+    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    _, directed = np.unique(halfedges[:, 0] * (int(faces.max()) + 1) + halfedges[:, 1], return_counts=True)
+    count = int(np.count_nonzero(directed > 1))
+    return f"{count:,} edges whose faces cannot be oriented alike" if count else None
+
+
+def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, name: str, broken: str
+                         ) -> tuple[np.ndarray, np.ndarray, str]:
+    """The closed surface screened Poisson reconstructs (:func:`.reconstruct.reconstruct_from_points`,
+    normals estimated) from ``POINTS_PER_DEPTH_CELL * 4**depth`` points spread over ``faces`` by area
+    (fixed seed), and the repair line naming ``broken``, what made it necessary."""
+    face_areas = areas(corners(vertices, faces))
+    rng = np.random.default_rng(0)
+    count = POINTS_PER_DEPTH_CELL * 4**depth
+    picked = rng.choice(len(faces), count, p=face_areas / face_areas.sum())
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    points = np.einsum("kc,kcd->kd", bary, vertices[faces[picked]])
+    surface = reconstruct_from_points(points, depth, f"the surface of {name}")
+    line = (f"rebuilt the surface from {count:,} points sampled on it (screened Poisson, depth {surface.depth}): "
+            f"repair left {broken}; {len(surface.faces):,} faces")
+    return surface.vertices, surface.faces, line
 
 
 class RemeshParams(NodeParams):
