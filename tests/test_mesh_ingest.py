@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 import warnings
 from pathlib import Path
 
@@ -499,8 +500,9 @@ def test_non_manifold_vertices_repair_cannot_remove_are_rebuilt_from_samples() -
     facets = np.column_stack([edges, np.full(len(edges), tip)])
     mesh = Mesh(np.vstack([sphere.vertices, 1.5 * sphere.vertices[:1]]), np.vstack([sphere.faces, facets]), "fan")
     repaired = repair_mesh(RepairParams(rebuild_depth=5), mesh)
-    assert any(line.startswith("rebuilt the surface from 24,576 points sampled on it (screened Poisson, depth 5): "
-                               "repair left 1 non-manifold vertices") for line in repaired.repairs)
+    assert any(re.match(r"rebuilt the surface from 24,576 points sampled on it \(screened Poisson, depth 5, within "
+                        r"[\d.]+ mm of it at nine vertices in ten\): repair left 1 non-manifold vertices", line)
+               for line in repaired.repairs)
     assert_manifold_and_oriented(repaired.vertices, repaired.faces)
     assert_near_the_input(repaired, mesh, depth=5)
 
@@ -662,3 +664,20 @@ def test_a_scan_s_own_normals_are_tried_when_estimated_ones_give_a_handle(tmp_pa
     coloured = tmp_path / "coloured.xyz"
     np.savetxt(coloured, np.hstack([points, np.full((len(points), 3), 200.0)]))
     assert "the file's normals" not in load_mesh(LoadParams(path=str(coloured))).repairs[0]
+
+
+def test_a_one_sided_sheet_whose_rebuild_is_a_blob_is_refused_in_one_line() -> None:
+    """A Moebius strip (a one-sided sheet without thickness, 30 mm wide): the surface rebuilt from its
+    samples is a solid band round it, far from the sheet, so repair refuses it and says what to do."""
+    sections, across = 96, 6
+    u, w = np.meshgrid(2 * np.pi * np.arange(sections) / sections, np.linspace(-15.0, 15.0, across), indexing="ij")
+    points = np.stack([(40 + w * np.cos(u / 2)) * np.cos(u), (40 + w * np.cos(u / 2)) * np.sin(u), w * np.sin(u / 2)],
+                      axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(sections), np.arange(across - 1), indexing="ij")
+    index = lambda a, b: np.where(a == sections, across - 1 - b, a * across + b)  # noqa: E731 (the half twist)
+    a, b, c, d = index(i, j), index(i + 1, j), index(i + 1, j + 1), index(i, j + 1)
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    with pytest.raises(UserError, match=r"^mobius.obj: repair left \d+ edges whose faces cannot be oriented alike, and "
+                       r"the surface rebuilt from samples of it strays [\d.]+ mm from it .* make it one closed, manifold "
+                       r"surface in a mesh editor, or export the parts as one solid$"):
+        repair_mesh(RepairParams(rebuild_depth=6), Mesh(points, faces, "mobius.obj"))

@@ -9,7 +9,8 @@ Nodes:
   connected component (a scan's loose fragments), and make the orientation outward (signed
   volume > 0). A surface these filters cannot make manifold and coherently oriented (a model whose
   parts were glued through each other, a non-orientable export) is rebuilt by screened Poisson from
-  points sampled evenly on it (:func:`rebuilt_from_samples`). Each change is listed in ``Mesh.repairs``.
+  points sampled evenly on all its parts (:func:`rebuilt_from_samples`), then cleaned again. Each change
+  is listed in ``Mesh.repairs``.
 * ``mesh.remesh`` -- isotropic explicit remeshing to a target edge length in mm, or to a target
   vertex count (the edge length is solved for in a few passes). A dense input (a scan with
   millions of faces) is decimated first; a vertex count that misses its target is logged and listed.
@@ -23,6 +24,7 @@ from typing import Literal
 
 import numpy as np
 import pymeshlab
+import trimesh
 from pydantic import Field, model_validator
 
 from ...graph.errors import UserError
@@ -46,6 +48,8 @@ MAX_REMESH_VERTICES = 1_000_000
 SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
+REBUILD_CHECKED_VERTICES = 20_000
+"""mesh.repair: vertices of a surface rebuilt from samples measured against the input."""
 NON_MANIFOLD_ROUNDS = 4
 """mesh.repair: rounds of non-manifold edge and vertex repair before the surface is rebuilt instead."""
 FLAT_FACE_RATIO = 100.0
@@ -169,9 +173,27 @@ def clean(meshset: pymeshlab.MeshSet, params: RepairParams) -> tuple[list[str], 
 
 @node("mesh.repair", params=RepairParams, inputs=("mesh",), outputs=("mesh",))
 def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
-    """Clean a scanned mesh with pymeshlab and orient it outward (signed volume > 0); every change
-    is appended to ``Mesh.repairs``."""
-    meshset = to_meshset(mesh.vertices, mesh.faces)
+    """Clean a scanned mesh with pymeshlab and orient it outward (signed volume > 0); when the clean-up
+    leaves it non-manifold or one-sided, the input is rebuilt from samples of all its parts instead and
+    cleaned again; every change is appended to ``Mesh.repairs``."""
+    vertices, faces, done, broken = cleaned(mesh.vertices, mesh.faces, params, mesh.source)
+    if broken:  # every part of the input sampled: parts glued through each other merge into one surface
+        vertices, faces, rebuilt = rebuilt_from_samples(mesh.vertices, mesh.faces, params.rebuild_depth, mesh.source_name,
+                                                        broken)
+        vertices, faces, again, _ = cleaned(vertices, faces, params, mesh.source)
+        done = [rebuilt, *again]
+    if signed_volume(vertices, faces) < 0.0:
+        faces = np.ascontiguousarray(faces[:, ::-1])
+        done.append("flipped the faces to point outward")
+    return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))
+
+
+def cleaned(vertices: np.ndarray, faces: np.ndarray, params: RepairParams, source: str
+            ) -> tuple[np.ndarray, np.ndarray, list[str], str | None]:
+    """:func:`clean`, split non-manifold vertices moved apart and the largest component kept: ``(vertices,
+    faces, one line per change, what keeps the result from being a manifold, coherently oriented
+    surface or None)``."""
+    meshset = to_meshset(vertices, faces)
     done, non_manifold = clean(meshset, params)
     vertices, faces = from_meshset(meshset)
     vertices, separated = separate_coincident(vertices, faces)
@@ -181,18 +203,8 @@ def repair_mesh(params: RepairParams, mesh: Mesh) -> Mesh:
         vertices, faces, dropped = keep_largest_component(vertices, faces)
         done += [dropped] if dropped else []
     if len(faces) == 0:
-        raise UserError(f"repair left no faces in {mesh.source}: the input is not a usable surface")
-    broken = non_manifold or one_sided(faces)
-    if broken:
-        vertices, faces, rebuilt = rebuilt_from_samples(vertices, faces, params.rebuild_depth, mesh.source_name, broken)
-        done.append(rebuilt)
-        if params.keep_largest:
-            vertices, faces, dropped = keep_largest_component(vertices, faces)
-            done += [dropped] if dropped else []
-    if signed_volume(vertices, faces) < 0.0:
-        faces = np.ascontiguousarray(faces[:, ::-1])
-        done.append("flipped the faces to point outward")
-    return dataclasses.replace(mesh, vertices=vertices, faces=faces, repairs=mesh.repairs + tuple(done))
+        raise UserError(f"repair left no faces in {source}: the input is not a usable surface")
+    return vertices, faces, done, non_manifold or one_sided(faces)
 
 
 def one_sided(faces: np.ndarray) -> str | None:
@@ -206,9 +218,11 @@ def one_sided(faces: np.ndarray) -> str | None:
 
 def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, name: str, broken: str
                          ) -> tuple[np.ndarray, np.ndarray, str]:
-    """The closed surface screened Poisson reconstructs (:func:`.reconstruct.reconstruct_from_points`,
-    normals estimated) from ``POINTS_PER_DEPTH_CELL * 4**depth`` points spread over ``faces`` by area
-    (fixed seed), and the repair line naming ``broken``, what made it necessary."""
+    """The surface screened Poisson reconstructs (:func:`.reconstruct.reconstruct_from_points`, normals
+    estimated) from ``POINTS_PER_DEPTH_CELL * 4**depth`` points spread over ``faces`` by area (fixed
+    seed; faces of zero area get none), and the repair line naming ``broken``, what made it necessary.
+    ``UserError`` when nine in ten of its vertices (up to ``REBUILD_CHECKED_VERTICES`` of them) are not
+    within one cell of the Poisson grid of the input: sheets without thickness rebuild into a blob."""
     face_areas = areas(corners(vertices, faces))
     rng = np.random.default_rng(0)
     count = POINTS_PER_DEPTH_CELL * 4**depth
@@ -217,8 +231,16 @@ def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, na
     bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
     points = np.einsum("kc,kcd->kd", bary, vertices[faces[picked]])
     surface = reconstruct_from_points(points, depth, f"the surface of {name}")
-    line = (f"rebuilt the surface from {count:,} points sampled on it (screened Poisson, depth {surface.depth}): "
-            f"repair left {broken}; {len(surface.faces):,} faces")
+    cell = float(np.ptp(points, axis=0).max()) / 2**surface.depth
+    checked = surface.vertices[:: -(-len(surface.vertices) // REBUILD_CHECKED_VERTICES)]
+    off = float(np.percentile(trimesh.Trimesh(vertices, faces, process=False).nearest.on_surface(checked)[1], 90))
+    if off > cell:
+        raise UserError(
+            f"{name}: repair left {broken}, and the surface rebuilt from samples of it strays {off:.1f} mm from it (90th "
+            f"percentile, more than the {cell:.1f} mm grid): it is no solid's surface (sheets without thickness, open "
+            "parts); make it one closed, manifold surface in a mesh editor, or export the parts as one solid")
+    line = (f"rebuilt the surface from {count:,} points sampled on it (screened Poisson, depth {surface.depth}, within "
+            f"{off:.1f} mm of it at nine vertices in ten): repair left {broken}; {len(surface.faces):,} faces")
     return surface.vertices, surface.faces, line
 
 
