@@ -8,16 +8,21 @@ handle, the reconstruction is tried again with the normals the file brings, if a
 first: a tool may have left them unoriented, and on clouds the estimate handles they give another
 surface), then with estimated normals one depth coarser at a time down to ``MIN_DEPTH``; the first
 genus-0 surface is kept. A real handle (a mug's) stays at every try, and the last goes on to the
-topology check, which refuses it in one line."""
+topology check, which refuses it in one line.
+
+The same reconstruction rebuilds a mesh ``mesh.repair`` cannot make manifold and coherently oriented,
+from points sampled on it (:func:`rebuilt_from_samples`)."""
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
 import pymeshlab
+import trimesh
 from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
+from ..geometry.triangles import areas, corners
 from .topology import topology_report
 
 MIN_POINTS = 100
@@ -30,6 +35,8 @@ times the cloud's median is a stray (a reflection, dust, a point of the room): d
 reconstruction, whose octree would otherwise span it and lose resolution on the object."""
 MIN_DEPTH = 5
 """The coarsest octree depth a noisy cloud is reconstructed at (32 cells along the longest side)."""
+REBUILD_CHECKED_VERTICES = 20_000
+"""Vertices of a surface rebuilt from samples of a broken mesh measured against it."""
 POINTS_PER_DEPTH_CELL = 24
 """A cloud keeps at most ``POINTS_PER_DEPTH_CELL * 4**depth`` points: about four per cell of the
 octree's finest level that a closed surface meets (some ``6 * 4**depth``). More points add nothing
@@ -111,3 +118,40 @@ def _screened_poisson(points: np.ndarray, depth: int, normals: np.ndarray | None
     current = meshset.current_mesh()
     return (np.ascontiguousarray(current.vertex_matrix(), dtype=np.float64),
             np.ascontiguousarray(current.face_matrix(), dtype=np.int64))
+
+
+def one_sided(faces: np.ndarray) -> str | None:
+    """How many edges two faces of ``faces`` run the same way (re-orienting cannot make them agree:
+    the surface is one-sided, or parts of it were glued through each other), or None when none does."""
+    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    _, directed = np.unique(halfedges[:, 0] * (int(faces.max()) + 1) + halfedges[:, 1], return_counts=True)
+    count = int(np.count_nonzero(directed > 1))
+    return f"{count:,} edges whose faces cannot be oriented alike" if count else None
+
+
+def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, name: str, broken: str
+                         ) -> tuple[np.ndarray, np.ndarray, str]:
+    """The surface screened Poisson reconstructs (:func:`reconstruct_from_points`, normals
+    estimated) from ``POINTS_PER_DEPTH_CELL * 4**depth`` points spread over ``faces`` by area (fixed
+    seed; faces of zero area get none), and the repair line naming ``broken``, what made it necessary.
+    ``UserError`` when nine in ten of its vertices (up to ``REBUILD_CHECKED_VERTICES`` of them) are not
+    within one cell of the Poisson grid of the input: sheets without thickness rebuild into a blob."""
+    face_areas = areas(corners(vertices, faces))
+    rng = np.random.default_rng(0)
+    count = POINTS_PER_DEPTH_CELL * 4**depth
+    picked = rng.choice(len(faces), count, p=face_areas / face_areas.sum())
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    points = np.einsum("kc,kcd->kd", bary, vertices[faces[picked]])
+    surface = reconstruct_from_points(points, depth, f"the surface of {name}")
+    cell = float(np.ptp(points, axis=0).max()) / 2**surface.depth
+    checked = surface.vertices[:: -(-len(surface.vertices) // REBUILD_CHECKED_VERTICES)]
+    off = float(np.percentile(trimesh.Trimesh(vertices, faces, process=False).nearest.on_surface(checked)[1], 90))
+    if off > cell:
+        raise UserError(
+            f"{name}: repair left {broken}, and the surface rebuilt from samples of it strays {off:.1f} mm from it (90th "
+            f"percentile, more than the {cell:.1f} mm grid): it is no solid's surface (sheets without thickness, open "
+            "parts); make it one closed, manifold surface in a mesh editor, or export the parts as one solid")
+    line = (f"rebuilt the surface from {count:,} points sampled on it (screened Poisson, depth {surface.depth}, within "
+            f"{off:.1f} mm of it at nine vertices in ten): repair left {broken}; {len(surface.faces):,} faces")
+    return surface.vertices, surface.faces, line

@@ -9,7 +9,7 @@ Nodes:
   connected component (a scan's loose fragments), and make the orientation outward (signed
   volume > 0). A surface these filters cannot make manifold and coherently oriented (a model whose
   parts were glued through each other, a non-orientable export) is rebuilt by screened Poisson from
-  points sampled evenly on all its parts (:func:`rebuilt_from_samples`), then cleaned again. Each change
+  points sampled evenly on all its parts (:func:`.reconstruct.rebuilt_from_samples`), then cleaned again. Each change
   is listed in ``Mesh.repairs``.
 * ``mesh.remesh`` -- isotropic explicit remeshing to a target edge length in mm, or to a target
   vertex count (the edge length is solved for in a few passes). A dense input (a scan with
@@ -24,7 +24,6 @@ from typing import Literal
 
 import numpy as np
 import pymeshlab
-import trimesh
 from pydantic import Field, model_validator
 
 from ...graph.errors import UserError
@@ -32,7 +31,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import Mesh
 from ..geometry.triangles import areas, corners, cross_products, signed_volume
 from .meshset import face_components, from_meshset, to_meshset
-from .reconstruct import POINTS_PER_DEPTH_CELL, reconstruct_from_points
+from .reconstruct import one_sided, rebuilt_from_samples
 from .topology import keeps_closed_topology
 
 log = logging.getLogger(__name__)
@@ -48,8 +47,6 @@ MAX_REMESH_VERTICES = 1_000_000
 SPLIT_SEPARATION = 0.2
 """mesh.repair: each copy of a split non-manifold vertex moves this share of the way to the centroid
 of its own neighbours."""
-REBUILD_CHECKED_VERTICES = 20_000
-"""mesh.repair: vertices of a surface rebuilt from samples measured against the input."""
 NON_MANIFOLD_ROUNDS = 4
 """mesh.repair: rounds of non-manifold edge and vertex repair before the surface is rebuilt instead."""
 FLAT_FACE_RATIO = 100.0
@@ -205,43 +202,6 @@ def cleaned(vertices: np.ndarray, faces: np.ndarray, params: RepairParams, sourc
     if len(faces) == 0:
         raise UserError(f"repair left no faces in {source}: the input is not a usable surface")
     return vertices, faces, done, non_manifold or one_sided(faces)
-
-
-def one_sided(faces: np.ndarray) -> str | None:
-    """How many edges two faces of ``faces`` run the same way (re-orienting cannot make them agree:
-    the surface is one-sided, or parts of it were glued through each other), or None when none does."""
-    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    _, directed = np.unique(halfedges[:, 0] * (int(faces.max()) + 1) + halfedges[:, 1], return_counts=True)
-    count = int(np.count_nonzero(directed > 1))
-    return f"{count:,} edges whose faces cannot be oriented alike" if count else None
-
-
-def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, name: str, broken: str
-                         ) -> tuple[np.ndarray, np.ndarray, str]:
-    """The surface screened Poisson reconstructs (:func:`.reconstruct.reconstruct_from_points`, normals
-    estimated) from ``POINTS_PER_DEPTH_CELL * 4**depth`` points spread over ``faces`` by area (fixed
-    seed; faces of zero area get none), and the repair line naming ``broken``, what made it necessary.
-    ``UserError`` when nine in ten of its vertices (up to ``REBUILD_CHECKED_VERTICES`` of them) are not
-    within one cell of the Poisson grid of the input: sheets without thickness rebuild into a blob."""
-    face_areas = areas(corners(vertices, faces))
-    rng = np.random.default_rng(0)
-    count = POINTS_PER_DEPTH_CELL * 4**depth
-    picked = rng.choice(len(faces), count, p=face_areas / face_areas.sum())
-    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
-    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    points = np.einsum("kc,kcd->kd", bary, vertices[faces[picked]])
-    surface = reconstruct_from_points(points, depth, f"the surface of {name}")
-    cell = float(np.ptp(points, axis=0).max()) / 2**surface.depth
-    checked = surface.vertices[:: -(-len(surface.vertices) // REBUILD_CHECKED_VERTICES)]
-    off = float(np.percentile(trimesh.Trimesh(vertices, faces, process=False).nearest.on_surface(checked)[1], 90))
-    if off > cell:
-        raise UserError(
-            f"{name}: repair left {broken}, and the surface rebuilt from samples of it strays {off:.1f} mm from it (90th "
-            f"percentile, more than the {cell:.1f} mm grid): it is no solid's surface (sheets without thickness, open "
-            "parts); make it one closed, manifold surface in a mesh editor, or export the parts as one solid")
-    line = (f"rebuilt the surface from {count:,} points sampled on it (screened Poisson, depth {surface.depth}, within "
-            f"{off:.1f} mm of it at nine vertices in ten): repair left {broken}; {len(surface.faces):,} faces")
-    return surface.vertices, surface.faces, line
 
 
 class RemeshParams(NodeParams):
