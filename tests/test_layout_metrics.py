@@ -13,8 +13,8 @@ from retrotouch.nodes.layout import metrics, samples as samples_module
 from retrotouch.nodes.layout.metrics import (
     UNCOVERED_SPOTS_LISTED, coefficient_of_variation, min_pairwise, row_minima, uncovered_spots, voronoi_cell_areas,
 )
-from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners
-from retrotouch.nodes.layout.samples import HeatGeodesics, SamplesParams, geodesics_for, mean_edge_mm, surface_samples
+from retrotouch.nodes.geometry.triangles import areas as triangle_areas, corners, mean_edge_mm
+from retrotouch.nodes.layout.samples import HeatGeodesics, SamplesParams, geodesics_for, surface_samples
 from retrotouch.nodes.mesh.repair import isotropic_remesh
 
 

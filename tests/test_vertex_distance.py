@@ -6,7 +6,7 @@ import potpourri3d as pp3d
 from test_layout_fixtures import RADIUS_MM, sphere_mesh
 
 from retrotouch.nodes.geometry.vertex_distance import VertexDistances
-from retrotouch.nodes.layout.samples import mean_edge_mm
+from retrotouch.nodes.geometry.triangles import mean_edge_mm
 
 
 def sphere_distance_mm(vertices: np.ndarray, sources: np.ndarray) -> np.ndarray:

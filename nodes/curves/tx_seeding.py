@@ -8,6 +8,7 @@ import numpy as np
 
 from ..data.types import CurveEnd, CurveSet
 from ..geometry.mesh_tables import MeshTables
+from ..geometry.triangles import mean_edge_mm
 from ..geometry.vertex_distance import VertexDistances
 from .assembly import assemble, concat_traces, join_both_ways, pick_curves
 from .connection import DirectionField
@@ -191,8 +192,7 @@ def adaptive_tx_traces(params: TraceTxParams, tables: MeshTables, regions, field
     vertices = np.unique(tables.faces[sensing])
     points = tables.vertices[vertices]
     blocked = np.zeros(len(vertices), dtype=bool)
-    edges = tables.vertices[tables.faces] - tables.vertices[np.roll(tables.faces, 1, axis=1)]
-    resolution = float(np.mean(np.linalg.norm(edges, axis=2)))
+    resolution = mean_edge_mm(tables.vertices, tables.faces)
     while len(phi) < params.n_curves:
         curves, _ = assemble(tables, concat_traces(parts), start_region, "tx", 0.0)
         gap = np.where(blocked, 0.0, gap_distances(solver, tables, curves, vertices))

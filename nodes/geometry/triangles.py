@@ -14,6 +14,18 @@ def corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.asarray(vertices, dtype=float)[np.asarray(faces)]
 
 
+def mean_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The mean length (mm) of the faces' edges, each counted once per face it bounds."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return float(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1).mean())
+
+
+def random_barycentrics(rng: np.random.Generator, count: int) -> np.ndarray:
+    """``(count, 3)`` barycentrics of points drawn uniformly by area inside a triangle."""
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    return np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
+
+
 def cross_products(triangles: np.ndarray) -> np.ndarray:
     """``(m, 3)`` ``cross(p1 - p0, p2 - p0)`` of ``(m, 3, 3)`` triangles: outward, length 2 x area."""
     return np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])

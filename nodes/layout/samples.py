@@ -32,7 +32,7 @@ from ...graph.node import NodeParams, node
 from ..data.types import Mesh, SurfaceRegions
 from ..geometry.proxy import PROXY_VERTICES, proxy_of
 from ..geometry.sparse_spd import cholesky, solve
-from ..geometry.triangles import areas, corners, cross_products, normals, zero_area
+from ..geometry.triangles import areas, corners, cross_products, mean_edge_mm, normals, random_barycentrics, zero_area
 
 _COLUMNS_PER_BATCH = 8  # sources solved per block; bounds memory to ~(3 * faces * 8) float64 temporaries
 
@@ -119,12 +119,6 @@ class HeatSolver:
             if not np.isfinite(out[:, sl]).all():  # never silently: phase 1 would quantise garbage
                 raise FloatingPointError(f"heat-method distances from sources {start}..{start + len(source_corners) - 1} are not finite")
         return out
-
-
-def mean_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """The mean length (mm) of the faces' edges, each counted once per face it bounds."""
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return float(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1).mean())
 
 
 class HeatGeodesics:
@@ -240,8 +234,7 @@ def sample_surface(
     stale = 0
     while len(kept_f) < count:
         f = idx[np.minimum(np.searchsorted(cdf, rng.random(256)), len(idx) - 1)]
-        r1, r2 = np.sqrt(rng.random(256)), rng.random(256)
-        b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
+        b = random_barycentrics(rng, 256)
         p = np.einsum("kc,kcd->kd", b, vertices[faces[f]])
         added = 0
         for j in range(256):

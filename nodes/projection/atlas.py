@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 
 from ..data.types import CurveSet, Layout, Mesh
-from ..geometry.triangles import areas, corners
+from ..geometry.triangles import areas, corners, mean_edge_mm
 
 SAMPLE_SPACING_MM = 0.25
 """Curves are sampled this densely (mm) to find the faces near them."""
@@ -87,12 +87,10 @@ def _xatlas(vertices: np.ndarray, faces: np.ndarray, texture_px: int, padding_px
     UVs are scaled alike in u and v (texels stay square when xatlas's atlas is not)."""
     import xatlas
 
-    tri = corners(vertices, faces)
-    mean_edge_mm = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
     atlas = xatlas.Atlas()
     atlas.add_mesh(vertices.astype(np.float32), faces.astype(np.uint32))
     charts = xatlas.ChartOptions()
-    charts.max_boundary_length = CHART_BOUNDARY_EDGES * mean_edge_mm
+    charts.max_boundary_length = CHART_BOUNDARY_EDGES * mean_edge_mm(vertices, faces)
     pack = xatlas.PackOptions()
     pack.resolution = max(1, texture_px // 2)
     pack.padding = -(-padding_px // 2)
