@@ -22,8 +22,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ...graph.errors import UserError
-from ..geometry.triangles import areas, corners
-from .topology import topology_report
+from ..geometry.triangles import areas, corners, random_barycentrics
+from .topology import inconsistent_edges, topology_report
 
 MIN_POINTS = 100
 """Fewer points than this cannot describe a surface."""
@@ -121,11 +121,8 @@ def _screened_poisson(points: np.ndarray, depth: int, normals: np.ndarray | None
 
 
 def one_sided(faces: np.ndarray) -> str | None:
-    """How many edges two faces of ``faces`` run the same way (re-orienting cannot make them agree:
-    the surface is one-sided, or parts of it were glued through each other), or None when none does."""
-    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
-    _, directed = np.unique(halfedges[:, 0] * (int(faces.max()) + 1) + halfedges[:, 1], return_counts=True)
-    count = int(np.count_nonzero(directed > 1))
+    """What :func:`.topology.inconsistent_edges` finds in ``faces``, in words, or None when none."""
+    count = inconsistent_edges(faces)
     return f"{count:,} edges whose faces cannot be oriented alike" if count else None
 
 
@@ -140,9 +137,7 @@ def rebuilt_from_samples(vertices: np.ndarray, faces: np.ndarray, depth: int, na
     rng = np.random.default_rng(0)
     count = POINTS_PER_DEPTH_CELL * 4**depth
     picked = rng.choice(len(faces), count, p=face_areas / face_areas.sum())
-    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
-    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    points = np.einsum("kc,kcd->kd", bary, vertices[faces[picked]])
+    points = np.einsum("kc,kcd->kd", random_barycentrics(rng, count), vertices[faces[picked]])
     surface = reconstruct_from_points(points, depth, f"the surface of {name}")
     cell = float(np.ptp(points, axis=0).max()) / 2**surface.depth
     checked = surface.vertices[:: -(-len(surface.vertices) // REBUILD_CHECKED_VERTICES)]

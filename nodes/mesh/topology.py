@@ -26,6 +26,16 @@ MIN_MEAN_THICKNESS_MM = 0.01
 this close to one plane, is a flat sheet, not an object."""
 
 
+def inconsistent_edges(faces: np.ndarray) -> int:
+    """How many edges two of ``faces`` (m, 3) traverse in the same direction (no re-orientation makes
+    them agree when the surface is one-sided, or parts of it were glued through each other)."""
+    if not faces.size:
+        return 0
+    halfedges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    _, directed_count = np.unique(halfedges[:, 0] * (int(faces.max()) + 1) + halfedges[:, 1], return_counts=True)
+    return int(np.count_nonzero(directed_count > 1))
+
+
 def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | float]:
     """Topological measures of a triangle mesh (plain ints/floats).
 
@@ -40,7 +50,6 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
     n_keys = max(int(faces.max()) + 1, 1) if faces.size else 1  # an edge (a, b) as the one number a * n_keys + b
     keys, edge_count = np.unique(halfedges.min(axis=1) * n_keys + halfedges.max(axis=1), return_counts=True)
     edges = np.stack(np.divmod(keys, n_keys), axis=1)
-    _, directed_count = np.unique(halfedges[:, 0] * n_keys + halfedges[:, 1], return_counts=True)
     boundary = edges[edge_count == 1]
     if len(boundary):
         n = int(boundary.max()) + 1
@@ -64,7 +73,7 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | 
         "holes": int(holes),
         "non_manifold_edges": int(np.count_nonzero(edge_count > 2)),
         "non_manifold_vertices": int(measures["non_two_manifold_vertices"]),
-        "inconsistent_edges": int(np.count_nonzero(directed_count > 1)),
+        "inconsistent_edges": inconsistent_edges(faces),
         "zero_area_faces": int(np.count_nonzero(zero_area(double_areas))),
         "euler_characteristic": int(chi),
         "genus": int((2 * components - chi - holes) // 2),
